@@ -1,0 +1,28 @@
+// The schemas of every mixer_nerf op, in one place. Kernels are attached per device in the op's
+// own source: csrc/<op>.cpp (CPU) and csrc/cuda/<op>.cu (CUDA), with TORCH_LIBRARY_IMPL.
+#include <Python.h>
+#include <torch/library.h>
+
+TORCH_LIBRARY(mixer_nerf, m) {
+  // positional_encoding: x (..., D) -> (..., D * (include_input + 2 * num_freqs))
+  m.def("positional_encoding_fwd(Tensor x, int num_freqs, bool include_input, float scale) -> Tensor");
+  m.def("positional_encoding_bwd(Tensor grad_out, Tensor x, int num_freqs, bool include_input, float scale) -> Tensor");
+  // sample_pdf: bins (R, B+1), weights (R, B), u (R, N) -> samples (R, N)
+  m.def("sample_pdf_fwd(Tensor bins, Tensor weights, Tensor u, float weight_padding) -> Tensor");
+  m.def("sample_pdf_bwd(Tensor grad_samples, Tensor bins, Tensor weights, Tensor u, float weight_padding) -> (Tensor, Tensor)");
+  // hierarchical_samples: z_coarse (R, S), weights (R, S), u (R, N) -> merged depths (R, S+N)
+  m.def("hierarchical_samples_fwd(Tensor z_coarse, Tensor weights, Tensor u, float weight_padding) -> Tensor");
+  // composite: sigmas (R, S), rgbs (R, S, C), t_starts/t_ends (R, S), background (C) or (R, C)
+  //   -> color (R, C), depth (R), opacity (R), weights (R, S)
+  m.def("composite_fwd(Tensor sigmas, Tensor rgbs, Tensor t_starts, Tensor t_ends, Tensor? background) -> (Tensor, Tensor, Tensor, Tensor)");
+  m.def("composite_bwd(Tensor grad_color, Tensor grad_depth, Tensor grad_opacity, Tensor grad_weights, Tensor sigmas, Tensor rgbs, Tensor t_starts, Tensor t_ends, Tensor? background, Tensor color, Tensor depth, Tensor opacity, Tensor weights) -> (Tensor, Tensor, Tensor, Tensor, Tensor?)");
+}
+
+// The ahead-of-time build imports this library as the Python module mixer_nerf._C; the JIT
+// build loads it with torch.ops.load_library. Either way only the registrations above matter.
+#define MIXER_NERF_CONCAT_(a, b) a##b
+#define MIXER_NERF_CONCAT(a, b) MIXER_NERF_CONCAT_(a, b)
+extern "C" PyObject* MIXER_NERF_CONCAT(PyInit_, TORCH_EXTENSION_NAME)(void) {
+  static PyModuleDef module = {PyModuleDef_HEAD_INIT, "_C", "mixer_nerf kernels (ops live in torch.ops.mixer_nerf)", -1, nullptr};
+  return PyModule_Create(&module);
+}

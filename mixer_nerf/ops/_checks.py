@@ -1,0 +1,71 @@
+"""Input validation shared by every op wrapper: clear errors naming the argument, raised before
+any kernel runs (kernels keep only defensive TORCH_CHECKs)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+
+BACKENDS = ("auto", "kernel", "torch")
+
+
+def check_backend(backend: str) -> None:
+    if backend not in BACKENDS:
+        raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+
+
+def check_tensor(name: str, value: object) -> torch.Tensor:
+    if not isinstance(value, torch.Tensor):
+        raise TypeError(f"{name} must be a torch.Tensor, got {type(value).__name__}")
+    return value
+
+
+def check_floating(name: str, t: torch.Tensor) -> None:
+    check_tensor(name, t)
+    if not t.is_floating_point():
+        raise TypeError(f"{name} must be a floating-point tensor, got dtype {t.dtype}")
+
+
+def check_ndim(name: str, t: torch.Tensor, ndim: int | Sequence[int]) -> None:
+    allowed = (ndim,) if isinstance(ndim, int) else tuple(ndim)
+    if t.dim() not in allowed:
+        want = " or ".join(str(n) for n in allowed)
+        raise ValueError(f"{name} must have {want} dimensions, got shape {tuple(t.shape)}")
+
+
+def check_shape(name: str, t: torch.Tensor, shape: Sequence[int | None], hint: str = "") -> None:
+    """``shape`` entries of None match any size."""
+    ok = t.dim() == len(shape) and all(s is None or s == n for s, n in zip(shape, t.shape))
+    if not ok:
+        want = "(" + ", ".join("*" if s is None else str(s) for s in shape) + ")"
+        raise ValueError(f"{name} must have shape {want}{hint}, got {tuple(t.shape)}")
+
+
+def check_same_device(**tensors: torch.Tensor | None) -> torch.device:
+    present = {k: v for k, v in tensors.items() if v is not None}
+    devices = {v.device for v in present.values()}
+    if len(devices) > 1:
+        listing = ", ".join(f"{k} on {v.device}" for k, v in present.items())
+        raise ValueError(f"all tensors must be on one device, got {listing}")
+    return next(iter(devices))
+
+
+def check_same_dtype(**tensors: torch.Tensor | None) -> torch.dtype:
+    present = {k: v for k, v in tensors.items() if v is not None}
+    dtypes = {v.dtype for v in present.values()}
+    if len(dtypes) > 1:
+        listing = ", ".join(f"{k} is {v.dtype}" for k, v in present.items())
+        raise TypeError(f"all tensors must have one dtype, got {listing}")
+    return next(iter(dtypes))
+
+
+def check_sorted(name: str, t: torch.Tensor) -> None:
+    """Non-decreasing along the last dimension (NaN entries are not judged here)."""
+    if t.shape[-1] > 1 and bool((t[..., 1:] < t[..., :-1]).any()):
+        raise ValueError(f"{name} must be sorted (non-decreasing) along its last dimension")
+
+
+def check_nonnegative(name: str, t: torch.Tensor) -> None:
+    if t.numel() and bool((t < 0).any()):
+        raise ValueError(f"{name} must be non-negative")
