@@ -42,8 +42,8 @@ def extension_build():
         name="mixer_nerf._C",
         include_dirs=[str(_sources.CSRC)],
         extra_compile_args={
-            "cxx": ["-O3", "-std=c++17", "-fopenmp"],
-            "nvcc": ["-O3", "-std=c++17", "--use_fast_math", "-lineinfo"],
+            "cxx": ["-O3", "-fopenmp"],
+            "nvcc": ["-O3", "-lineinfo"],
         },
         extra_link_args=["-fopenmp"],
     )

@@ -23,6 +23,10 @@ TORCH_LIBRARY(mixer_nerf, m) {
 #define MIXER_NERF_CONCAT_(a, b) a##b
 #define MIXER_NERF_CONCAT(a, b) MIXER_NERF_CONCAT_(a, b)
 extern "C" PyObject* MIXER_NERF_CONCAT(PyInit_, TORCH_EXTENSION_NAME)(void) {
-  static PyModuleDef module = {PyModuleDef_HEAD_INIT, "_C", "mixer_nerf kernels (ops live in torch.ops.mixer_nerf)", -1, nullptr};
+  static PyModuleDef module = {};
+  module.m_base = PyModuleDef_HEAD_INIT;
+  module.m_name = "_C";
+  module.m_doc = "mixer_nerf kernels; the ops live in torch.ops.mixer_nerf";
+  module.m_size = -1;
   return PyModule_Create(&module);
 }

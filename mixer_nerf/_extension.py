@@ -78,9 +78,9 @@ def _jit_build() -> None:
     cpp_extension.load(
         name="mixer_nerf_C",
         sources=[str(s) for s in sources],
-        extra_cflags=["-O3", "-std=c++17", "-fopenmp"],
+        extra_cflags=["-O3", "-fopenmp"],
         extra_ldflags=["-fopenmp"],
-        extra_cuda_cflags=["-O3", "-std=c++17", "--use_fast_math", "-lineinfo"] + _cuda_arch_flags(),
+        extra_cuda_cflags=["-O3", "-lineinfo"] + _cuda_arch_flags(),
         extra_include_paths=[str(_sources.CSRC)],
         build_directory=str(build_dir),
         with_cuda=with_cuda,
