@@ -1,0 +1,103 @@
+"""Benchmark every op side by side: our kernels vs the eager reference vs torch.compile vs nerfacc.
+
+    python -m benchmarks.bench_ops [--device cuda|cpu] [--ops composite,sample_pdf] [--out DIR]
+
+Cases come from ``benchmarks/cases_<op>.py``. Writes ``ops_<device>.md`` and ``.json`` (and a
+time-against-error plot) under ``--out`` (default ``benchmarks/results``) and prints the table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import datetime
+import importlib
+import json
+import platform
+from pathlib import Path
+
+import torch
+
+from benchmarks.harness import Result, copy_bandwidth_gbps, run_case
+
+OPS = ("positional_encoding", "sample_pdf", "composite")
+
+
+def device_name(device: torch.device) -> str:
+    if device.type == "cuda":
+        return torch.cuda.get_device_name(device)
+    return f"{platform.processor() or platform.machine()} CPU, {torch.get_num_threads()} threads"
+
+
+def fmt(value: float | None, spec: str) -> str:
+    return "-" if value is None else format(value, spec)
+
+
+def table(results: list[Result], copy_gbps: float | None) -> str:
+    head = "| op | mode | size | variant | ms | GB/s | % of copy | max abs err | max rel err | kernel speedup |"
+    lines = [head, "|---|---|---|---|---:|---:|---:|---:|---:|---|"]
+    for r in results:
+        pct = None if (r.gbps is None or not copy_gbps) else 100 * r.gbps / copy_gbps
+        speed = ", ".join(f"{v:.1f}x vs {k}" for k, v in r.speedups.items())
+        ms = fmt(r.ms, ".3f") if r.error is None else f"failed: {r.error}"
+        lines.append(
+            f"| {r.op} | {r.mode} | {r.size} | {r.variant} | {ms} | {fmt(r.gbps, '.0f')} | {fmt(pct, '.0f')} "
+            f"| {fmt(r.max_abs_err, '.2e')} | {fmt(r.max_rel_err, '.2e')} | {speed} |"
+        )
+    return "\n".join(lines)
+
+
+def plot(results: list[Result], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    groups = sorted({(r.op, r.mode) for r in results})
+    fig, axes = plt.subplots(1, len(groups), figsize=(4.5 * len(groups), 4), squeeze=False)
+    for ax, (op, mode) in zip(axes[0], groups):
+        for r in results:
+            if (r.op, r.mode) == (op, mode) and r.ms and r.max_rel_err is not None:
+                ax.scatter(r.ms, max(r.max_rel_err, 1e-17))
+                ax.annotate(r.variant, (r.ms, max(r.max_rel_err, 1e-17)), fontsize=7)
+        ax.set(xscale="log", yscale="log", xlabel="time (ms)", ylabel="max rel. error vs float64", title=f"{op} {mode}")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    parser.add_argument("--ops", default=",".join(OPS))
+    parser.add_argument("--out", default=str(Path(__file__).parent / "results"))
+    parser.add_argument("--repeats", type=int, default=None)
+    args = parser.parse_args()
+    device = torch.device(args.device)
+    repeats = args.repeats or (50 if device.type == "cuda" else 5)
+    copy_gbps = copy_bandwidth_gbps(device) if device.type == "cuda" else None
+
+    results: list[Result] = []
+    for op in args.ops.split(","):
+        module = importlib.import_module(f"benchmarks.cases_{op}")
+        for case in module.cases(device):
+            results.extend(run_case(case, device, repeats=repeats, warmup=max(2, repeats // 10)))
+            torch.manual_seed(0)
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    stamp = datetime.date.today().isoformat()
+    header = (f"# Op benchmarks on {device_name(device)}, {stamp}\n\ntorch {torch.__version__}; "
+              f"median of {repeats} runs; errors against a float64 reference (rel: scaled by each output's max |truth|)"
+              + (f"; device copy bandwidth {copy_gbps:.0f} GB/s (read + write)" if copy_gbps else "")
+              + "\n\nCommand: `python -m benchmarks.bench_ops " + f"--device {device.type}`\n\n")
+    text = header + table(results, copy_gbps) + "\n"
+    (out / f"ops_{device.type}.md").write_text(text)
+    (out / f"ops_{device.type}.json").write_text(json.dumps({
+        "device": device_name(device), "date": stamp, "torch": torch.__version__, "copy_gbps": copy_gbps,
+        "results": [dataclasses.asdict(r) for r in results]}, indent=1))
+    plot(results, out / f"ops_{device.type}_time_vs_error.png")
+    print(text)
+
+
+if __name__ == "__main__":
+    main()

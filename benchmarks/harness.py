@@ -1,0 +1,128 @@
+"""Side-by-side timing and error measurement for op benchmarks.
+
+A :class:`Case` is one op at one size in one mode; its variants (our kernel, the eager reference,
+the reference under ``torch.compile``, nerfacc, accuracy-trading variants) run in the same process
+on the same inputs. Each is timed (median of CUDA-event timings on GPU, of ``perf_counter`` on CPU)
+and compared with a float64 truth; achieved bandwidth is ``min_bytes / time``.
+"""
+
+from __future__ import annotations
+
+import statistics
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+
+
+@dataclass
+class Variant:
+    name: str
+    fn: Callable[[], Any]  # runs the op once; returns the tensor(s) to compare with the truth
+
+
+@dataclass
+class Case:
+    op: str
+    mode: str  # "fwd" or "fwd+bwd"
+    size: str
+    variants: list[Variant]
+    truth: Callable[[], Any]  # float64 result, same structure as each variant's
+    min_bytes: int  # the fewest bytes the op must move (inputs read once, outputs written once)
+
+
+@dataclass
+class Result:
+    op: str
+    mode: str
+    size: str
+    variant: str
+    ms: float | None
+    gbps: float | None
+    max_abs_err: float | None
+    max_rel_err: float | None
+    error: str | None = None
+    speedups: dict[str, float] = field(default_factory=dict)
+
+
+def _flatten(value: Any) -> list[torch.Tensor]:
+    if isinstance(value, torch.Tensor):
+        return [value]
+    if value is None:
+        return []
+    return [t for item in value for t in _flatten(item)]
+
+
+def errors(result: Any, truth: Any) -> tuple[float, float]:
+    """Max absolute error and max error relative to the largest magnitude of each truth tensor.
+
+    A relative error per element blows up where the truth is ~0, so each tensor's error is
+    scaled by that tensor's max |truth|. Non-finite outputs give inf.
+    """
+    max_abs, max_rel = 0.0, 0.0
+    for got, want in zip(_flatten(result), _flatten(truth), strict=True):
+        got, want = got.detach().double().cpu(), want.detach().double().cpu()
+        if not torch.isfinite(got).all():
+            return float("inf"), float("inf")
+        if got.numel() == 0:
+            continue
+        diff = (got - want).abs().max().item()
+        scale = max(want.abs().max().item(), 1e-30)
+        max_abs, max_rel = max(max_abs, diff), max(max_rel, diff / scale)
+    return max_abs, max_rel
+
+
+def time_ms(fn: Callable[[], Any], device: torch.device, repeats: int, warmup: int) -> float:
+    """Median milliseconds of ``fn`` after ``warmup`` calls."""
+    for _ in range(warmup):
+        fn()
+    samples = []
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+        for _ in range(repeats):
+            start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
+            start.record()
+            fn()
+            end.record()
+            end.synchronize()
+            samples.append(start.elapsed_time(end))
+    else:
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            fn()
+            samples.append((time.perf_counter() - t0) * 1e3)
+    return statistics.median(samples)
+
+
+def copy_bandwidth_gbps(device: torch.device, nbytes: int = 1 << 30) -> float:
+    """Device-to-device copy bandwidth, counting bytes read plus bytes written."""
+    src = torch.empty(nbytes // 4, dtype=torch.float32, device=device).uniform_()
+    dst = torch.empty_like(src)
+    ms = time_ms(lambda: dst.copy_(src), device, repeats=20, warmup=3)
+    return 2 * nbytes / (ms * 1e-3) / 1e9
+
+
+def run_case(case: Case, device: torch.device, repeats: int, warmup: int) -> list[Result]:
+    truth = case.truth()
+    results = []
+    for variant in case.variants:
+        try:
+            out = variant.fn()
+            abs_err, rel_err = errors(out, truth)
+            del out
+            ms = time_ms(variant.fn, device, repeats, warmup)
+            gbps = case.min_bytes / (ms * 1e-3) / 1e9
+            results.append(Result(case.op, case.mode, case.size, variant.name, ms, gbps, abs_err, rel_err))
+        except Exception as exc:  # a peer that fails to build or run is reported, not fatal
+            results.append(Result(case.op, case.mode, case.size, variant.name, None, None, None, None,
+                                  error=f"{type(exc).__name__}: {str(exc).splitlines()[0][:160]}"))
+        if device.type == "cuda":
+            torch.cuda.empty_cache()
+    ours = next((r for r in results if r.variant == "kernel" and r.ms), None)
+    if ours is not None:
+        for r in results:
+            if r.ms and r is not ours:
+                ours.speedups[r.variant] = r.ms / ours.ms
+    return results
