@@ -15,7 +15,8 @@ TORCH_LIBRARY(mixer_nerf, m) {
   // composite: sigmas (R, S), rgbs (R, S, C), t_starts/t_ends (R, S), background (C) or (R, C)
   //   -> color (R, C), depth (R), opacity (R), weights (R, S)
   m.def("composite_fwd(Tensor sigmas, Tensor rgbs, Tensor t_starts, Tensor t_ends, Tensor? background) -> (Tensor, Tensor, Tensor, Tensor)");
-  m.def("composite_bwd(Tensor grad_color, Tensor grad_depth, Tensor grad_opacity, Tensor grad_weights, Tensor sigmas, Tensor rgbs, Tensor t_starts, Tensor t_ends, Tensor? background, Tensor color, Tensor depth, Tensor opacity, Tensor weights) -> (Tensor, Tensor, Tensor, Tensor, Tensor?)");
+  //   backward: absent upstream gradients are zeros; interval_grads=False skips grad_t_starts/t_ends
+  m.def("composite_bwd(Tensor? grad_color, Tensor? grad_depth, Tensor? grad_opacity, Tensor? grad_weights, Tensor sigmas, Tensor rgbs, Tensor t_starts, Tensor t_ends, Tensor? background, bool interval_grads) -> (Tensor, Tensor, Tensor?, Tensor?, Tensor?)");
 }
 
 // The ahead-of-time build imports this library as the Python module mixer_nerf._C; the JIT
