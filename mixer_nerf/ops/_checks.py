@@ -69,3 +69,18 @@ def check_sorted(name: str, t: torch.Tensor) -> None:
 def check_nonnegative(name: str, t: torch.Tensor) -> None:
     if t.numel() and bool((t < 0).any()):
         raise ValueError(f"{name} must be non-negative")
+
+
+def check_in_range(name: str, t: torch.Tensor, low: float, high: float) -> None:
+    """Every entry in [low, high] (NaN fails)."""
+    if t.numel() and not bool(((t >= low) & (t <= high)).all()):
+        raise ValueError(f"{name} must lie in [{low}, {high}]")
+
+
+def check_int(name: str, value: object, minimum: int = 0) -> int:
+    """A Python integer >= minimum (bool is rejected)."""
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise TypeError(f"{name} must be an int, got {type(value).__name__}")
+    if value < minimum:
+        raise ValueError(f"{name} must be >= {minimum}, got {value}")
+    return value
