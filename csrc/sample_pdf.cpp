@@ -1,0 +1,166 @@
+// sample_pdf and hierarchical_samples on the CPU: one sequential pass per ray, rays in parallel.
+//
+// Per ray the unnormalised CDF is built once (sample_pdf_math.h); the samples are sorted, so
+// their bins are found by walking forward through it (O(B + N), no binary search), and the fine
+// samples of hierarchical_samples come out sorted and are merged with the coarse depths on the
+// fly (no sort). The backward is one reverse pass per ray (sample_pdf_ray_backward).
+#include <torch/library.h>
+
+#include <ATen/ATen.h>
+#include <ATen/Parallel.h>
+
+#include <tuple>
+#include <vector>
+
+#include "common.h"
+#include "sample_pdf_math.h"
+
+namespace mixer_nerf {
+namespace {
+
+using namespace sample_pdf_math;
+
+// Shapes and the common checks of the three ops: rows of `edges_or_z` and `weights` are rays,
+// u is (N) shared by every ray or (R, N), in the accumulation dtype.
+struct RayBatch {
+  int64_t rays;
+  int64_t samples;
+  int64_t u_row_stride;
+};
+
+RayBatch check_batch(const at::Tensor& edges_or_z, const at::Tensor& weights, const at::Tensor& u) {
+  MIXER_NERF_CHECK_INPUT(edges_or_z, at::kCPU);
+  MIXER_NERF_CHECK_INPUT(weights, at::kCPU);
+  MIXER_NERF_CHECK_INPUT(u, at::kCPU);
+  TORCH_CHECK(edges_or_z.dim() == 2 && weights.dim() == 2, "expected 2-D bins/z and weights");
+  TORCH_CHECK(weights.scalar_type() == edges_or_z.scalar_type(), "weights must have the dtype of bins/z");
+  TORCH_CHECK(weights.size(0) == edges_or_z.size(0), "weights and bins/z must have the same number of rays");
+  TORCH_CHECK(u.scalar_type() == at::toOpMathType(edges_or_z.scalar_type()),
+              "u must be in the accumulation dtype of bins/z (float32, or float64 for float64)");
+  TORCH_CHECK(u.dim() == 1 || (u.dim() == 2 && u.size(0) == edges_or_z.size(0)), "u must be (N) or (R, N)");
+  const int64_t samples = u.size(-1);
+  return {edges_or_z.size(0), samples, u.dim() == 2 ? samples : 0};
+}
+
+int64_t grain_for(int64_t work_per_ray) {
+  return std::max<int64_t>(1, at::internal::GRAIN_SIZE / std::max<int64_t>(1, work_per_ray));
+}
+
+// Calls emit(n, s) for the sorted samples s of one ray, in order.
+template <typename acc_t, typename Weights, typename Edges, typename Emit>
+void sample_ray(Weights weights, Edges edges, int num_bins, const acc_t* u, int64_t num_samples, acc_t* cdf,
+                Emit emit) {
+  const acc_t total = build_cdf(weights, num_bins, cdf);
+  if (no_pdf(total)) {
+    for (int64_t n = 0; n < num_samples; ++n) emit(n, sample_uniform(u[n], num_bins, edges));
+    return;
+  }
+  int k = 0;
+  for (int64_t n = 0; n < num_samples; ++n) {
+    const acc_t v = u[n] * total;
+    k = walk_to_bin(cdf, num_bins, v, k);
+    emit(n, sample_in_bin(v, k, cdf, weights, edges));
+  }
+}
+
+at::Tensor sample_pdf_fwd_cpu(const at::Tensor& bins, const at::Tensor& weights, const at::Tensor& u,
+                              double weight_padding) {
+  const RayBatch batch = check_batch(bins, weights, u);
+  const int64_t num_bins = weights.size(1);
+  TORCH_CHECK(num_bins >= 1 && bins.size(1) == num_bins + 1, "bins must be (R, B+1) for weights (R, B), B >= 1");
+  at::Tensor samples = at::empty({batch.rays, batch.samples}, bins.options());
+  MIXER_NERF_DISPATCH_FLOATING(bins.scalar_type(), "sample_pdf_fwd_cpu", [&] {
+    using acc = acc_t<scalar_t>;
+    const scalar_t* bins_p = bins.data_ptr<scalar_t>();
+    const scalar_t* weights_p = weights.data_ptr<scalar_t>();
+    const acc* u_p = u.data_ptr<acc>();
+    scalar_t* out_p = samples.data_ptr<scalar_t>();
+    at::parallel_for(0, batch.rays, grain_for(num_bins + batch.samples), [&](int64_t begin, int64_t end) {
+      std::vector<acc> cdf(num_bins + 1);
+      for (int64_t r = begin; r < end; ++r) {
+        scalar_t* out = out_p + r * batch.samples;
+        sample_ray(PaddedWeights<acc, scalar_t>{weights_p + r * num_bins, static_cast<acc>(weight_padding)},
+                   GivenEdges<acc, scalar_t>{bins_p + r * (num_bins + 1)}, static_cast<int>(num_bins),
+                   u_p + r * batch.u_row_stride, batch.samples, cdf.data(),
+                   [&](int64_t n, acc s) { out[n] = static_cast<scalar_t>(s); });
+      }
+    });
+  });
+  return samples;
+}
+
+std::tuple<at::Tensor, at::Tensor> sample_pdf_bwd_cpu(const at::Tensor& grad_samples, const at::Tensor& bins,
+                                                      const at::Tensor& weights, const at::Tensor& u,
+                                                      double weight_padding) {
+  const RayBatch batch = check_batch(bins, weights, u);
+  const int64_t num_bins = weights.size(1);
+  TORCH_CHECK(num_bins >= 1 && bins.size(1) == num_bins + 1, "bins must be (R, B+1) for weights (R, B), B >= 1");
+  MIXER_NERF_CHECK_INPUT(grad_samples, at::kCPU);
+  TORCH_CHECK(grad_samples.scalar_type() == bins.scalar_type(), "grad_samples must have the dtype of bins");
+  TORCH_CHECK(grad_samples.dim() == 2 && grad_samples.size(0) == batch.rays && grad_samples.size(1) == batch.samples,
+              "grad_samples must be (R, N)");
+  at::Tensor grad_bins = at::empty_like(bins);
+  at::Tensor grad_weights = at::empty_like(weights);
+  MIXER_NERF_DISPATCH_FLOATING(bins.scalar_type(), "sample_pdf_bwd_cpu", [&] {
+    using acc = acc_t<scalar_t>;
+    const scalar_t* grad_p = grad_samples.data_ptr<scalar_t>();
+    const scalar_t* bins_p = bins.data_ptr<scalar_t>();
+    const scalar_t* weights_p = weights.data_ptr<scalar_t>();
+    const acc* u_p = u.data_ptr<acc>();
+    scalar_t* grad_bins_p = grad_bins.data_ptr<scalar_t>();
+    scalar_t* grad_weights_p = grad_weights.data_ptr<scalar_t>();
+    at::parallel_for(0, batch.rays, grain_for(num_bins + batch.samples), [&](int64_t begin, int64_t end) {
+      std::vector<acc> scratch(num_bins + 1);
+      for (int64_t r = begin; r < end; ++r) {
+        sample_pdf_ray_backward(grad_p + r * batch.samples, bins_p + r * (num_bins + 1), weights_p + r * num_bins,
+                                u_p + r * batch.u_row_stride, static_cast<int>(num_bins),
+                                static_cast<int>(batch.samples), static_cast<acc>(weight_padding), scratch.data(),
+                                grad_bins_p + r * (num_bins + 1), grad_weights_p + r * num_bins);
+      }
+    });
+  });
+  return {grad_bins, grad_weights};
+}
+
+at::Tensor hierarchical_samples_fwd_cpu(const at::Tensor& z_coarse, const at::Tensor& weights, const at::Tensor& u,
+                                        double weight_padding) {
+  const RayBatch batch = check_batch(z_coarse, weights, u);
+  const int64_t coarse = z_coarse.size(1);
+  TORCH_CHECK(coarse >= 3 && weights.size(1) == coarse, "z_coarse and weights must be (R, S), S >= 3");
+  const int64_t num_bins = coarse - 2;  // edges: the S-1 midpoints; weights: weights[:, 1:-1]
+  const int64_t merged = coarse + batch.samples;
+  at::Tensor out = at::empty({batch.rays, merged}, z_coarse.options());
+  MIXER_NERF_DISPATCH_FLOATING(z_coarse.scalar_type(), "hierarchical_samples_fwd_cpu", [&] {
+    using acc = acc_t<scalar_t>;
+    const scalar_t* z_p = z_coarse.data_ptr<scalar_t>();
+    const scalar_t* weights_p = weights.data_ptr<scalar_t>();
+    const acc* u_p = u.data_ptr<acc>();
+    scalar_t* out_p = out.data_ptr<scalar_t>();
+    at::parallel_for(0, batch.rays, grain_for(merged), [&](int64_t begin, int64_t end) {
+      std::vector<acc> cdf(num_bins + 1);
+      for (int64_t r = begin; r < end; ++r) {
+        const scalar_t* z = z_p + r * coarse;
+        scalar_t* row = out_p + r * merged;
+        int64_t j = 0;  // coarse depths emitted so far; ties put the coarse depth first
+        sample_ray(PaddedWeights<acc, scalar_t>{weights_p + r * coarse + 1, static_cast<acc>(weight_padding)},
+                   MidpointEdges<acc, scalar_t>{z}, static_cast<int>(num_bins), u_p + r * batch.u_row_stride,
+                   batch.samples, cdf.data(), [&](int64_t n, acc s) {
+                     while (j < coarse && static_cast<acc>(z[j]) <= s) row[n + j] = z[j], ++j;
+                     row[n + j] = static_cast<scalar_t>(s);
+                   });
+        for (; j < coarse; ++j) row[batch.samples + j] = z[j];
+      }
+    });
+  });
+  return out;
+}
+
+}  // namespace
+
+TORCH_LIBRARY_IMPL(mixer_nerf, CPU, m) {
+  m.impl("sample_pdf_fwd", &sample_pdf_fwd_cpu);
+  m.impl("sample_pdf_bwd", &sample_pdf_bwd_cpu);
+  m.impl("hierarchical_samples_fwd", &hierarchical_samples_fwd_cpu);
+}
+
+}  // namespace mixer_nerf

@@ -1,0 +1,202 @@
+// Per-ray inverse-CDF sampling math shared by the CPU and CUDA kernels of sample_pdf and
+// hierarchical_samples (sample_pdf.cpp, cuda/sample_pdf.cu). The formulation, and the gradient
+// convention at clamps, is the one of mixer_nerf/ops/sample_pdf_reference.py:
+//
+//   w_k = weights_k + pad,  C_k = w_0 + ... + w_{k-1} (sequential, so C is exactly flat over
+//   zero-weight bins and non-decreasing),  W = C_B,  v = u W,
+//   k = #{j in 1..B-1 : C_j < v},  t = clamp((v - C_k) / w_k, 0, 1) (0 if w_k == 0),
+//   s = min(e_k + t (e_{k+1} - e_k), e_{k+1});  rays with W below the smallest normal number
+//   sample s = min(e_0 + u (e_B - e_0), e_B) instead.
+#pragma once
+
+#include <c10/macros/Macros.h>
+
+#include <cfloat>
+
+namespace mixer_nerf {
+namespace sample_pdf_math {
+
+// Below this total weight a ray has no usable PDF (all zero, or so small that w / W would lose
+// precision to subnormals): it samples uniformly between its first and last edge.
+C10_HOST_DEVICE inline float smallest_normal(float) { return FLT_MIN; }
+C10_HOST_DEVICE inline double smallest_normal(double) { return DBL_MIN; }
+
+template <typename acc_t>
+C10_HOST_DEVICE inline bool no_pdf(acc_t total) {
+  return !(total >= smallest_normal(acc_t{}));
+}
+
+// Padded weights of one ray as the accumulation type, read from any element type.
+template <typename acc_t, typename T>
+struct PaddedWeights {
+  const T* w;
+  acc_t pad;
+  C10_HOST_DEVICE acc_t operator()(int k) const { return static_cast<acc_t>(w[k]) + pad; }
+};
+
+// Bin edges of one ray: given directly ...
+template <typename acc_t, typename T>
+struct GivenEdges {
+  const T* e;
+  C10_HOST_DEVICE acc_t operator()(int k) const { return static_cast<acc_t>(e[k]); }
+};
+
+// ... or, as in NeRF's fine pass, the midpoints of the coarse depths.
+template <typename acc_t, typename T>
+struct MidpointEdges {
+  const T* z;
+  C10_HOST_DEVICE acc_t operator()(int k) const {
+    return acc_t(0.5) * (static_cast<acc_t>(z[k]) + static_cast<acc_t>(z[k + 1]));
+  }
+};
+
+// cdf[0..B] = the unnormalised CDF; returns the total weight W = cdf[B].
+template <typename acc_t, typename Weights>
+C10_HOST_DEVICE inline acc_t build_cdf(Weights weights, int num_bins, acc_t* cdf) {
+  acc_t running = 0;
+  cdf[0] = running;
+  for (int k = 0; k < num_bins; ++k) {
+    running += weights(k);
+    cdf[k + 1] = running;
+  }
+  return running;
+}
+
+// The bin k holding v: #{j in 1..B-1 : cdf[j] < v}, by binary search.
+template <typename acc_t>
+C10_HOST_DEVICE inline int find_bin(const acc_t* cdf, int num_bins, acc_t v) {
+  int lo = 1, hi = num_bins;  // answer + 1 lies in [lo, hi]
+  while (lo < hi) {
+    const int mid = (lo + hi) / 2;
+    if (cdf[mid] < v) lo = mid + 1;
+    else hi = mid;
+  }
+  return lo - 1;
+}
+
+// The same bin found by walking forward from `k`, the bin of a smaller v (sorted u).
+template <typename acc_t>
+C10_HOST_DEVICE inline int walk_to_bin(const acc_t* cdf, int num_bins, acc_t v, int k) {
+  while (k < num_bins - 1 && cdf[k + 1] < v) ++k;
+  return k;
+}
+
+// Where v falls inside bin k: t in [0, 1]; `free` when t was not clamped, i.e. when its
+// gradient reaches the weights.
+template <typename acc_t>
+struct Fraction {
+  acc_t t;
+  bool free;
+};
+
+template <typename acc_t>
+C10_HOST_DEVICE inline Fraction<acc_t> fraction_in_bin(acc_t v, acc_t cdf_k, acc_t w_k) {
+  if (!(w_k > 0)) return {acc_t(0), false};  // only v == C_k == 0 before the first weight
+  const acc_t t = (v - cdf_k) / w_k;
+  if (t < 0) return {acc_t(0), false};
+  if (t > 1) return {acc_t(1), false};
+  return {t, true};
+}
+
+// lo + t (hi - lo), capped at hi (rounding can pass it): `capped` sends the gradient to hi.
+template <typename acc_t>
+struct Lerp {
+  acc_t s;
+  bool capped;
+};
+
+template <typename acc_t>
+C10_HOST_DEVICE inline Lerp<acc_t> lerp_capped(acc_t lo, acc_t hi, acc_t t) {
+  const acc_t s = lo + t * (hi - lo);
+  if (s > hi) return {hi, true};
+  return {s, false};
+}
+
+// One sample of a ray with a PDF, given its bin.
+template <typename acc_t, typename Weights, typename Edges>
+C10_HOST_DEVICE inline acc_t sample_in_bin(acc_t v, int k, const acc_t* cdf, Weights weights, Edges edges) {
+  const Fraction<acc_t> f = fraction_in_bin(v, cdf[k], weights(k));
+  return lerp_capped(edges(k), edges(k + 1), f.t).s;
+}
+
+// One sample of a ray without a PDF.
+template <typename acc_t, typename Edges>
+C10_HOST_DEVICE inline acc_t sample_uniform(acc_t u, int num_bins, Edges edges) {
+  return lerp_capped(edges(0), edges(num_bins), u).s;
+}
+
+// Gradients of one ray's samples (B >= 1) with respect to its edges and weights, O(B + N), in one
+// reverse pass over the sorted samples. With a_n = dL/dt_n / w_{k_n} for samples whose t is
+// free, dt_n/dw_i = (u_n - [i < k_n] - [i == k_n] t_n) / w_{k_n}, so
+//   dL/dw_i = sum_n a_n u_n - sum_{n: k_n > i} a_n - sum_{n: k_n == i} a_n t_n.
+// Walking the samples from the last one down, the middle sum is a running suffix. Every element
+// of grad_edges (B+1) and grad_weights (B) is written exactly once; cdf (B+1) is scratch that
+// also holds the partial weight gradients, in the accumulation type, until the last step.
+template <typename acc_t, typename scalar_t>
+C10_HOST_DEVICE inline void sample_pdf_ray_backward(
+    const scalar_t* grad, const scalar_t* bins, const scalar_t* weights, const acc_t* u, int num_bins,
+    int num_samples, acc_t pad, acc_t* cdf, scalar_t* grad_bins, scalar_t* grad_weights) {
+  const PaddedWeights<acc_t, scalar_t> padded{weights, pad};
+  const GivenEdges<acc_t, scalar_t> edges{bins};
+  const acc_t total = build_cdf(padded, num_bins, cdf);
+
+  if (no_pdf(total)) {
+    acc_t first = 0, last = 0;
+    for (int n = 0; n < num_samples; ++n) {
+      const acc_t g = static_cast<acc_t>(grad[n]);
+      if (lerp_capped(edges(0), edges(num_bins), u[n]).capped) {
+        last += g;
+      } else {
+        first += g - g * u[n];
+        last += g * u[n];
+      }
+    }
+    for (int k = 0; k < num_bins; ++k) grad_weights[k] = scalar_t(0);
+    for (int k = 1; k < num_bins; ++k) grad_bins[k] = scalar_t(0);
+    grad_bins[0] = static_cast<scalar_t>(first);
+    grad_bins[num_bins] = static_cast<scalar_t>(last);
+    return;
+  }
+
+  acc_t sum_a_u = 0;   // sum_n a_n u_n, common to every weight
+  acc_t suffix_a = 0;  // sum of a_n over the bins above the current one
+  acc_t bin_a = 0, bin_a_t = 0;       // the current bin's sum of a_n and of a_n t_n
+  acc_t bin_lo = 0, bin_hi = 0;       // gradient reaching the current bin's lower / upper edge
+  acc_t above_lo = 0;                 // gradient reaching edge k+1 as the lower edge of bin k+1
+  int k = num_bins - 1;
+  auto close_bin = [&]() {
+    grad_bins[k + 1] = static_cast<scalar_t>(above_lo + bin_hi);
+    above_lo = bin_lo;
+    cdf[k] = -(suffix_a + bin_a_t);  // C_k is no longer needed
+    suffix_a += bin_a;
+    bin_a = bin_a_t = bin_lo = bin_hi = 0;
+  };
+  for (int n = num_samples - 1; n >= 0; --n) {
+    const acc_t v = u[n] * total;
+    while (k > 0 && !(cdf[k] < v)) {
+      close_bin();
+      --k;
+    }
+    const acc_t g = static_cast<acc_t>(grad[n]);
+    const acc_t lo = edges(k), hi = edges(k + 1), w_k = padded(k);
+    const Fraction<acc_t> f = fraction_in_bin(v, cdf[k], w_k);
+    if (lerp_capped(lo, hi, f.t).capped) {
+      bin_hi += g;
+      continue;
+    }
+    bin_lo += g - g * f.t;
+    bin_hi += g * f.t;
+    if (f.free) {
+      const acc_t a = g * (hi - lo) / w_k;
+      sum_a_u += a * u[n];
+      bin_a += a;
+      bin_a_t += a * f.t;
+    }
+  }
+  for (; k >= 0; --k) close_bin();
+  grad_bins[0] = static_cast<scalar_t>(above_lo);
+  for (int i = 0; i < num_bins; ++i) grad_weights[i] = static_cast<scalar_t>(cdf[i] + sum_a_u);
+}
+
+}  // namespace sample_pdf_math
+}  // namespace mixer_nerf

@@ -1,0 +1,232 @@
+"""Inverse-CDF sampling of piecewise-constant PDFs along rays (NeRF's hierarchical sampling).
+
+The exact formulation, shared by the kernels and the reference path, is documented in
+:mod:`mixer_nerf.ops.sample_pdf_reference`. In short: the PDF of a ray is exactly
+``weights / weights.sum()`` (``weight_padding``, 0 by default, is added to every weight first;
+the original NeRF code adds 1e-5); samples are its quantile function at sorted ``u`` in [0, 1],
+so they come out sorted and within ``[bins[:, 0], bins[:, -1]]``; bins of zero weight are never
+sampled; a ray whose padded weights sum to less than the smallest normal number of the
+accumulation dtype (float32, or float64 for float64 inputs) samples uniformly between its first
+and last edge.
+
+Positions ``u``:
+  * explicit ``u``: ``(R, N)`` or ``(N,)`` shared by every ray, sorted, in [0, 1];
+  * ``deterministic=True``: ``u_i = (i + 1/2) / N``, the midpoints of N equal strata. The
+    endpoints 0 and 1 are excluded on purpose: they would put samples exactly on the support's
+    boundary edges (where the coarse pass already samples), and the midpoints are the mean of
+    the stratified sampler below, so deterministic and random runs estimate the same thing;
+  * otherwise stratified: ``u_i = (i + xi_i) / N``, ``xi_i ~ U[0, 1)`` from ``generator`` —
+    sorted by construction, no sort needed.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+
+import torch
+from torch.autograd.function import once_differentiable
+
+from ._checks import (
+    check_floating,
+    check_in_range,
+    check_int,
+    check_ndim,
+    check_nonnegative,
+    check_same_device,
+    check_same_dtype,
+    check_shape,
+    check_sorted,
+)
+from ._dispatch import use_kernel
+from .sample_pdf_reference import accumulation_dtype, hierarchical_samples_reference, sample_pdf_reference
+
+
+def sample_pdf(
+    bins: torch.Tensor,
+    weights: torch.Tensor,
+    num_samples: int,
+    deterministic: bool = False,
+    u: torch.Tensor | None = None,
+    weight_padding: float = 0.0,
+    generator: torch.Generator | None = None,
+    backend: str = "auto",
+    check_values: bool = True,
+) -> torch.Tensor:
+    """Draw ``num_samples`` sorted samples per ray from the PDF given by bin edges and weights.
+
+    Args:
+        bins: (R, B+1) sorted bin edges, B >= 1.
+        weights: (R, B) non-negative bin weights (any scale; need not sum to 1).
+        num_samples: N >= 0 samples per ray.
+        deterministic: use ``u_i = (i + 1/2) / N`` (see the module docstring).
+        u: optional explicit positions, (R, N) or (N,), sorted, in [0, 1].
+        weight_padding: non-negative constant added to every weight (0: the PDF is exactly
+            ``weights / weights.sum()``).
+        generator: random generator for the stratified positions.
+        backend: ``"auto"``, ``"kernel"`` or ``"torch"`` (see :mod:`mixer_nerf.ops`).
+        check_values: check that ``bins`` and ``u`` are sorted, ``weights >= 0`` and ``u`` in
+            [0, 1]. Each check reads its tensor once more and, on a GPU, synchronises with the
+            host; pass False on hot paths whose inputs are valid by construction.
+
+    Returns:
+        (R, N) samples in the dtype of ``bins``, sorted along each ray, differentiable with
+        respect to ``bins`` and ``weights``.
+    """
+    _validate_pdf(bins, weights, check_values)
+    check_int("num_samples", num_samples)
+    pad = _check_padding(weight_padding)
+    positions = _positions("bins", bins, num_samples, deterministic, u, generator, check_values)
+    if not use_kernel(backend, bins.device):
+        return sample_pdf_reference(bins, weights, positions, pad)
+    _register_fakes()
+    return _SamplePdfFunction.apply(bins.contiguous(), weights.contiguous(), positions, pad)
+
+
+def hierarchical_samples(
+    z_coarse: torch.Tensor,
+    weights_coarse: torch.Tensor,
+    num_fine: int,
+    deterministic: bool = False,
+    u: torch.Tensor | None = None,
+    weight_padding: float = 0.0,
+    generator: torch.Generator | None = None,
+    backend: str = "auto",
+    check_values: bool = True,
+) -> torch.Tensor:
+    """NeRF's fine-pass depths: the coarse depths and ``num_fine`` new ones, merged and sorted.
+
+    As in NeRF, the fine samples are drawn from the PDF whose bins are the midpoints of
+    ``z_coarse`` (S-1 edges) and whose weights are ``weights_coarse[:, 1:-1]`` (S-2 bins), then
+    merged with ``z_coarse`` in one pass (the kernels do not sort). No gradient flows: NeRF
+    detaches the fine depths, so the result never requires grad.
+
+    Args:
+        z_coarse: (R, S) sorted coarse depths, S >= 3.
+        weights_coarse: (R, S) non-negative compositing weights of the coarse samples.
+        num_fine: N >= 0 fine samples per ray.
+        deterministic, u, weight_padding, generator, backend, check_values: as in
+            :func:`sample_pdf` (``u`` is (R, N) or (N,)).
+
+    Returns:
+        (R, S + N) sorted depths in the dtype of ``z_coarse``.
+    """
+    _validate_coarse(z_coarse, weights_coarse, check_values)
+    check_int("num_fine", num_fine)
+    pad = _check_padding(weight_padding)
+    positions = _positions("z_coarse", z_coarse, num_fine, deterministic, u, generator, check_values)
+    z_coarse, weights_coarse = z_coarse.detach(), weights_coarse.detach()
+    if not use_kernel(backend, z_coarse.device):
+        return hierarchical_samples_reference(z_coarse, weights_coarse, positions, pad)
+    _register_fakes()
+    return torch.ops.mixer_nerf.hierarchical_samples_fwd(
+        z_coarse.contiguous(), weights_coarse.contiguous(), positions, pad
+    )
+
+
+def _validate_pdf(bins: torch.Tensor, weights: torch.Tensor, check_values: bool) -> None:
+    check_floating("bins", bins)
+    check_floating("weights", weights)
+    check_ndim("bins", bins, 2)
+    check_ndim("weights", weights, 2)
+    num_rays, num_edges = bins.shape
+    if num_edges < 2:
+        raise ValueError(f"bins must have at least 2 edges per ray (one bin), got shape {tuple(bins.shape)}")
+    check_shape("weights", weights, (num_rays, num_edges - 1), " (one weight per bin of bins)")
+    check_same_device(bins=bins, weights=weights)
+    check_same_dtype(bins=bins, weights=weights)
+    if check_values:
+        check_sorted("bins", bins)
+        check_nonnegative("weights", weights)
+
+
+def _validate_coarse(z_coarse: torch.Tensor, weights_coarse: torch.Tensor, check_values: bool) -> None:
+    check_floating("z_coarse", z_coarse)
+    check_floating("weights_coarse", weights_coarse)
+    check_ndim("z_coarse", z_coarse, 2)
+    if z_coarse.shape[1] < 3:
+        raise ValueError(f"z_coarse must have at least 3 samples per ray, got shape {tuple(z_coarse.shape)}")
+    check_shape("weights_coarse", weights_coarse, tuple(z_coarse.shape), " (like z_coarse)")
+    check_same_device(z_coarse=z_coarse, weights_coarse=weights_coarse)
+    check_same_dtype(z_coarse=z_coarse, weights_coarse=weights_coarse)
+    if check_values:
+        check_sorted("z_coarse", z_coarse)
+        check_nonnegative("weights_coarse", weights_coarse)
+
+
+def _check_padding(weight_padding: float) -> float:
+    if isinstance(weight_padding, bool) or not isinstance(weight_padding, (int, float)):
+        raise TypeError(f"weight_padding must be a float, got {type(weight_padding).__name__}")
+    if not (math.isfinite(weight_padding) and weight_padding >= 0):
+        raise ValueError(f"weight_padding must be finite and >= 0, got {weight_padding}")
+    return float(weight_padding)
+
+
+def _positions(
+    like_name: str,
+    like: torch.Tensor,
+    num_samples: int,
+    deterministic: bool,
+    u: torch.Tensor | None,
+    generator: torch.Generator | None,
+    check_values: bool,
+) -> torch.Tensor:
+    """The sorted positions in [0, 1] as the kernels take them: (N,) or (R, N), contiguous, in
+    the accumulation dtype of ``like`` (R, ...)."""
+    num_rays = like.shape[0]
+    acc = accumulation_dtype(like.dtype)
+    if u is not None:
+        if deterministic:
+            raise ValueError("pass either u or deterministic=True, not both")
+        check_floating("u", u)
+        check_ndim("u", u, (1, 2))
+        check_shape("u", u, (num_samples,) if u.dim() == 1 else (num_rays, num_samples), " (N,) or (R, N)")
+        check_same_device(u=u, **{like_name: like})
+        if check_values:
+            check_in_range("u", u, 0.0, 1.0)
+            check_sorted("u", u)
+        return u.detach().to(acc).contiguous()
+    strata = torch.arange(num_samples, device=like.device, dtype=acc)
+    if deterministic:
+        return (strata + 0.5) / num_samples
+    if generator is not None and generator.device.type != like.device.type:
+        raise ValueError(f"generator is on {generator.device} but the inputs are on {like.device}")
+    jitter = torch.rand(num_rays, num_samples, generator=generator, device=like.device, dtype=acc)
+    return (strata + jitter) / num_samples
+
+
+class _SamplePdfFunction(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, bins, weights, u, weight_padding):
+        ctx.save_for_backward(bins, weights, u)
+        ctx.weight_padding = weight_padding
+        return torch.ops.mixer_nerf.sample_pdf_fwd(bins, weights, u, weight_padding)
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad_samples):
+        bins, weights, u = ctx.saved_tensors
+        grad_bins, grad_weights = torch.ops.mixer_nerf.sample_pdf_bwd(
+            grad_samples.contiguous(), bins, weights, u, ctx.weight_padding
+        )
+        return grad_bins, grad_weights, None, None
+
+
+@functools.cache
+def _register_fakes() -> None:
+    """Shape functions for torch.compile and opcheck; the ops exist only once the extension loaded."""
+    torch.library.register_fake("mixer_nerf::sample_pdf_fwd", _sample_pdf_fwd_fake)
+    torch.library.register_fake("mixer_nerf::sample_pdf_bwd", _sample_pdf_bwd_fake)
+    torch.library.register_fake("mixer_nerf::hierarchical_samples_fwd", _hierarchical_samples_fwd_fake)
+
+
+def _sample_pdf_fwd_fake(bins, weights, u, weight_padding):
+    return bins.new_empty(bins.shape[0], u.shape[-1])
+
+
+def _sample_pdf_bwd_fake(grad_samples, bins, weights, u, weight_padding):
+    return torch.empty_like(bins), torch.empty_like(weights)
+
+
+def _hierarchical_samples_fwd_fake(z_coarse, weights, u, weight_padding):
+    return z_coarse.new_empty(z_coarse.shape[0], z_coarse.shape[1] + u.shape[-1])

@@ -1,0 +1,80 @@
+"""Pure-PyTorch reference of inverse-CDF sampling (what ``backend="torch"`` runs).
+
+The formulation is exactly the one the C++/CUDA kernels evaluate and differentiate by hand, so
+autograd through this file gives the kernels' gradients:
+
+  w_i  = weights_i + weight_padding                       (R, B)
+  C_k  = w_0 + ... + w_{k-1},  W = C_B                    (unnormalised CDF, C_0 = 0)
+  v    = u * W                                            (u in [0, 1], sorted)
+  k    = #{j in 1..B-1 : C_j < v}                         (the bin with C_k < v <= C_{k+1})
+  t    = clamp((v - C_k) / w_k, 0, 1)    if w_k > 0, else 0
+  s    = min(b_k + t * (b_{k+1} - b_k), b_{k+1})         (torch.clamp: at a tie the gradient
+                                                           goes to the unclamped value)
+
+This is the quantile function Q(u) = inf{x : F(x) >= u} of the piecewise-constant PDF w / W:
+bins of zero weight are never sampled (u = 0 with leading zero-weight bins gives b_0, u = 1 gives
+the right edge of the last bin with weight), and a zero-width bin gives its edge. Working with the
+unnormalised CDF divides once by the bin's own weight instead of by a difference of CDF values,
+so there is no cancellation and no epsilon. ``t`` only leaves [0, 1] and ``s`` only passes b_{k+1}
+by rounding; the clamps keep every sample inside its bin, hence sorted and within
+[b_0, b_B]. A ray whose padded weights sum to less than the smallest normal number of the
+accumulation dtype (an all-zero ray) has no PDF: it samples uniformly, s = b_0 + u (b_B - b_0),
+and its weights get zero gradient.
+
+Half and bfloat16 inputs are computed in float32 and the result cast back, like the kernels.
+"""
+
+from __future__ import annotations
+
+import torch
+
+
+def accumulation_dtype(dtype: torch.dtype) -> torch.dtype:
+    """float64 stays float64; every other floating dtype accumulates in float32."""
+    return torch.float64 if dtype == torch.float64 else torch.float32
+
+
+def sample_pdf_reference(
+    bins: torch.Tensor, weights: torch.Tensor, u: torch.Tensor, weight_padding: float = 0.0
+) -> torch.Tensor:
+    """bins (R, B+1) sorted, weights (R, B) >= 0, u (R, N) or (N,) sorted in [0, 1] -> (R, N)."""
+    acc = accumulation_dtype(bins.dtype)
+    edges = bins.to(acc)
+    w = weights.to(acc) + weight_padding
+    num_rays, num_bins = w.shape
+    u = u.to(acc).expand(num_rays, u.shape[-1])
+
+    cdf = torch.cat([w.new_zeros(num_rays, 1), torch.cumsum(w, dim=-1)], dim=-1)  # (R, B+1)
+    total = cdf[:, -1:]
+    v = u * total
+    # side="left" counts the interior CDF values strictly below v.
+    k = torch.searchsorted(cdf[:, 1:-1].contiguous(), v.detach(), side="left")  # (R, N) in [0, B-1]
+
+    w_k = torch.gather(w, 1, k)
+    has_weight = w_k > 0
+    t = (v - torch.gather(cdf, 1, k)) / torch.where(has_weight, w_k, torch.ones_like(w_k))
+    t = torch.where(has_weight, t.clamp(0.0, 1.0), torch.zeros_like(t))
+    lo = torch.gather(edges, 1, k)
+    hi = torch.gather(edges, 1, k + 1)
+
+    empty = total < torch.finfo(acc).tiny  # (R, 1): no PDF, sample [b_0, b_B] uniformly
+    t = torch.where(empty, u, t)
+    lo = torch.where(empty, edges[:, :1], lo)
+    hi = torch.where(empty, edges[:, -1:], hi)
+    samples = torch.clamp(lo + t * (hi - lo), max=hi)
+    return samples.to(bins.dtype)
+
+
+def hierarchical_samples_reference(
+    z_coarse: torch.Tensor, weights_coarse: torch.Tensor, u: torch.Tensor, weight_padding: float = 0.0
+) -> torch.Tensor:
+    """z_coarse (R, S) sorted, weights_coarse (R, S), u (R, N) or (N,) -> merged (R, S+N), no grad.
+
+    Like NeRF: the bins are the midpoints of z_coarse and the weights weights_coarse[:, 1:-1].
+    """
+    with torch.no_grad():
+        acc = accumulation_dtype(z_coarse.dtype)
+        z = z_coarse.to(acc)
+        mids = 0.5 * (z[:, 1:] + z[:, :-1])
+        fine = sample_pdf_reference(mids, weights_coarse[:, 1:-1], u, weight_padding).to(z_coarse.dtype)
+        return torch.sort(torch.cat([z_coarse, fine], dim=-1), dim=-1).values
