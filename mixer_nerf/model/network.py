@@ -1,0 +1,185 @@
+"""The Mixer-NeRF field: NeRF's MLP on our positional encoding, with optional MLCA and SE blocks.
+
+    x -> (x - center) / scale -> PE (10 octaves) -> [MLCA] -> trunk 8 x 256, ReLU, skip at 4
+      -> [SE over the ray's samples] -> Linear 256 -> 1 + 256 -> sigma = softplus(raw - 1), feature
+    d -> PE (4 octaves) -> [MLCA] ---------------------------------+
+    feature -> Linear 256 -> 128  +  Linear (PE(d) width) -> 128  -+-> ReLU -> Linear 128 -> 3 -> sigmoid
+
+Density activation and initialisation. With NeRF's ReLU density and PyTorch's default init, a run
+on Lego collapsed to an all-background image: once the density pre-activation is negative
+everywhere, ReLU passes no gradient and the field cannot recover. Here the density is
+``softplus(raw + density_shift)`` (mip-NeRF's choice, shift -1): its gradient ``sigmoid(raw + shift)``
+is never zero, so a field that has been pushed towards empty space still receives a signal
+wherever the images need matter, and the initial density softplus(-1) ~ 0.31 makes every ray
+partly opaque, so both colour and density get gradients from the first step. The trunk and view
+layers use He (Kaiming-normal, fan-in) init with zero biases, which keeps ReLU activations at unit
+scale through the 8 layers (PyTorch's default shrinks them ~2.4x per layer, leaving the heads
+a nearly constant input); linear heads use Xavier init. ``density_activation="relu"`` keeps the
+original recipe for comparison.
+
+Layouts: dense samples ``x (R, S, 3)`` with ``d (R, S, 3)`` or per-ray ``(R, 1, 3)`` (an expanded
+``(R, S, 3)`` view of a per-ray tensor is recognised by its zero stride and treated as per-ray, so
+the view branch's direction term is computed once per ray), or packed ``x (N, 3)`` with ``d (N, 3)``
+and optional ``ray_indices (N,)`` for the SE squeeze (without them every point is its own ray).
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from ..ops import positional_encoding
+from ..ops._checks import check_floating, check_same_device
+from .config import ModelConfig
+from .mlca import MLCA
+from .squeeze_excitation import SqueezeExcitation
+
+
+class MixerNeRF(nn.Module):
+    """Radiance field ``f(x, d) -> (sigma, rgb)``; see the module docstring for the architecture."""
+
+    def __init__(self, cfg: ModelConfig | None = None) -> None:
+        super().__init__()
+        self.cfg = cfg = cfg or ModelConfig()
+        pos_tokens, dir_tokens = 1 + 2 * cfg.pos_freqs, 1 + 2 * cfg.dir_freqs
+        trunk_tokens = pos_tokens + (dir_tokens if cfg.mlca_concat_direction else 0)
+        self.position_mixer = _mixer(cfg, trunk_tokens)
+        self.direction_mixer = _mixer(cfg, dir_tokens)
+        trunk_in = trunk_tokens * (cfg.mlca_channels if cfg.use_mlca else 3)
+        dir_in = dir_tokens * (cfg.mlca_channels if cfg.use_mlca else 3)
+
+        widths = [trunk_in] + [cfg.width] * cfg.depth
+        self.trunk = nn.ModuleList(
+            nn.Linear(widths[i] + (trunk_in if i in cfg.skips else 0), cfg.width) for i in range(cfg.depth)
+        )
+        self.se = SqueezeExcitation(cfg.width, cfg.se_reduction, cfg.se_per_point) if cfg.use_se else None
+        self.head = nn.Linear(cfg.width, 1 + cfg.width)  # density pre-activation, then the feature
+        self.view_feature = nn.Linear(cfg.width, cfg.view_width)
+        self.view_direction = nn.Linear(dir_in, cfg.view_width, bias=False)
+        self.rgb = nn.Linear(cfg.view_width, 3)
+        for layer in (*self.trunk, self.view_feature, self.view_direction):
+            _init_relu_layer(layer)
+        for layer in (self.head, self.rgb):
+            nn.init.xavier_uniform_(layer.weight)
+            nn.init.zeros_(layer.bias)
+        self.register_buffer("scene_center", torch.tensor(cfg.scene_center, dtype=torch.float32))
+
+    def forward(
+        self,
+        x: torch.Tensor,
+        d: torch.Tensor,
+        ray_indices: torch.Tensor | None = None,
+        num_rays: int | None = None,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Density and colour at sample points.
+
+        Args:
+            x: positions ``(R, S, 3)``, or packed ``(N, 3)``.
+            d: unit view directions ``(R, S, 3)`` or ``(R, 1, 3)``; ``(N, 3)`` when packed.
+            ray_indices: packed layout only, ``(N,)`` int64 ray of each sample (SE's squeeze).
+            num_rays: number of rays ``ray_indices`` index (default: its max + 1, a GPU sync).
+
+        Returns:
+            sigma ``x.shape[:-1]`` non-negative, rgb ``(*x.shape[:-1], 3)`` in [0, 1], in ``x``'s dtype
+            (float32 under autocast, whose low precision stays inside the MLP).
+        """
+        d = _check_inputs(x, d, ray_indices)
+        direction = self._encode_direction(d)
+        features = self._trunk_features(x, direction, ray_indices, num_rays)
+        out = self.head(features)
+        sigma = self._activate_density(out[..., 0], x.dtype)
+        view_term = self.view_direction(self.direction_mixer(direction))  # per ray when d is
+        hidden = torch.relu(self.view_feature(out[..., 1:]) + view_term)
+        rgb = torch.sigmoid(self.rgb(hidden).to(x.dtype))
+        return sigma, rgb
+
+    def density(
+        self,
+        x: torch.Tensor,
+        d: torch.Tensor | None = None,
+        ray_indices: torch.Tensor | None = None,
+        num_rays: int | None = None,
+    ) -> torch.Tensor:
+        """Only ``sigma`` (skips the colour branch), e.g. for occupancy-grid updates. ``d`` is needed
+        only when ``cfg.mlca_concat_direction`` makes the density view-dependent."""
+        d = _check_inputs(x, d, ray_indices)
+        direction = None if d is None else self._encode_direction(d)
+        features = self._trunk_features(x, direction, ray_indices, num_rays)
+        return self._activate_density(
+            F.linear(features, self.head.weight[:1], self.head.bias[:1])[..., 0], x.dtype
+        )
+
+    def _encode_direction(self, d: torch.Tensor) -> torch.Tensor:
+        return positional_encoding(d, self.cfg.dir_freqs, scale=self.cfg.pe_scale, backend=self.cfg.backend)
+
+    def _trunk_features(
+        self,
+        x: torch.Tensor,
+        direction: torch.Tensor | None,
+        ray_indices: torch.Tensor | None,
+        num_rays: int | None,
+    ) -> torch.Tensor:
+        cfg = self.cfg
+        normalised = (x - self.scene_center.to(x.dtype)) / cfg.scene_scale
+        encoded = positional_encoding(normalised, cfg.pos_freqs, scale=cfg.pe_scale, backend=cfg.backend)
+        if cfg.mlca_concat_direction:
+            if direction is None:
+                raise ValueError("d is required when cfg.mlca_concat_direction (density depends on it)")
+            encoded = torch.cat([encoded, direction.expand(*encoded.shape[:-1], -1)], dim=-1)
+        encoded = self.position_mixer(encoded)
+        h = encoded
+        for i, layer in enumerate(self.trunk):
+            if i in cfg.skips:
+                h = torch.cat([encoded.to(h.dtype), h], dim=-1)
+            h = torch.relu(layer(h))
+        if self.se is not None:
+            h = self.se(h, ray_indices, num_rays)
+        return h
+
+    def _activate_density(self, raw: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
+        raw = raw.to(dtype)
+        if self.cfg.density_activation == "relu":
+            return torch.relu(raw)
+        return F.softplus(raw + self.cfg.density_shift)
+
+
+def _mixer(cfg: ModelConfig, num_tokens: int) -> nn.Module:
+    return MLCA(num_tokens, 3, cfg.mlca_channels) if cfg.use_mlca else nn.Identity()
+
+
+def _init_relu_layer(layer: nn.Linear) -> None:
+    nn.init.kaiming_normal_(layer.weight, nonlinearity="relu")
+    if layer.bias is not None:
+        nn.init.zeros_(layer.bias)
+
+
+def _check_inputs(
+    x: torch.Tensor, d: torch.Tensor | None, ray_indices: torch.Tensor | None
+) -> torch.Tensor | None:
+    """Validate the layouts (ValueError/TypeError naming the argument); returns ``d``, with an
+    expanded per-ray view ``(R, S, 3)`` (stride 0 along S) narrowed to ``(R, 1, 3)``."""
+    check_floating("x", x)
+    if x.dim() not in (2, 3) or x.shape[-1] != 3:
+        raise ValueError(f"x must have shape (R, S, 3) or (N, 3), got {tuple(x.shape)}")
+    if ray_indices is not None:
+        check_same_device(x=x, ray_indices=ray_indices)
+        if x.dim() != 2:
+            raise ValueError("ray_indices is only for packed samples x (N, 3)")
+        if ray_indices.dtype not in (torch.int32, torch.int64) or ray_indices.shape != x.shape[:1]:
+            raise ValueError(
+                f"ray_indices must be an int64 tensor of shape {(x.shape[0],)}, "
+                f"got {ray_indices.dtype} {tuple(ray_indices.shape)}"
+            )
+    if d is None:
+        return None
+    check_floating("d", d)
+    check_same_device(x=x, d=d)
+    if x.dim() == 2:
+        if d.shape != x.shape:
+            raise ValueError(f"d must have shape {tuple(x.shape)} like x, got {tuple(d.shape)}")
+        return d
+    R, S, _ = x.shape
+    if d.dim() != 3 or d.shape[0] != R or d.shape[1] not in (1, S) or d.shape[2] != 3:
+        raise ValueError(f"d must have shape {(R, S, 3)} or {(R, 1, 3)}, got {tuple(d.shape)}")
+    return d[:, :1] if d.shape[1] > 1 and d.stride(1) == 0 else d
