@@ -1,0 +1,76 @@
+// Host-side glue shared by the CPU and CUDA ray-marching kernels (ray_marching.cpp,
+// cuda/ray_marching.cu): defensive input checks and the raw-pointer view of the tensors.
+#pragma once
+
+#include <ATen/ATen.h>
+
+#include <cmath>
+#include <limits>
+#include <optional>
+
+#include "common.h"
+#include "ray_marching_math.h"
+
+namespace mixer_nerf {
+
+// Arithmetic type of the march: float for half/bfloat16/float rays, double for double.
+inline at::ScalarType ray_marching_acc_type(at::ScalarType rays) {
+  return rays == at::kDouble ? at::kDouble : at::kFloat;
+}
+
+inline void check_ray_marching_inputs(const at::Tensor& rays_o, const at::Tensor& rays_d, const at::Tensor& near,
+                                      const at::Tensor& far, const std::optional<at::Tensor>& jitter,
+                                      const at::Tensor& bitfield, const at::Tensor& aabb,
+                                      at::IntArrayRef resolution, double step_size, double cone_angle,
+                                      std::optional<int64_t> max_samples_per_ray, c10::DeviceType dev) {
+  MIXER_NERF_CHECK_INPUT(rays_o, dev);
+  MIXER_NERF_CHECK_INPUT(rays_d, dev);
+  MIXER_NERF_CHECK_INPUT(near, dev);
+  MIXER_NERF_CHECK_INPUT(far, dev);
+  MIXER_NERF_CHECK_INPUT(bitfield, dev);
+  MIXER_NERF_CHECK_INPUT(aabb, dev);
+  const int64_t R = rays_o.size(0);
+  TORCH_CHECK(rays_o.dim() == 2 && rays_o.size(1) == 3, "rays_o must be (R, 3)");
+  TORCH_CHECK(rays_d.sizes() == rays_o.sizes(), "rays_d must be (R, 3) like rays_o");
+  TORCH_CHECK(near.dim() == 1 && near.size(0) == R && far.dim() == 1 && far.size(0) == R, "near, far must be (R)");
+  const auto dtype = rays_o.scalar_type();
+  TORCH_CHECK(rays_d.scalar_type() == dtype && near.scalar_type() == dtype && far.scalar_type() == dtype,
+              "rays_o, rays_d, near, far must share one dtype");
+  if (jitter) {
+    MIXER_NERF_CHECK_INPUT(*jitter, dev);
+    TORCH_CHECK(jitter->dim() == 1 && jitter->size(0) == R && jitter->scalar_type() == dtype,
+                "jitter must be (R) with the dtype of rays_o");
+  }
+  TORCH_CHECK(resolution.size() == 3 && resolution[0] > 0 && resolution[1] > 0 && resolution[2] > 0,
+              "resolution must be 3 positive sizes");
+  TORCH_CHECK(bitfield.scalar_type() == at::kByte && bitfield.dim() == 1 &&
+                  bitfield.size(0) * 8 >= resolution[0] * resolution[1] * resolution[2],
+              "bitfield must be uint8 with one bit per cell");
+  TORCH_CHECK(aabb.numel() == 6 && aabb.scalar_type() == ray_marching_acc_type(dtype),
+              "aabb must hold 6 values of the march's arithmetic type (float32, or float64 for float64 rays)");
+  TORCH_CHECK(step_size > 0 && std::isfinite(step_size), "step_size must be positive and finite");
+  TORCH_CHECK(cone_angle >= 0 && std::isfinite(cone_angle), "cone_angle must be non-negative and finite");
+  TORCH_CHECK(!max_samples_per_ray || *max_samples_per_ray >= 1, "max_samples_per_ray must be >= 1");
+}
+
+template <typename scalar_t, typename T>
+ray_marching_math::MarchInputs<scalar_t, T> march_inputs(const at::Tensor& rays_o, const at::Tensor& rays_d,
+                                                         const at::Tensor& near, const at::Tensor& far,
+                                                         const std::optional<at::Tensor>& jitter,
+                                                         const at::Tensor& bitfield, const at::Tensor& aabb,
+                                                         at::IntArrayRef resolution, double step_size,
+                                                         double cone_angle, std::optional<int64_t> max_samples) {
+  return {rays_o.data_ptr<scalar_t>(),
+          rays_d.data_ptr<scalar_t>(),
+          near.data_ptr<scalar_t>(),
+          far.data_ptr<scalar_t>(),
+          jitter ? jitter->data_ptr<scalar_t>() : nullptr,
+          bitfield.data_ptr<uint8_t>(),
+          aabb.data_ptr<T>(),
+          {resolution[0], resolution[1], resolution[2]},
+          T(step_size),
+          T(cone_angle),
+          max_samples.value_or(std::numeric_limits<int64_t>::max())};
+}
+
+}  // namespace mixer_nerf
