@@ -2,10 +2,11 @@
 // hierarchical_samples (sample_pdf.cpp, cuda/sample_pdf.cu). The formulation, and the gradient
 // convention at clamps, is the one of mixer_nerf/ops/sample_pdf_reference.py:
 //
-//   w_k = weights_k + pad,  C_k = w_0 + ... + w_{k-1} (sequential, so C is exactly flat over
-//   zero-weight bins and non-decreasing),  W = C_B,  v = u W,
+//   w_k = weights_k + pad, flushed to 0 below the smallest normal number (so 1 / w_k is finite
+//   and "empty" has one meaning),  C_k = w_0 + ... + w_{k-1} (summed sequentially, so C is
+//   non-decreasing and exactly flat over zero-weight bins),  W = C_B,  v = u W,
 //   k = #{j in 1..B-1 : C_j < v},  t = clamp((v - C_k) / w_k, 0, 1) (0 if w_k == 0),
-//   s = min(e_k + t (e_{k+1} - e_k), e_{k+1});  rays with W below the smallest normal number
+//   s = min(e_k + t (e_{k+1} - e_k), e_{k+1});  rays with W == 0 (or overflowing to inf)
 //   sample s = min(e_0 + u (e_B - e_0), e_B) instead.
 #pragma once
 
@@ -16,22 +17,30 @@
 namespace mixer_nerf {
 namespace sample_pdf_math {
 
-// Below this total weight a ray has no usable PDF (all zero, or so small that w / W would lose
-// precision to subnormals): it samples uniformly between its first and last edge.
+// A ray whose total weight is zero (after flushing subnormal weights) or overflows has no usable
+// PDF: it samples uniformly between its first and last edge.
 C10_HOST_DEVICE inline float smallest_normal(float) { return FLT_MIN; }
 C10_HOST_DEVICE inline double smallest_normal(double) { return DBL_MIN; }
+C10_HOST_DEVICE inline float largest_finite(float) { return FLT_MAX; }
+C10_HOST_DEVICE inline double largest_finite(double) { return DBL_MAX; }
 
 template <typename acc_t>
 C10_HOST_DEVICE inline bool no_pdf(acc_t total) {
-  return !(total >= smallest_normal(acc_t{}));
+  return !(total >= smallest_normal(acc_t{}) && total <= largest_finite(acc_t{}));
 }
 
-// Padded weights of one ray as the accumulation type, read from any element type.
+// Padded weights of one ray as the accumulation type, read from any element type; subnormal
+// (and, unchecked, negative or NaN) weights count as 0 and get no gradient.
+template <typename acc_t>
+C10_HOST_DEVICE inline acc_t flush_weight(acc_t w) {
+  return w >= smallest_normal(acc_t{}) ? w : acc_t(0);
+}
+
 template <typename acc_t, typename T>
 struct PaddedWeights {
   const T* w;
   acc_t pad;
-  C10_HOST_DEVICE acc_t operator()(int k) const { return static_cast<acc_t>(w[k]) + pad; }
+  C10_HOST_DEVICE acc_t operator()(int k) const { return flush_weight(static_cast<acc_t>(w[k]) + pad); }
 };
 
 // Bin edges of one ray: given directly ...
@@ -195,7 +204,9 @@ C10_HOST_DEVICE inline void sample_pdf_ray_backward(
   }
   for (; k >= 0; --k) close_bin();
   grad_bins[0] = static_cast<scalar_t>(above_lo);
-  for (int i = 0; i < num_bins; ++i) grad_weights[i] = static_cast<scalar_t>(cdf[i] + sum_a_u);
+  for (int i = 0; i < num_bins; ++i) {
+    grad_weights[i] = padded(i) > 0 ? static_cast<scalar_t>(cdf[i] + sum_a_u) : scalar_t(0);
+  }
 }
 
 }  // namespace sample_pdf_math

@@ -3,7 +3,8 @@
 The formulation is exactly the one the C++/CUDA kernels evaluate and differentiate by hand, so
 autograd through this file gives the kernels' gradients:
 
-  w_i  = weights_i + weight_padding                       (R, B)
+  w_i  = weights_i + weight_padding, 0 if below the smallest normal number of the accumulation
+         dtype (subnormal weights are flushed: 1 / w_k stays finite)                  (R, B)
   C_k  = w_0 + ... + w_{k-1},  W = C_B                    (unnormalised CDF, C_0 = 0)
   v    = u * W                                            (u in [0, 1], sorted)
   k    = #{j in 1..B-1 : C_j < v}                         (the bin with C_k < v <= C_{k+1})
@@ -17,9 +18,8 @@ the right edge of the last bin with weight), and a zero-width bin gives its edge
 unnormalised CDF divides once by the bin's own weight instead of by a difference of CDF values,
 so there is no cancellation and no epsilon. ``t`` only leaves [0, 1] and ``s`` only passes b_{k+1}
 by rounding; the clamps keep every sample inside its bin, hence sorted and within
-[b_0, b_B]. A ray whose padded weights sum to less than the smallest normal number of the
-accumulation dtype (an all-zero ray) has no PDF: it samples uniformly, s = b_0 + u (b_B - b_0),
-and its weights get zero gradient.
+[b_0, b_B]. A ray whose weights are all 0 (after flushing), or whose total overflows, has no
+PDF: it samples uniformly, s = min(b_0 + u (b_B - b_0), b_B), and its weights get zero gradient.
 
 Half and bfloat16 inputs are computed in float32 and the result cast back, like the kernels.
 """
@@ -39,25 +39,29 @@ def sample_pdf_reference(
 ) -> torch.Tensor:
     """bins (R, B+1) sorted, weights (R, B) >= 0, u (R, N) or (N,) sorted in [0, 1] -> (R, N)."""
     acc = accumulation_dtype(bins.dtype)
+    finfo = torch.finfo(acc)
     edges = bins.to(acc)
     w = weights.to(acc) + weight_padding
+    w = torch.where(w >= finfo.tiny, w, torch.zeros_like(w))
     num_rays, num_bins = w.shape
     u = u.to(acc).expand(num_rays, u.shape[-1])
 
     cdf = torch.cat([w.new_zeros(num_rays, 1), torch.cumsum(w, dim=-1)], dim=-1)  # (R, B+1)
     total = cdf[:, -1:]
-    v = u * total
+    empty = ~((total >= finfo.tiny) & (total <= finfo.max))  # (R, 1): no PDF, sample [b_0, b_B] uniformly
+    # Empty rays take the other branch of every where() below; keep this one finite for them
+    # (a NaN or inf there would turn their zero gradients into NaN).
+    v = u * torch.where(empty, torch.ones_like(total), total)
     # side="left" counts the interior CDF values strictly below v.
     k = torch.searchsorted(cdf[:, 1:-1].contiguous(), v.detach(), side="left")  # (R, N) in [0, B-1]
 
     w_k = torch.gather(w, 1, k)
-    has_weight = w_k > 0
+    has_weight = (w_k > 0) & ~empty
     t = (v - torch.gather(cdf, 1, k)) / torch.where(has_weight, w_k, torch.ones_like(w_k))
     t = torch.where(has_weight, t.clamp(0.0, 1.0), torch.zeros_like(t))
     lo = torch.gather(edges, 1, k)
     hi = torch.gather(edges, 1, k + 1)
 
-    empty = total < torch.finfo(acc).tiny  # (R, 1): no PDF, sample [b_0, b_B] uniformly
     t = torch.where(empty, u, t)
     lo = torch.where(empty, edges[:, :1], lo)
     hi = torch.where(empty, edges[:, -1:], hi)

@@ -1,0 +1,518 @@
+"""sample_pdf and hierarchical_samples: kernels (CPU, CUDA) against the reference path, hand-written
+gradients against autograd and finite differences, adversarial PDFs, input validation."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from torch.library import opcheck
+
+from mixer_nerf.ops._dispatch import use_kernel
+from mixer_nerf.ops.sample_pdf import _register_fakes, hierarchical_samples, sample_pdf
+from mixer_nerf.ops.sample_pdf_reference import (
+    accumulation_dtype,
+    hierarchical_samples_reference,
+    sample_pdf_reference,
+)
+
+CPU = torch.device("cpu")
+HAS_CUDA = torch.cuda.is_available()
+cuda = pytest.mark.cuda
+needs_cuda = pytest.mark.skipif(not HAS_CUDA, reason="needs a CUDA GPU")
+
+# (R, B, N): single ray, single bin, single sample, empty batch, no samples, NeRF-sized, ragged.
+SHAPES = [(1, 1, 1), (1, 8, 1), (5, 1, 7), (0, 4, 3), (6, 5, 0), (40, 63, 128), (17, 37, 45)]
+
+
+def tolerance(dtype: torch.dtype, num_bins: int) -> float:
+    """Absolute tolerance on samples whose bins span [0, 1].
+
+    The kernels sum the CDF sequentially in the accumulation dtype; torch.cumsum (the reference)
+    sums in another order/precision, so C differs by up to ~B ulp(W). A sample moves by
+    dC / w_k * (bin width); the test weights are >= 0.1 (or 0) with W <= 1.1 B, so
+    W / w_k <= 11 B, and the bound is ~B * eps * 11 B * (bin width) <= 1e-4 for B <= 64 in
+    float32 (observed differences are ~1e-7). float64 gets the same bound scaled by its eps.
+    Half/bfloat16 results are the float32 ones rounded, so one ulp of the output at 1.
+    """
+    eps = {torch.float64: 2.2e-16, torch.float32: 1.2e-7}.get(dtype)
+    if eps is None:
+        return 2 * torch.finfo(dtype).eps
+    return max(12 * (num_bins + 2) ** 2 * eps, 10 * eps)
+
+
+def random_pdf(rays, bins, dtype=torch.float32, device=CPU, zero_fraction=0.3):
+    """Sorted edges in [0, 1] and weights that are 0 or in [0.1, 1.1]."""
+    edges = torch.sort(torch.rand(rays, bins + 1, dtype=torch.float64, device=device), dim=-1).values
+    edges[:, 0], edges[:, -1] = 0.0, 1.0
+    weights = 0.1 + torch.rand(rays, bins, dtype=torch.float64, device=device)
+    weights = weights * (torch.rand_like(weights) >= zero_fraction)
+    return edges.to(dtype), weights.to(dtype)
+
+
+def sorted_u(rays, samples, dtype=torch.float32, device=CPU):
+    return torch.sort(torch.rand(rays, samples, dtype=accumulation_dtype(dtype), device=device), dim=-1).values
+
+
+def assert_valid_samples(samples, bins):
+    """Finite, sorted along rays, within [bins[:, 0], bins[:, -1]]."""
+    assert torch.isfinite(samples).all()
+    if samples.numel():
+        assert (samples[:, 1:] >= samples[:, :-1]).all()
+        assert (samples >= bins[:, :1]).all() and (samples <= bins[:, -1:]).all()
+
+
+@pytest.fixture(scope="module", autouse=True)
+def kernels():
+    if not use_kernel("kernel", CPU):  # raises with the build error if the extension is missing
+        pytest.fail("no CPU kernels")
+    _register_fakes()
+
+
+# ---------------------------------------------------------------------------------------------
+# Forward: CPU kernel against the reference path
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("shape", SHAPES)
+@pytest.mark.parametrize("u_kind", ["per_ray", "shared", "deterministic", "stratified"])
+def test_sample_pdf_forward_matches_reference(shape, dtype, u_kind):
+    R, B, N = shape
+    bins, weights = random_pdf(R, B, dtype)
+    kwargs = {
+        "per_ray": {"u": sorted_u(R, N, dtype)},
+        "shared": {"u": sorted_u(1, N, dtype)[0]},
+        "deterministic": {"deterministic": True},
+        "stratified": {"generator": torch.Generator().manual_seed(3)},
+    }[u_kind]
+    ours = sample_pdf(bins, weights, N, backend="kernel", **kwargs)
+    if u_kind == "stratified":
+        kwargs["generator"] = torch.Generator().manual_seed(3)  # the same draws for the reference
+    ref = sample_pdf(bins, weights, N, backend="torch", **kwargs)
+    assert ours.shape == (R, N) and ours.dtype == dtype
+    torch.testing.assert_close(ours, ref, atol=tolerance(dtype, B), rtol=0)
+    assert_valid_samples(ours, bins)
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
+def test_low_precision_forward_and_backward(dtype):
+    bins, weights = random_pdf(9, 12, dtype)
+    u = sorted_u(9, 20, dtype)
+    ours = sample_pdf(bins, weights, 20, u=u, backend="kernel")
+    ref = sample_pdf(bins, weights, 20, u=u, backend="torch")
+    assert ours.dtype == dtype
+    torch.testing.assert_close(ours, ref, atol=tolerance(dtype, 12), rtol=0)
+    assert_valid_samples(ours, bins)
+    grads = [_grads(b, bins, weights, u) for b in ("kernel", "torch")]
+    for ours_g, ref_g in zip(*grads):
+        assert ours_g.dtype == dtype
+        # float32 math on both sides, then one rounding of each accumulated gradient
+        torch.testing.assert_close(ours_g.float(), ref_g.float(), atol=0.02 * ref_g.float().abs().max() + 1e-3, rtol=0.02)
+    z = torch.sort(torch.rand(9, 12), dim=-1).values.to(dtype)
+    merged = hierarchical_samples(z, weights, 20, u=u, backend="kernel")
+    torch.testing.assert_close(merged, hierarchical_samples(z, weights, 20, u=u, backend="torch"), atol=tolerance(dtype, 12), rtol=0)
+
+
+def test_weight_padding_matches_reference():
+    bins, weights = random_pdf(20, 16, zero_fraction=0.9)
+    u = sorted_u(20, 33)
+    ours = sample_pdf(bins, weights, 33, u=u, weight_padding=1e-5, backend="kernel")
+    torch.testing.assert_close(ours, sample_pdf(bins, weights, 33, u=u, weight_padding=1e-5, backend="torch"))
+    assert not torch.equal(ours, sample_pdf(bins, weights, 33, u=u, backend="kernel"))
+
+
+def test_quantiles_are_exact():
+    """Independent of the reference: with deterministic u, bin k receives exactly the u_i in
+    (C_k / W, C_{k+1} / W], and inside a bin samples are linear in u."""
+    edges = torch.tensor([[0.0, 1.0, 3.0, 4.0, 8.0]], dtype=torch.float64)
+    weights = torch.tensor([[1.0, 0.0, 2.0, 1.0]], dtype=torch.float64)  # CDF 0, 1/4, 1/4, 3/4, 1
+    u = (torch.arange(8, dtype=torch.float64) + 0.5) / 8
+    expected = torch.tensor([[0.25, 0.75, 3.125, 3.375, 3.625, 3.875, 5.0, 7.0]], dtype=torch.float64)
+    for backend in ("kernel", "torch"):
+        got = sample_pdf(edges, weights, 8, deterministic=True, backend=backend)
+        torch.testing.assert_close(got, expected, rtol=0, atol=1e-15)
+        torch.testing.assert_close(sample_pdf(edges, weights, 8, u=u, backend=backend), got, rtol=0, atol=0)
+
+
+def test_stratified_positions_are_sorted_strata():
+    bins = torch.linspace(0, 1, 2).expand(64, 2).contiguous()  # one bin on [0, 1]: samples == u
+    weights = torch.ones(64, 1)
+    samples = sample_pdf(bins, weights, 16, generator=torch.Generator().manual_seed(0), backend="kernel")
+    strata = torch.arange(16) / 16
+    assert ((samples >= strata - 1e-7) & (samples <= strata + 1 / 16 + 1e-7)).all()
+    again = sample_pdf(bins, weights, 16, generator=torch.Generator().manual_seed(0), backend="kernel")
+    assert torch.equal(samples, again)
+
+
+# ---------------------------------------------------------------------------------------------
+# Gradients
+
+
+def _grads(backend, bins, weights, u, weight_padding=0.0, upstream=None):
+    bins = bins.detach().clone().requires_grad_()
+    weights = weights.detach().clone().requires_grad_()
+    out = sample_pdf(bins, weights, u.shape[-1], u=u, weight_padding=weight_padding, backend=backend)
+    if upstream is None:
+        upstream = torch.linspace(-1, 1, out.numel(), dtype=out.dtype).reshape(out.shape)
+    return torch.autograd.grad(out, (bins, weights), upstream, allow_unused=True)
+
+
+@pytest.mark.parametrize("shape", [(3, 1, 4), (4, 6, 5), (2, 9, 1)])
+@pytest.mark.parametrize("shared_u", [False, True])
+def test_gradcheck_cpu_kernel(shape, shared_u):
+    R, B, N = shape
+    bins, weights = random_pdf(R, B, torch.float64, zero_fraction=0.0)
+    u = sorted_u(1, N, torch.float64)[0] if shared_u else sorted_u(R, N, torch.float64)
+    bins.requires_grad_()
+    weights.requires_grad_()
+    torch.autograd.gradcheck(
+        lambda b, w: sample_pdf(b, w, N, u=u, weight_padding=0.01, backend="kernel"), (bins, weights)
+    )
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("shape", SHAPES)
+def test_backward_matches_reference_autograd(shape, dtype):
+    R, B, N = shape
+    bins, weights = random_pdf(R, B, dtype)
+    u = sorted_u(R, N, dtype)
+    ours = _grads("kernel", bins, weights, u)
+    ref = _grads("torch", bins, weights, u)
+    for got, want in zip(ours, ref):
+        scale = want.abs().max().item() if want.numel() else 1.0
+        # a sum over <= N samples of per-sample gradients each carrying the forward's error
+        torch.testing.assert_close(got, want, atol=tolerance(dtype, B) * max(scale, 1.0) * 10, rtol=0)
+        assert torch.isfinite(got).all()
+
+
+# ---------------------------------------------------------------------------------------------
+# Adversarial PDFs
+
+
+def _both(bins, weights, u, **kwargs):
+    N = u.shape[-1]
+    ours = sample_pdf(bins, weights, N, u=u, backend="kernel", **kwargs)
+    ref = sample_pdf(bins, weights, N, u=u, backend="torch", **kwargs)
+    torch.testing.assert_close(ours, ref, rtol=0, atol=tolerance(bins.dtype, weights.shape[1]))
+    assert_valid_samples(ours, bins)
+    for got, want in zip(_grads("kernel", bins, weights, u, **kwargs), _grads("torch", bins, weights, u, **kwargs)):
+        assert torch.isfinite(got).all()
+        # the same terms summed in another order: relative to the largest gradient
+        scale = want.abs().max().item() if want.numel() else 0.0
+        torch.testing.assert_close(got, want, rtol=0, atol=1e-5 * max(scale, 1.0))
+    return ours
+
+
+U_WITH_ENDS = torch.tensor([0.0, 0.0, 0.3, 0.5, 1.0, 1.0])
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_all_zero_weights_sample_uniformly(dtype):
+    bins = torch.tensor([[0.0, 1.0, 2.0, 6.0], [-1.0, -1.0, -1.0, -1.0]], dtype=dtype)
+    weights = torch.zeros(2, 3, dtype=dtype)
+    samples = _both(bins, weights, U_WITH_ENDS.to(accumulation_dtype(dtype)))
+    torch.testing.assert_close(samples[0], (6 * U_WITH_ENDS).to(dtype))
+    assert (samples[1] == -1).all()
+    tiny = torch.full((1, 3), 1e-39 if dtype == torch.float32 else 1e-309, dtype=dtype)  # subnormal total
+    torch.testing.assert_close(_both(bins[:1], tiny, U_WITH_ENDS.to(accumulation_dtype(dtype)))[0], samples[0])
+
+
+@pytest.mark.parametrize("hot", [0, 2, 4])
+def test_one_hot_weights_stay_in_their_bin(hot):
+    bins = torch.tensor([[0.0, 1.0, 2.0, 3.0, 4.0, 5.0]])
+    weights = torch.nn.functional.one_hot(torch.tensor([hot]), 5).float()
+    samples = _both(bins, weights, U_WITH_ENDS)
+    expected = hot + U_WITH_ENDS
+    expected[:2] = 0.0  # the quantile at u = 0 is inf{x : F(x) >= 0}, the first edge
+    torch.testing.assert_close(samples[0], expected)
+
+
+def test_u_at_zero_and_one():
+    bins = torch.tensor([[0.0, 1.0, 2.0, 3.0, 4.0]])
+    weights = torch.tensor([[0.0, 2.0, 1.0, 0.0]])  # leading and trailing empty bins
+    samples = _both(bins, weights, U_WITH_ENDS)
+    assert samples[0, 0] == 0.0 and samples[0, 1] == 0.0  # inf{x : F(x) >= 0}
+    assert samples[0, -1] == 3.0 and samples[0, -2] == 3.0  # right edge of the last weighted bin
+
+
+def test_duplicate_edges_zero_width_bins():
+    bins = torch.tensor([[0.0, 0.0, 1.0, 1.0, 1.0, 2.0], [0.5, 0.5, 0.5, 0.5, 0.5, 0.5]])
+    weights = torch.tensor([[1.0, 1.0, 3.0, 0.0, 1.0], [1.0, 0.0, 2.0, 1.0, 1.0]])
+    u = torch.linspace(0, 1, 11)
+    samples = _both(bins, weights, u)
+    assert (samples[1] == 0.5).all()
+    assert (samples[0, :2] == 0.0).all()  # u <= 1/6 falls in the zero-width first bin at 0
+
+
+def test_scale_invariance_tiny_and_huge_weights():
+    bins, weights = random_pdf(8, 10, torch.float64)
+    u = sorted_u(8, 12, torch.float64)
+    base = sample_pdf(bins, weights, 12, u=u, backend="kernel")
+    for scale in (1e-300, 1e-30, 1e30, 1e300):
+        torch.testing.assert_close(sample_pdf(bins, weights * scale, 12, u=u, backend="kernel"), base)
+    bins32, weights32 = bins.float(), weights.float()
+    for scale in (1e-30, 1e30):
+        torch.testing.assert_close(_both(bins32, weights32 * scale, u.float()), base.float(), atol=1e-4, rtol=0)
+
+
+def test_overflowing_total_is_finite():
+    bins = torch.tensor([[0.0, 1.0, 2.0, 3.0]])
+    weights = torch.full((1, 3), 3e38)  # sums to inf in float32
+    samples = _both(bins, weights, U_WITH_ENDS)
+    torch.testing.assert_close(samples[0], 3 * U_WITH_ENDS)
+
+
+def test_single_bin_single_sample_empty_batch():
+    bins = torch.tensor([[2.0, 4.0]])
+    torch.testing.assert_close(_both(bins, torch.tensor([[0.7]]), torch.tensor([0.25])), torch.tensor([[2.5]]))
+    empty = sample_pdf(torch.zeros(0, 4), torch.zeros(0, 3), 5, backend="kernel")
+    assert empty.shape == (0, 5)
+    bins.requires_grad_()
+    sample_pdf(bins, torch.ones(1, 1), 0, backend="kernel").sum().backward()
+    assert torch.equal(bins.grad, torch.zeros_like(bins))
+
+
+# ---------------------------------------------------------------------------------------------
+# hierarchical_samples
+
+
+def random_coarse(rays, samples, dtype=torch.float32, device=CPU):
+    z = torch.sort(torch.rand(rays, samples, dtype=torch.float64, device=device) * 4 + 2, dim=-1).values
+    weights = torch.rand(rays, samples, dtype=torch.float64, device=device)
+    weights = weights * (torch.rand_like(weights) > 0.3)
+    return z.to(dtype), weights.to(dtype)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("shape", [(1, 3, 1), (0, 5, 4), (3, 3, 0), (1, 64, 128), (23, 37, 19)])
+@pytest.mark.parametrize("shared_u", [False, True])
+def test_hierarchical_matches_reference(shape, dtype, shared_u):
+    R, S, N = shape
+    z, weights = random_coarse(R, S, dtype)
+    u = sorted_u(1, N, dtype)[0] if shared_u else sorted_u(R, N, dtype)
+    ours = hierarchical_samples(z, weights, N, u=u, backend="kernel")
+    ref = hierarchical_samples(z, weights, N, u=u, backend="torch")
+    assert ours.shape == (R, S + N) and ours.dtype == dtype
+    torch.testing.assert_close(ours, ref, atol=4 * tolerance(dtype, S), rtol=0)
+    assert_valid_samples(ours, z)
+    # the coarse depths are all there, bit for bit, and the fine ones are sample_pdf's
+    mids = 0.5 * (z[:, 1:] + z[:, :-1])
+    fine = sample_pdf(mids, weights[:, 1:-1], N, u=u, backend="kernel")
+    assert torch.equal(ours, torch.sort(torch.cat([z, fine], dim=-1), dim=-1).values)
+
+
+def test_hierarchical_adversarial():
+    z = torch.tensor([[1.0, 1.0, 2.0, 2.0, 2.0, 3.0], [0.0, 1.0, 2.0, 3.0, 4.0, 5.0], [0.0, 1.0, 2.0, 3.0, 4.0, 5.0]])
+    weights = torch.tensor([[0.2, 1.0, 0.0, 1.0, 0.0, 0.3], [0.0] * 6, [9.0, 0.0, 0.0, 1.0, 0.0, 9.0]])
+    for u in (U_WITH_ENDS, torch.tensor([0.5]), torch.linspace(0, 1, 40)):
+        ours = hierarchical_samples(z, weights, u.numel(), u=u, backend="kernel")
+        ref = hierarchical_samples(z, weights, u.numel(), u=u, backend="torch")
+        torch.testing.assert_close(ours, ref, rtol=0, atol=1e-6)
+        assert_valid_samples(ours, z)
+    # midpoint edges 0.5 ... 4.5, only the bin [2.5, 3.5] has weight; u = 0 gives the first edge
+    merged = hierarchical_samples(z[2:], weights[2:], 6, u=U_WITH_ENDS, backend="kernel")
+    fine = torch.tensor([0.5, 0.5, 2.8, 3.0, 3.5, 3.5])
+    torch.testing.assert_close(merged[0], torch.sort(torch.cat([z[2], fine])).values)
+
+
+def test_hierarchical_carries_no_grad():
+    z, weights = random_coarse(4, 8)
+    z.requires_grad_()
+    weights.requires_grad_()
+    for backend in ("kernel", "torch"):
+        out = hierarchical_samples(z, weights, 5, deterministic=True, backend=backend)
+        assert not out.requires_grad and out.grad_fn is None
+
+
+# ---------------------------------------------------------------------------------------------
+# Registered ops
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_opcheck(dtype):
+    bins, weights = random_pdf(5, 7, dtype)
+    acc = accumulation_dtype(dtype)
+    for u in (sorted_u(5, 9, dtype), sorted_u(1, 9, dtype)[0]):
+        opcheck(torch.ops.mixer_nerf.sample_pdf_fwd.default, (bins, weights, u, 0.0))
+        opcheck(torch.ops.mixer_nerf.sample_pdf_bwd.default, (torch.randn(5, 9, dtype=dtype), bins, weights, u, 1e-5))
+        z, coarse_weights = random_coarse(5, 8, dtype)
+        opcheck(torch.ops.mixer_nerf.hierarchical_samples_fwd.default, (z, coarse_weights, u.to(acc), 0.0))
+
+
+# ---------------------------------------------------------------------------------------------
+# Bad input
+
+
+def _bins(*shape, dtype=torch.float32):
+    return torch.sort(torch.rand(*shape, dtype=dtype), dim=-1).values
+
+
+BAD_SAMPLE_PDF = [
+    (lambda: sample_pdf(_bins(3, 5)[0], torch.rand(4), 2), ValueError, "bins"),
+    (lambda: sample_pdf(_bins(3, 5), torch.rand(3, 5), 2), ValueError, "weights"),
+    (lambda: sample_pdf(_bins(3, 1), torch.rand(3, 0), 2), ValueError, "bins"),
+    (lambda: sample_pdf(_bins(3, 5), torch.rand(4, 4), 2), ValueError, "weights"),
+    (lambda: sample_pdf(torch.arange(15).reshape(3, 5), torch.rand(3, 4), 2), TypeError, "bins"),
+    (lambda: sample_pdf(_bins(3, 5), torch.ones(3, 4, dtype=torch.int64), 2), TypeError, "weights"),
+    (lambda: sample_pdf(_bins(3, 5), torch.rand(3, 4, dtype=torch.float64), 2), TypeError, "weights"),
+    (lambda: sample_pdf(_bins(3, 5).flip(-1), torch.rand(3, 4), 2), ValueError, "bins"),
+    (lambda: sample_pdf(_bins(3, 5), -torch.rand(3, 4), 2), ValueError, "weights"),
+    (lambda: sample_pdf(_bins(3, 5), torch.rand(3, 4), -1), ValueError, "num_samples"),
+    (lambda: sample_pdf(_bins(3, 5), torch.rand(3, 4), 2.0), TypeError, "num_samples"),
+    (lambda: sample_pdf(_bins(3, 5), torch.rand(3, 4), 2, weight_padding=-1e-5), ValueError, "weight_padding"),
+    (lambda: sample_pdf(_bins(3, 5), torch.rand(3, 4), 2, weight_padding=float("nan")), ValueError, "weight_padding"),
+    (lambda: sample_pdf(_bins(3, 5), torch.rand(3, 4), 2, weight_padding="1"), TypeError, "weight_padding"),
+    (lambda: sample_pdf(_bins(3, 5), torch.rand(3, 4), 2, u=torch.tensor([0.1, 0.2, 0.3])), ValueError, "u"),
+    (lambda: sample_pdf(_bins(3, 5), torch.rand(3, 4), 2, u=_bins(2, 2)), ValueError, "u"),
+    (lambda: sample_pdf(_bins(3, 5), torch.rand(3, 4), 2, u=_bins(3, 2, 2)), ValueError, "u"),
+    (lambda: sample_pdf(_bins(3, 5), torch.rand(3, 4), 2, u=torch.tensor([0.5, 0.2])), ValueError, "u"),
+    (lambda: sample_pdf(_bins(3, 5), torch.rand(3, 4), 2, u=torch.tensor([0.5, 1.5])), ValueError, "u"),
+    (lambda: sample_pdf(_bins(3, 5), torch.rand(3, 4), 2, u=torch.tensor([0, 1])), TypeError, "u"),
+    (lambda: sample_pdf(_bins(3, 5), torch.rand(3, 4), 2, u=torch.tensor([0.2, 0.5]), deterministic=True), ValueError, "u"),
+    (lambda: sample_pdf(_bins(3, 5), torch.rand(3, 4), 2, backend="cuda"), ValueError, "backend"),
+    (lambda: sample_pdf([[0.0, 1.0]], torch.rand(1, 1), 2), TypeError, "bins"),
+    (lambda: hierarchical_samples(_bins(3, 2), torch.rand(3, 2), 2), ValueError, "z_coarse"),
+    (lambda: hierarchical_samples(_bins(3, 6), torch.rand(3, 5), 2), ValueError, "weights_coarse"),
+    (lambda: hierarchical_samples(_bins(3, 6)[0], torch.rand(6), 2), ValueError, "z_coarse"),
+    (lambda: hierarchical_samples(_bins(3, 6).flip(-1), torch.rand(3, 6), 2), ValueError, "z_coarse"),
+    (lambda: hierarchical_samples(_bins(3, 6), -torch.rand(3, 6), 2), ValueError, "weights_coarse"),
+    (lambda: hierarchical_samples(_bins(3, 6), torch.rand(3, 6).half(), 2), TypeError, "weights_coarse"),
+    (lambda: hierarchical_samples(_bins(3, 6), torch.rand(3, 6), -2), ValueError, "num_fine"),
+    (lambda: hierarchical_samples(_bins(3, 6), torch.rand(3, 6), 2, u=torch.rand(3, 3)), ValueError, "u"),
+]
+
+
+@pytest.mark.parametrize("call,error,name", BAD_SAMPLE_PDF)
+def test_bad_input(call, error, name):
+    with pytest.raises(error, match=name):
+        call()
+
+
+# ---------------------------------------------------------------------------------------------
+# CUDA: kernel against the CPU kernel and the reference, forward and gradients
+
+
+@cuda
+@needs_cuda
+def test_cuda_rejects_mixed_devices():
+    dev = torch.device("cuda")
+    with pytest.raises(ValueError, match="weights"):
+        sample_pdf(_bins(3, 5).to(dev), torch.rand(3, 4), 2)
+    with pytest.raises(ValueError, match="u"):
+        sample_pdf(_bins(3, 5).to(dev), torch.rand(3, 4, device=dev), 2, u=torch.tensor([0.1, 0.2]))
+    with pytest.raises(ValueError, match="weights_coarse"):
+        hierarchical_samples(_bins(3, 6).to(dev), torch.rand(3, 6), 2)
+    with pytest.raises(ValueError, match="generator"):
+        sample_pdf(_bins(3, 5).to(dev), torch.rand(3, 4, device=dev), 2, generator=torch.Generator())
+
+
+def _poisoned(*tensors_like):
+    """Fill the CUDA caching allocator with NaN blocks of the sizes the op will allocate, so an
+    output element a kernel forgets to write reads back as NaN. Returns the block addresses: the
+    caller asserts its outputs landed in them, which proves the poison was really underneath."""
+    blocks = [torch.full_like(t, float("nan")) for t in tensors_like]
+    addresses = {b.data_ptr() for b in blocks}
+    del blocks
+    return addresses
+
+
+CUDA_SHAPES = [(1, 1, 1), (1, 63, 128), (3, 31, 33), (1000, 37, 5), (65536, 62, 128), (0, 4, 3)]
+
+
+@cuda
+@needs_cuda
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("shape", CUDA_SHAPES)
+def test_cuda_forward_and_grads(shape, dtype):
+    R, B, N = shape
+    dev = torch.device("cuda")
+    bins, weights = random_pdf(R, B, dtype, device=dev)
+    u = sorted_u(R, N, dtype, device=dev)
+    torch.cuda.synchronize()
+    addresses = _poisoned(torch.empty(R, N, dtype=dtype, device=dev))
+    samples = torch.ops.mixer_nerf.sample_pdf_fwd(bins, weights, u, 0.0)
+    assert R * N == 0 or samples.data_ptr() in addresses
+    assert_valid_samples(samples, bins)
+    cpu = torch.ops.mixer_nerf.sample_pdf_fwd(bins.cpu(), weights.cpu(), u.cpu(), 0.0)
+    # same sequential CDF as the CPU kernel; only FMA contraction differs (a few ulp)
+    torch.testing.assert_close(samples.cpu(), cpu, atol=1e-6 if dtype == torch.float32 else 1e-14, rtol=0)
+    torch.testing.assert_close(samples, sample_pdf_reference(bins, weights, u), atol=tolerance(dtype, B), rtol=0)
+
+    grad = torch.randn(R, N, dtype=dtype, device=dev)
+    torch.cuda.synchronize()
+    addresses = _poisoned(bins, weights)
+    grad_bins, grad_weights = torch.ops.mixer_nerf.sample_pdf_bwd(grad, bins, weights, u, 0.0)
+    assert R == 0 or {grad_bins.data_ptr(), grad_weights.data_ptr()} <= addresses
+    assert torch.isfinite(grad_bins).all() and torch.isfinite(grad_weights).all()
+    cpu_grads = torch.ops.mixer_nerf.sample_pdf_bwd(grad.cpu(), bins.cpu(), weights.cpu(), u.cpu(), 0.0)
+    for got, want in zip((grad_bins, grad_weights), cpu_grads):
+        scale = max(want.abs().max().item(), 1.0) if want.numel() else 1.0
+        torch.testing.assert_close(got.cpu(), want, atol=1e-4 * scale if dtype == torch.float32 else 1e-11 * scale, rtol=0)
+    if R <= 1000:
+        ref = _grads("torch", bins, weights, u, upstream=grad)
+        for got, want in zip((grad_bins, grad_weights), ref):
+            scale = max(want.abs().max().item(), 1.0) if want.numel() else 1.0
+            torch.testing.assert_close(got, want, atol=tolerance(dtype, B) * scale * 10, rtol=0)
+
+
+@cuda
+@needs_cuda
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64, torch.float16])
+@pytest.mark.parametrize("shape", [(1, 3, 1), (5, 64, 128), (3, 33, 31), (65536, 64, 128), (0, 5, 2), (7, 200, 300)])
+@pytest.mark.parametrize("shared_u", [False, True])
+def test_cuda_hierarchical(shape, dtype, shared_u):
+    R, S, N = shape
+    dev = torch.device("cuda")
+    z, weights = random_coarse(R, S, dtype, device=dev)
+    u = sorted_u(1, N, dtype, device=dev)[0] if shared_u else sorted_u(R, N, dtype, device=dev)
+    torch.cuda.synchronize()
+    addresses = _poisoned(torch.empty(R, S + N, dtype=dtype, device=dev))
+    merged = torch.ops.mixer_nerf.hierarchical_samples_fwd(z, weights, u, 0.0)
+    assert R == 0 or merged.data_ptr() in addresses
+    assert_valid_samples(merged, z)
+    cpu = torch.ops.mixer_nerf.hierarchical_samples_fwd(z.cpu(), weights.cpu(), u.cpu(), 0.0)
+    atol = {torch.float32: 1e-6, torch.float64: 1e-14, torch.float16: 4e-3}[dtype]
+    torch.testing.assert_close(merged.cpu(), cpu, atol=atol, rtol=0)
+    if R <= 1000:
+        ref = hierarchical_samples_reference(z, weights, u)
+        torch.testing.assert_close(merged, ref, atol=4 * tolerance(dtype, S) * 4, rtol=0)
+
+
+@cuda
+@needs_cuda
+def test_cuda_adversarial():
+    dev = torch.device("cuda")
+    cases = [
+        (torch.tensor([[0.0, 1.0, 2.0, 6.0]]), torch.zeros(1, 3)),
+        (torch.tensor([[0.0, 1.0, 2.0, 3.0, 4.0, 5.0]]), torch.tensor([[0.0, 0.0, 1.0, 0.0, 0.0]])),
+        (torch.tensor([[0.0, 0.0, 1.0, 1.0, 1.0, 2.0]]), torch.tensor([[1.0, 1.0, 3.0, 0.0, 1.0]])),
+        (torch.tensor([[0.0, 1.0, 2.0, 3.0, 4.0]]), torch.tensor([[0.0, 2.0, 1.0, 0.0]])),
+        (torch.tensor([[2.0, 4.0]]), torch.tensor([[0.7]])),
+        (torch.tensor([[0.0, 1.0, 2.0, 3.0]]), torch.full((1, 3), 3e38)),
+        (torch.tensor([[0.0, 1.0, 2.0, 3.0]]), torch.full((1, 3), 1e-39)),
+    ]
+    for bins, weights in cases:
+        for u in (U_WITH_ENDS, torch.tensor([1.0]), torch.tensor([0.0])):
+            gpu = sample_pdf(bins.to(dev), weights.to(dev), u.numel(), u=u.to(dev), backend="kernel")
+            cpu = sample_pdf(bins, weights, u.numel(), u=u, backend="kernel")
+            torch.testing.assert_close(gpu.cpu(), cpu, rtol=0, atol=1e-6)
+            cpu_grads = _grads("kernel", bins, weights, u)
+            for got, want in zip(_grads("kernel", bins.to(dev), weights.to(dev), u.to(dev)), cpu_grads):
+                assert torch.isfinite(got).all()
+                torch.testing.assert_close(got.cpu(), want, rtol=1e-5, atol=1e-5)
+            if bins.shape[1] >= 3:  # as coarse depths: S >= 3
+                coarse_w = torch.cat([weights[:, :1], weights], dim=-1)
+                gpu = hierarchical_samples(bins.to(dev), coarse_w.to(dev), u.numel(), u=u.to(dev), backend="kernel")
+                cpu = hierarchical_samples(bins, coarse_w, u.numel(), u=u, backend="kernel")
+                torch.testing.assert_close(gpu.cpu(), cpu, rtol=0, atol=1e-6)
+
+
+@cuda
+@needs_cuda
+def test_cuda_opcheck():
+    dev = torch.device("cuda")
+    bins, weights = random_pdf(5, 7, device=dev)
+    u = sorted_u(5, 9, device=dev)
+    opcheck(torch.ops.mixer_nerf.sample_pdf_fwd.default, (bins, weights, u, 0.0))
+    opcheck(torch.ops.mixer_nerf.sample_pdf_bwd.default, (torch.randn(5, 9, device=dev), bins, weights, u, 0.0))
+    z, coarse_weights = random_coarse(5, 8, device=dev)
+    opcheck(torch.ops.mixer_nerf.hierarchical_samples_fwd.default, (z, coarse_weights, u, 0.0))
