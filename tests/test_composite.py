@@ -19,8 +19,7 @@ cuda = [pytest.mark.cuda, pytest.mark.skipif(not torch.cuda.is_available(), reas
 # <= S * 2^-24 worst case (6e-6 at S=100), hence T, weights, and the weighted sums of up to S terms
 # are off by ~E * that; 1e-4 leaves margin for S ~ 1000 at E ~ 10 while catching any wrong term.
 F32_REL = 1e-4
-F64_REL = 1e-12  # float64 kernel vs float64 reference: same sums in another order, and
-F64_ATOL = 1e-13  # the reference's 1 - opacity is off by ~S * 2^-53 absolute (kernel: exp(-E))
+F64_REL = 1e-12  # float64 kernel vs float64 reference: same sums in another order
 HALF_REL = {torch.float16: 4e-3, torch.bfloat16: 3e-2}  # storage rounding of inputs/outputs only
 
 
@@ -75,8 +74,8 @@ def random_upstream(inputs, gen, which=(True, True, True, True)):
     ]
 
 
-def assert_close(got, want, rel, what="", atol=0.0):
-    """max |got - want| <= rel * max |want| + atol (per tensor), and got finite."""
+def assert_close(got, want, rel, what=""):
+    """max |got - want| <= rel * max |want| (per tensor), and got finite."""
     for i, (g, w) in enumerate(zip(got, want)):
         if w is None:
             assert g is None or not g.abs().any(), f"{what}[{i}]: expected no gradient"
@@ -86,7 +85,7 @@ def assert_close(got, want, rel, what="", atol=0.0):
         assert torch.isfinite(g).all(), f"{what}[{i}]: non-finite values"
         if w.numel():
             err, scale = (g - w).abs().max().item(), w.abs().max().item()
-            assert err <= rel * scale + atol, f"{what}[{i}]: max err {err:.3e} vs scale {scale:.3e}"
+            assert err <= rel * scale, f"{what}[{i}]: max err {err:.3e} vs scale {scale:.3e}"
 
 
 SHAPES = [(1, 1, 1), (1, 7, 3), (6, 1, 3), (0, 5, 3), (4, 0, 3), (13, 64, 3), (5, 33, 1), (3, 40, 4), (2, 9, 7)]
@@ -104,12 +103,12 @@ def test_cpu_kernel_matches_reference(gen, shape, background):
     inputs = make_inputs(*shape, gen, background)
     upstream = random_upstream(inputs, gen)
     want_out, want_grads = truth(inputs, upstream)
-    for dtype, rel, atol in ((torch.float64, F64_REL, F64_ATOL), (torch.float32, F32_REL, 0.0)):
+    for dtype, rel, atol in ((torch.float64, F64_REL), (torch.float32, F32_REL, 0.0)):
         cast = [None if t is None else t.to(dtype) for t in inputs]
         out, grads = run(cast, [u.to(dtype) for u in upstream], backend="kernel")
         assert all(o.dtype == dtype for o in out)
-        assert_close(out, want_out, rel, f"{dtype} outputs", atol)
-        assert_close(grads, want_grads, rel, f"{dtype} grads", atol)
+        assert_close(out, want_out, rel, f"{dtype} outputs")
+        assert_close(grads, want_grads, rel, f"{dtype} grads")
 
 
 @needs_kernels
@@ -134,7 +133,7 @@ def test_cpu_loss_on_one_output(gen, which):
     inputs = make_inputs(4, 11, 3, gen, "shared")
     upstream = random_upstream(inputs, gen, which)
     out, grads = run(inputs, upstream, backend="kernel")
-    assert_close(grads, truth(inputs, upstream)[1], F64_REL, "grads", F64_ATOL)
+    assert_close(grads, truth(inputs, upstream)[1], F64_REL, "grads")
 
 
 @needs_kernels
@@ -145,7 +144,7 @@ def test_cpu_interval_grads_skipped_when_not_needed(gen):
     out = composite(sigmas, rgbs, t_starts.detach(), t_ends.detach(), bg, backend="kernel")
     grads = torch.autograd.grad(sum((o * u).sum() for o, u in zip(out, upstream)), [sigmas, rgbs, bg])
     want = truth(inputs, upstream)[1]
-    assert_close(list(grads), [want[0], want[1], want[4]], F64_REL, "grads", F64_ATOL)
+    assert_close(list(grads), [want[0], want[1], want[4]], F64_REL, "grads")
 
 
 @needs_kernels
@@ -166,7 +165,7 @@ def test_cpu_non_contiguous_inputs(gen):
     rgbs_nc = rgbs.transpose(0, 1).contiguous().transpose(0, 1)
     sigmas_nc = sigmas.t().contiguous().t()
     got = composite(sigmas_nc, rgbs_nc, t_starts, t_ends, bg, backend="kernel")
-    assert_close(list(got), list(composite_reference(sigmas, rgbs, t_starts, t_ends, bg)), F64_REL, atol=F64_ATOL)
+    assert_close(list(got), list(composite_reference(sigmas, rgbs, t_starts, t_ends, bg)), F64_REL)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -341,7 +340,7 @@ def check_cuda(gen, inputs, rel=F32_REL):
     present = [t for t in leaves if t is not None]
     up_cuda = [u.cuda() for u in upstream]
     poison_allocator([(o.shape, o.dtype) for o in cpu_out] + [(t.shape, t.dtype) for t in present])
-    out = composite(*leaves, backend="kernel")
+    out = composite(*leaves, backend="kernel", check_values=False)  # no value-check temporaries
     grads = iter(torch.autograd.grad(out, present, up_cuda))
     grads = [None if t is None else next(grads) for t in leaves]
     for got, want, what in ((out, want_out, "outputs"), (grads, want_grads, "grads")):

@@ -7,7 +7,7 @@ The definitions the kernels must match (per ray, samples i = 0..S-1):
     alpha_i = -expm1(-tau_i)                   = 1 - exp(-tau_i), accurate for tiny tau
     w_i     = T_i * alpha_i                    weights
     opacity = sum_i w_i
-    color   = sum_i w_i rgb_i + (1 - opacity) * background
+    color   = sum_i w_i rgb_i + (1 - opacity) * background,  1 - opacity = exp(-sum_i tau_i)
     depth   = sum_i w_i (t_start_i + t_end_i) / 2
 
 ``depth`` is the unnormalised expected depth (divide by ``opacity`` for the depth of the surface
@@ -35,13 +35,17 @@ def composite_reference(
     sigmas, rgbs, t_starts, t_ends = (x.to(compute) for x in (sigmas, rgbs, t_starts, t_ends))
 
     tau = sigmas * (t_ends - t_starts)
-    # Exclusive cumsum by shifting (not cumsum - tau, which cancels after a huge tau).
-    optical_depth = torch.cat([torch.zeros_like(tau[:, :1]), torch.cumsum(tau[:, :-1], dim=1)], dim=1)
-    weights = torch.exp(-optical_depth) * -torch.expm1(-tau)
+    optical_depth = torch.cumsum(tau, dim=1)  # after each sample
+    # Exclusive by shifting (not optical_depth - tau, which cancels after a huge tau).
+    before = torch.cat([torch.zeros_like(tau[:, :1]), optical_depth[:, :-1]], dim=1)
+    weights = torch.exp(-before) * -torch.expm1(-tau)
 
     opacity = weights.sum(dim=1)
     color = (weights.unsqueeze(-1) * rgbs).sum(dim=1)
     if background is not None:
-        color = color + (1 - opacity).unsqueeze(-1) * background.to(compute)
+        # 1 - opacity, as the transmittance past the last sample: the same number, but accurate
+        # when opacity rounds to 1 (1 - sum w would keep no digit of a 1e-15 transmittance).
+        transmittance_end = torch.exp(-optical_depth[:, -1:]) if tau.shape[1] else torch.ones_like(color[:, :1])
+        color = color + transmittance_end * background.to(compute)
     depth = (weights * 0.5 * (t_starts + t_ends)).sum(dim=1)
     return tuple(x.to(dtype) for x in (color, depth, opacity, weights))
