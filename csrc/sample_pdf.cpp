@@ -20,28 +20,6 @@ namespace {
 
 using namespace sample_pdf_math;
 
-// Shapes and the common checks of the three ops: rows of `edges_or_z` and `weights` are rays,
-// u is (N) shared by every ray or (R, N), in the accumulation dtype.
-struct RayBatch {
-  int64_t rays;
-  int64_t samples;
-  int64_t u_row_stride;
-};
-
-RayBatch check_batch(const at::Tensor& edges_or_z, const at::Tensor& weights, const at::Tensor& u) {
-  MIXER_NERF_CHECK_INPUT(edges_or_z, at::kCPU);
-  MIXER_NERF_CHECK_INPUT(weights, at::kCPU);
-  MIXER_NERF_CHECK_INPUT(u, at::kCPU);
-  TORCH_CHECK(edges_or_z.dim() == 2 && weights.dim() == 2, "expected 2-D bins/z and weights");
-  TORCH_CHECK(weights.scalar_type() == edges_or_z.scalar_type(), "weights must have the dtype of bins/z");
-  TORCH_CHECK(weights.size(0) == edges_or_z.size(0), "weights and bins/z must have the same number of rays");
-  TORCH_CHECK(u.scalar_type() == at::toOpMathType(edges_or_z.scalar_type()),
-              "u must be in the accumulation dtype of bins/z (float32, or float64 for float64)");
-  TORCH_CHECK(u.dim() == 1 || (u.dim() == 2 && u.size(0) == edges_or_z.size(0)), "u must be (N) or (R, N)");
-  const int64_t samples = u.size(-1);
-  return {edges_or_z.size(0), samples, u.dim() == 2 ? samples : 0};
-}
-
 int64_t grain_for(int64_t work_per_ray) {
   return std::max<int64_t>(1, at::internal::GRAIN_SIZE / std::max<int64_t>(1, work_per_ray));
 }
@@ -65,9 +43,9 @@ void sample_ray(Weights weights, Edges edges, int num_bins, const acc_t* u, int6
 
 at::Tensor sample_pdf_fwd_cpu(const at::Tensor& bins, const at::Tensor& weights, const at::Tensor& u,
                               double weight_padding) {
-  const RayBatch batch = check_batch(bins, weights, u);
+  const RayBatch batch = check_batch(bins, weights, u, at::kCPU);
+  check_bins(bins, weights);
   const int64_t num_bins = weights.size(1);
-  TORCH_CHECK(num_bins >= 1 && bins.size(1) == num_bins + 1, "bins must be (R, B+1) for weights (R, B), B >= 1");
   at::Tensor samples = at::empty({batch.rays, batch.samples}, bins.options());
   MIXER_NERF_DISPATCH_FLOATING(bins.scalar_type(), "sample_pdf_fwd_cpu", [&] {
     using acc = acc_t<scalar_t>;
@@ -92,13 +70,10 @@ at::Tensor sample_pdf_fwd_cpu(const at::Tensor& bins, const at::Tensor& weights,
 std::tuple<at::Tensor, at::Tensor> sample_pdf_bwd_cpu(const at::Tensor& grad_samples, const at::Tensor& bins,
                                                       const at::Tensor& weights, const at::Tensor& u,
                                                       double weight_padding) {
-  const RayBatch batch = check_batch(bins, weights, u);
+  const RayBatch batch = check_batch(bins, weights, u, at::kCPU);
+  check_bins(bins, weights);
+  check_grad(grad_samples, bins, batch);
   const int64_t num_bins = weights.size(1);
-  TORCH_CHECK(num_bins >= 1 && bins.size(1) == num_bins + 1, "bins must be (R, B+1) for weights (R, B), B >= 1");
-  MIXER_NERF_CHECK_INPUT(grad_samples, at::kCPU);
-  TORCH_CHECK(grad_samples.scalar_type() == bins.scalar_type(), "grad_samples must have the dtype of bins");
-  TORCH_CHECK(grad_samples.dim() == 2 && grad_samples.size(0) == batch.rays && grad_samples.size(1) == batch.samples,
-              "grad_samples must be (R, N)");
   at::Tensor grad_bins = at::empty_like(bins);
   at::Tensor grad_weights = at::empty_like(weights);
   MIXER_NERF_DISPATCH_FLOATING(bins.scalar_type(), "sample_pdf_bwd_cpu", [&] {
@@ -124,9 +99,9 @@ std::tuple<at::Tensor, at::Tensor> sample_pdf_bwd_cpu(const at::Tensor& grad_sam
 
 at::Tensor hierarchical_samples_fwd_cpu(const at::Tensor& z_coarse, const at::Tensor& weights, const at::Tensor& u,
                                         double weight_padding) {
-  const RayBatch batch = check_batch(z_coarse, weights, u);
+  const RayBatch batch = check_batch(z_coarse, weights, u, at::kCPU);
+  check_coarse(z_coarse, weights);
   const int64_t coarse = z_coarse.size(1);
-  TORCH_CHECK(coarse >= 3 && weights.size(1) == coarse, "z_coarse and weights must be (R, S), S >= 3");
   const int64_t num_bins = coarse - 2;  // edges: the S-1 midpoints; weights: weights[:, 1:-1]
   const int64_t merged = coarse + batch.samples;
   at::Tensor out = at::empty({batch.rays, merged}, z_coarse.options());

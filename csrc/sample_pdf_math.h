@@ -10,12 +10,55 @@
 //   sample s = min(e_0 + u (e_B - e_0), e_B) instead.
 #pragma once
 
+#include <ATen/ATen.h>
 #include <c10/macros/Macros.h>
 
 #include <cfloat>
 
+#include "common.h"
+
 namespace mixer_nerf {
 namespace sample_pdf_math {
+
+// Shapes of a call, after the defensive checks every op shares: rows of `edges_or_z` and
+// `weights` are rays; u is (N) shared by every ray or (R, N), in the accumulation dtype.
+struct RayBatch {
+  int64_t rays;
+  int64_t samples;
+  int64_t u_row_stride;
+};
+
+inline RayBatch check_batch(const at::Tensor& edges_or_z, const at::Tensor& weights, const at::Tensor& u,
+                            at::DeviceType device) {
+  MIXER_NERF_CHECK_INPUT(edges_or_z, device);
+  MIXER_NERF_CHECK_INPUT(weights, device);
+  MIXER_NERF_CHECK_INPUT(u, device);
+  TORCH_CHECK(edges_or_z.dim() == 2 && weights.dim() == 2, "expected 2-D bins/z and weights");
+  TORCH_CHECK(weights.scalar_type() == edges_or_z.scalar_type(), "weights must have the dtype of bins/z");
+  TORCH_CHECK(weights.size(0) == edges_or_z.size(0), "weights and bins/z must have the same number of rays");
+  TORCH_CHECK(u.scalar_type() == at::toOpMathType(edges_or_z.scalar_type()),
+              "u must be in the accumulation dtype of bins/z (float32, or float64 for float64)");
+  TORCH_CHECK(u.dim() == 1 || (u.dim() == 2 && u.size(0) == edges_or_z.size(0)), "u must be (N) or (R, N)");
+  TORCH_CHECK(edges_or_z.size(1) < (int64_t{1} << 30) && u.size(-1) < (int64_t{1} << 30), "too many bins or samples");
+  const int64_t samples = u.size(-1);
+  return {edges_or_z.size(0), samples, u.dim() == 2 ? samples : 0};
+}
+
+inline void check_bins(const at::Tensor& bins, const at::Tensor& weights) {
+  TORCH_CHECK(weights.size(1) >= 1 && bins.size(1) == weights.size(1) + 1,
+              "bins must be (R, B+1) for weights (R, B), B >= 1");
+}
+
+inline void check_coarse(const at::Tensor& z_coarse, const at::Tensor& weights) {
+  TORCH_CHECK(z_coarse.size(1) >= 3 && weights.size(1) == z_coarse.size(1), "z_coarse and weights must be (R, S), S >= 3");
+}
+
+inline void check_grad(const at::Tensor& grad_samples, const at::Tensor& bins, const RayBatch& batch) {
+  MIXER_NERF_CHECK_INPUT(grad_samples, bins.device().type());
+  TORCH_CHECK(grad_samples.scalar_type() == bins.scalar_type(), "grad_samples must have the dtype of bins");
+  TORCH_CHECK(grad_samples.dim() == 2 && grad_samples.size(0) == batch.rays && grad_samples.size(1) == batch.samples,
+              "grad_samples must be (R, N)");
+}
 
 // A ray whose total weight is zero (after flushing subnormal weights) or overflows has no usable
 // PDF: it samples uniformly between its first and last edge.

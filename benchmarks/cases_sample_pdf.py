@@ -1,0 +1,156 @@
+"""Benchmark cases for sample_pdf and hierarchical_samples (NeRF's fine-pass sampling).
+
+Sizes: 64 coarse samples and 128 fine ones per ray, R=4096 rays on CPU and R=65536 on CUDA,
+float32. The PDF is NeRF's: bins are the 63 midpoints of the coarse depths, weights the 62
+interior coarse weights (peaked, like compositing weights, every ray with some mass).
+
+Cases:
+  * hierarchical_samples fwd, positions u (R, N) given (stratified, drawn once outside the timed
+    region): the fine pass's sampling + merge; byte floor z + weights + u read, merged written.
+  * hierarchical_samples fwd, deterministic positions (i + 1/2) / N: the same positions nerfacc
+    0.5.3's importance_sampling uses, so its error column is comparable (nerfacc samples, then
+    torch.sort merges, as its users do).
+  * sample_pdf fwd and fwd+bwd (gradients to bins and weights), deterministic positions.
+Our kernel runs with check_values=False (the inputs are valid by construction); the reference
+variants take the same u tensor the kernel sees.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from benchmarks.harness import Case, Variant
+from mixer_nerf.ops.sample_pdf import hierarchical_samples, sample_pdf
+from mixer_nerf.ops.sample_pdf_reference import hierarchical_samples_reference, sample_pdf_reference
+
+COARSE, FINE = 64, 128
+
+
+def make_inputs(R: int, device: torch.device, seed: int = 0) -> dict[str, torch.Tensor]:
+    gen = torch.Generator(device=device).manual_seed(seed)
+    strata = torch.linspace(0, 1, COARSE + 1, device=device)[:-1]
+    z = 2.0 + 4.0 * (strata + torch.rand(R, COARSE, generator=gen, device=device) / COARSE)
+    surface = 2.5 + 3.0 * torch.rand(R, 1, generator=gen, device=device)
+    peak = torch.exp(-0.5 * ((z - surface) / 0.15) ** 2)
+    weights = peak * torch.rand(R, COARSE, generator=gen, device=device) + 1e-3 * torch.rand(
+        R, COARSE, generator=gen, device=device
+    )
+    strata_fine = torch.arange(FINE, device=device) / FINE
+    u = strata_fine + torch.rand(R, FINE, generator=gen, device=device) / FINE
+    return {"z": z.contiguous(), "weights": weights.contiguous(), "u": u.contiguous()}
+
+
+def deterministic_u(device: torch.device, dtype=torch.float32) -> torch.Tensor:
+    return (torch.arange(FINE, device=device, dtype=dtype) + 0.5) / FINE
+
+
+def nerfacc_importance_samples(bins: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+    """nerfacc 0.5.3's batched importance sampling at its deterministic positions (i + 1/2) / N,
+    from the normalised CDF that its users compute in PyTorch."""
+    import nerfacc
+    from nerfacc.data_specs import RayIntervals
+
+    cdf = torch.cumsum(weights, dim=-1) / weights.sum(dim=-1, keepdim=True)
+    cdf = torch.cat([torch.zeros_like(cdf[:, :1]), cdf], dim=-1)
+    _, samples = nerfacc.importance_sampling(RayIntervals(vals=bins.contiguous()), cdf.contiguous(), FINE, False)
+    return samples.vals
+
+
+def nerfacc_hierarchical(z: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+    fine = nerfacc_importance_samples(0.5 * (z[:, 1:] + z[:, :-1]), weights[:, 1:-1])
+    return torch.sort(torch.cat([z, fine], dim=-1), dim=-1).values
+
+
+def has_nerfacc(device: torch.device) -> bool:
+    if device.type != "cuda":
+        return False
+    try:
+        import nerfacc  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def hierarchical_case(size: str, inputs: dict, device: torch.device, deterministic: bool) -> Case:
+    z, weights = inputs["z"], inputs["weights"]
+    u = deterministic_u(device) if deterministic else inputs["u"]
+    variants = [
+        Variant("kernel", lambda: hierarchical_samples(z, weights, FINE, u=u, backend="kernel", check_values=False)),
+        Variant("torch", lambda: hierarchical_samples_reference(z, weights, u)),
+    ]
+    if device.type == "cuda":
+        compiled = torch.compile(hierarchical_samples_reference)
+        variants.append(Variant("torch.compile", lambda: compiled(z, weights, u)))
+    if deterministic and has_nerfacc(device):
+        variants.append(Variant("nerfacc", lambda: nerfacc_hierarchical(z, weights)))
+    R = z.shape[0]
+    u_bytes = u.numel() * u.element_size()
+    return Case(
+        op="hierarchical_samples",
+        mode="fwd",
+        size=f"{size} u={'(N,) deterministic' if deterministic else '(R, N) given'}",
+        variants=variants,
+        truth=lambda: hierarchical_samples_reference(z.double(), weights.double(), u.double()),
+        min_bytes=(2 * R * COARSE + R * (COARSE + FINE)) * z.element_size() + u_bytes,
+    )
+
+
+def pdf_of(inputs: dict) -> tuple[torch.Tensor, torch.Tensor]:
+    z = inputs["z"]
+    return (0.5 * (z[:, 1:] + z[:, :-1])).contiguous(), inputs["weights"][:, 1:-1].contiguous()
+
+
+def sample_pdf_cases(size: str, inputs: dict, device: torch.device) -> list[Case]:
+    bins, weights = pdf_of(inputs)
+    u = deterministic_u(device)
+    impls = {
+        "kernel": lambda b, w, uu: sample_pdf(b, w, FINE, u=uu, backend="kernel", check_values=False),
+        "torch": sample_pdf_reference,
+    }
+    if device.type == "cuda":
+        impls["torch.compile"] = torch.compile(sample_pdf_reference)
+
+    def forward(fn, dtype=None):
+        with torch.no_grad():
+            cast = [x if dtype is None else x.to(dtype) for x in (bins, weights, u)]
+            return fn(*cast)
+
+    R, B = weights.shape
+    item = bins.element_size()
+    fwd_bytes = (R * (B + 1) + R * B + R * FINE) * item
+    fwd_variants = [Variant(name, lambda fn=fn: forward(fn)) for name, fn in impls.items()]
+    if has_nerfacc(device):
+        fwd_variants.append(Variant("nerfacc", lambda: nerfacc_importance_samples(bins, weights)))
+    gen = torch.Generator(device=device).manual_seed(1)
+    upstream = torch.randn(R, FINE, generator=gen, device=device)
+
+    def step(fn, dtype=None):
+        leaves = [x.detach().to(dtype or x.dtype).requires_grad_() for x in (bins, weights)]
+        out = fn(*leaves, u.to(dtype or u.dtype))
+        grads = torch.autograd.grad(out, leaves, upstream.to(out.dtype))
+        return (out.detach(), *grads)
+
+    # backward: read grad_samples, bins, weights; write grad_bins, grad_weights
+    bwd_bytes = (R * FINE + 2 * (R * (B + 1) + R * B)) * item
+    return [
+        Case("sample_pdf", "fwd", size, fwd_variants, lambda: forward(sample_pdf_reference, torch.float64), fwd_bytes),
+        Case(
+            "sample_pdf",
+            "fwd+bwd",
+            size,
+            [Variant(name, lambda fn=fn: step(fn)) for name, fn in impls.items()],
+            lambda: step(sample_pdf_reference, torch.float64),
+            fwd_bytes + bwd_bytes,
+        ),
+    ]
+
+
+def cases(device: torch.device) -> list[Case]:
+    R = 65536 if device.type == "cuda" else 4096
+    inputs = make_inputs(R, device)
+    size = f"R={R} S={COARSE} N={FINE}"
+    return [
+        hierarchical_case(size, inputs, device, deterministic=False),
+        hierarchical_case(size, inputs, device, deterministic=True),
+        *sample_pdf_cases(size, inputs, device),
+    ]
