@@ -405,11 +405,14 @@ def test_cuda_rejects_mixed_devices():
         sample_pdf(_bins(3, 5).to(dev), torch.rand(3, 4, device=dev), 2, generator=torch.Generator())
 
 
-def _poisoned(*tensors_like):
-    """Fill the CUDA caching allocator with NaN blocks of the sizes the op will allocate, so an
-    output element a kernel forgets to write reads back as NaN. Returns the block addresses: the
-    caller asserts its outputs landed in them, which proves the poison was really underneath."""
-    blocks = [torch.full_like(t, float("nan")) for t in tensors_like]
+def _poisoned(*specs):
+    """Fill the CUDA caching allocator with NaN blocks of the (shape, dtype)s the op allocates,
+    in its allocation order, so an output element a kernel forgets to write reads back as NaN.
+    The cache is emptied first, so the op's allocations reuse exactly these blocks; the caller
+    asserts its outputs landed at the returned addresses, which proves the poison was there."""
+    torch.cuda.synchronize()
+    torch.cuda.empty_cache()
+    blocks = [torch.full(shape, float("nan"), dtype=dtype, device="cuda") for shape, dtype in specs]
     addresses = {b.data_ptr() for b in blocks}
     del blocks
     return addresses
@@ -421,14 +424,13 @@ CUDA_SHAPES = [(1, 1, 1), (1, 63, 128), (3, 31, 33), (1000, 37, 5), (65536, 62, 
 @cuda
 @needs_cuda
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-@pytest.mark.parametrize("shape", CUDA_SHAPES)
+@pytest.mark.parametrize("shape", CUDA_SHAPES, ids=lambda s: "x".join(map(str, s)))
 def test_cuda_forward_and_grads(shape, dtype):
     R, B, N = shape
     dev = torch.device("cuda")
     bins, weights = random_pdf(R, B, dtype, device=dev)
     u = sorted_u(R, N, dtype, device=dev)
-    torch.cuda.synchronize()
-    addresses = _poisoned(torch.empty(R, N, dtype=dtype, device=dev))
+    addresses = _poisoned(((R, N), dtype))
     samples = torch.ops.mixer_nerf.sample_pdf_fwd(bins, weights, u, 0.0)
     assert R * N == 0 or samples.data_ptr() in addresses
     assert_valid_samples(samples, bins)
@@ -438,8 +440,7 @@ def test_cuda_forward_and_grads(shape, dtype):
     torch.testing.assert_close(samples, sample_pdf_reference(bins, weights, u), atol=tolerance(dtype, B), rtol=0)
 
     grad = torch.randn(R, N, dtype=dtype, device=dev)
-    torch.cuda.synchronize()
-    addresses = _poisoned(bins, weights)
+    addresses = _poisoned((bins.shape, dtype), (weights.shape, dtype))
     grad_bins, grad_weights = torch.ops.mixer_nerf.sample_pdf_bwd(grad, bins, weights, u, 0.0)
     assert R == 0 or {grad_bins.data_ptr(), grad_weights.data_ptr()} <= addresses
     assert torch.isfinite(grad_bins).all() and torch.isfinite(grad_weights).all()
@@ -457,15 +458,17 @@ def test_cuda_forward_and_grads(shape, dtype):
 @cuda
 @needs_cuda
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64, torch.float16])
-@pytest.mark.parametrize("shape", [(1, 3, 1), (5, 64, 128), (3, 33, 31), (65536, 64, 128), (0, 5, 2), (7, 200, 300)])
+@pytest.mark.parametrize(
+    "shape", [(1, 3, 1), (5, 64, 128), (3, 33, 31), (65536, 64, 128), (0, 5, 2), (7, 200, 300)],
+    ids=lambda s: "x".join(map(str, s)),
+)
 @pytest.mark.parametrize("shared_u", [False, True])
 def test_cuda_hierarchical(shape, dtype, shared_u):
     R, S, N = shape
     dev = torch.device("cuda")
     z, weights = random_coarse(R, S, dtype, device=dev)
     u = sorted_u(1, N, dtype, device=dev)[0] if shared_u else sorted_u(R, N, dtype, device=dev)
-    torch.cuda.synchronize()
-    addresses = _poisoned(torch.empty(R, S + N, dtype=dtype, device=dev))
+    addresses = _poisoned(((R, S + N), dtype))
     merged = torch.ops.mixer_nerf.hierarchical_samples_fwd(z, weights, u, 0.0)
     assert R == 0 or merged.data_ptr() in addresses
     assert_valid_samples(merged, z)

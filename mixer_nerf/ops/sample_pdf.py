@@ -5,9 +5,11 @@ The exact formulation, shared by the kernels and the reference path, is document
 ``weights / weights.sum()`` (``weight_padding``, 0 by default, is added to every weight first;
 the original NeRF code adds 1e-5); samples are its quantile function at sorted ``u`` in [0, 1],
 so they come out sorted and within ``[bins[:, 0], bins[:, -1]]``; bins of zero weight are never
-sampled; a ray whose padded weights sum to less than the smallest normal number of the
-accumulation dtype (float32, or float64 for float64 inputs) samples uniformly between its first
-and last edge.
+sampled, and padded weights below the smallest normal number of the accumulation dtype
+(float32, or float64 for float64 inputs) count as zero; a ray whose weights are then all zero,
+or whose total overflows, samples uniformly between its first and last edge. Gradients with
+respect to the weights scale like (bin width) / (bin weight): exact, and large where a sample
+falls in a light bin.
 
 Positions ``u``:
   * explicit ``u``: ``(R, N)`` or ``(N,)`` shared by every ray, sorted, in [0, 1];
