@@ -1,0 +1,375 @@
+"""Mixer-NeRF model: MLCA, SE (per-ray, per-point, packed), the field, presets, config."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+
+import pytest
+import torch
+import torch.nn.functional as F
+
+from mixer_nerf.model import MLCA, MixerNeRF, ModelConfig, SqueezeExcitation, preset_config, segment_mean
+
+# Small networks keep the file fast; the structure (skips, SE, MLCA, heads) is the full one.
+SMALL = dict(
+    depth=4, width=32, skips=(2,), view_width=16, pos_freqs=4, dir_freqs=2, se_reduction=4, backend="torch"
+)
+
+
+def small_model(preset: str = "D", **overrides) -> MixerNeRF:
+    return MixerNeRF(preset_config(preset, **{**SMALL, **overrides}))
+
+
+def random_rays(R: int, S: int, dtype=torch.float32):
+    x = torch.rand(R, S, 3, dtype=dtype) * 3 - 1.5
+    d = F.normalize(torch.randn(R, 1, 3, dtype=dtype), dim=-1)
+    return x, d
+
+
+def randomize_(module: torch.nn.Module) -> torch.nn.Module:
+    """Non-zero values everywhere (MLCA's mixing weights start at zero: a test at init would not
+    exercise them)."""
+    with torch.no_grad():
+        for p in module.parameters():
+            p.copy_(torch.randn_like(p) * 0.3)
+    return module
+
+
+# ---------------------------------------------------------------- MLCA
+
+
+def test_mlca_shapes_and_identity_at_init():
+    mlca = MLCA(num_tokens=5, token_dim=3, channels=8)
+    x = torch.randn(4, 7, 15)
+    out = mlca(x)
+    assert out.shape == (4, 7, 40) and mlca.out_features == 40
+    # Starts as the lift [I; 0] of every token: coordinates copied, extra channels zero.
+    tokens = out.reshape(4, 7, 5, 8)
+    torch.testing.assert_close(tokens[..., :3], x.reshape(4, 7, 5, 3), rtol=0, atol=0)
+    assert (tokens[..., 3:] == 0).all()
+
+
+def test_mlca_gradient_reaches_zero_initialised_mixing_weights():
+    mlca = MLCA(num_tokens=5, token_dim=3, channels=4)
+    mlca(torch.randn(16, 15)).pow(2).sum().backward()
+    for name in ("token_weight", "token_bias", "channel_weight", "channel_bias", "lift"):
+        assert getattr(mlca, name).grad.abs().sum() > 0, name
+
+
+def test_mlca_matches_explicit_token_and_channel_mixing():
+    mlca = randomize_(MLCA(num_tokens=5, token_dim=3, channels=4))
+    x = torch.randn(6, 15)
+    tokens = x.reshape(6, 5, 3) @ mlca.lift.T  # (N, T, C)
+    tokens = tokens + F.gelu(
+        torch.einsum("ts,nsc->ntc", mlca.token_weight, tokens) + mlca.token_bias[:, None]
+    )
+    tokens = tokens + F.gelu(tokens @ mlca.channel_weight.T + mlca.channel_bias)
+    torch.testing.assert_close(mlca(x), tokens.reshape(6, 20), rtol=1e-5, atol=1e-5)
+
+
+def test_mlca_gradcheck():
+    mlca = randomize_(MLCA(num_tokens=3, token_dim=3, channels=4)).double()
+    x = torch.randn(2, 9, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(mlca, (x,))
+    params = list(mlca.parameters())
+    assert torch.autograd.gradcheck(
+        lambda *p: torch.func.functional_call(
+            mlca, dict(zip(dict(mlca.named_parameters()), p, strict=True)), (x,)
+        ),
+        params,
+    )
+
+
+def test_mlca_rejects_wrong_width_and_too_few_channels():
+    with pytest.raises(ValueError, match="encoded"):
+        MLCA(5, 3, 8)(torch.randn(2, 14))
+    with pytest.raises(ValueError, match="channels"):
+        MLCA(5, 3, 2)
+
+
+# ---------------------------------------------------------------- SE
+
+
+def test_se_per_ray_gates_every_sample_of_a_ray_alike():
+    se = randomize_(SqueezeExcitation(16, reduction=4))
+    features = torch.rand(5, 7, 16) + 0.1
+    gate = se(features) / features
+    torch.testing.assert_close(gate, gate[:, :1].expand_as(gate))
+    torch.testing.assert_close(gate[:, 0], se.gate(features.mean(dim=1)))
+
+
+def test_se_per_point_gates_each_sample_by_itself():
+    se = randomize_(SqueezeExcitation(16, reduction=4, per_point=True))
+    features = torch.rand(5, 7, 16) + 0.1
+    torch.testing.assert_close(se(features), se.gate(features) * features)
+    gate = se(features) / features
+    assert not torch.allclose(gate, gate[:, :1].expand_as(gate))
+
+
+def test_segment_mean_equals_dense_mean_for_full_rays_in_any_order():
+    R, S, C = 6, 5, 8
+    dense = torch.randn(R, S, C)
+    order = torch.randperm(R * S)
+    packed, ray_indices = dense.reshape(-1, C)[order], torch.arange(R).repeat_interleave(S)[order]
+    torch.testing.assert_close(segment_mean(packed, ray_indices, R), dense.mean(dim=1))
+
+
+def test_segment_mean_handles_ragged_and_empty_rays():
+    values = torch.tensor([[1.0], [3.0], [5.0]])
+    ray_indices = torch.tensor([0, 0, 2])
+    torch.testing.assert_close(
+        segment_mean(values, ray_indices, 4), torch.tensor([[2.0], [0.0], [5.0], [0.0]])
+    )
+
+
+def test_se_packed_equals_dense_for_full_rays():
+    se = randomize_(SqueezeExcitation(16, reduction=4))
+    R, S = 4, 6
+    dense = torch.randn(R, S, 16)
+    ray_indices = torch.arange(R).repeat_interleave(S)
+    packed = se(dense.reshape(-1, 16), ray_indices, num_rays=R)
+    torch.testing.assert_close(packed, se(dense).reshape(-1, 16))
+    torch.testing.assert_close(se(dense.reshape(-1, 16), ray_indices), packed)  # num_rays inferred
+
+
+def test_se_gradcheck_dense_and_packed():
+    se = randomize_(SqueezeExcitation(8, reduction=2)).double()
+    dense = torch.randn(3, 4, 8, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(se, (dense,))
+    packed = torch.randn(7, 8, dtype=torch.float64, requires_grad=True)
+    ray_indices = torch.tensor([0, 0, 1, 2, 2, 2, 0])
+    assert torch.autograd.gradcheck(lambda f: se(f, ray_indices, 3), (packed,))
+
+
+# ---------------------------------------------------------------- the field
+
+
+@pytest.mark.parametrize("preset", "ABCD")
+def test_full_size_preset_builds_and_takes_an_optimizer_step(preset):
+    model = MixerNeRF(preset_config(preset, backend="torch"))
+    assert model.cfg.preset == preset
+    x, d = random_rays(4, 8)
+    target = torch.rand(4, 8, 3)
+    optimizer = torch.optim.Adam(model.parameters(), lr=1e-3)
+    before = [p.detach().clone() for p in model.parameters()]
+    sigma, rgb = model(x, d)
+    assert sigma.shape == (4, 8) and rgb.shape == (4, 8, 3)
+    assert (sigma >= 0).all() and (rgb >= 0).all() and (rgb <= 1).all()
+    loss = F.mse_loss(rgb, target) + sigma.mean()
+    assert torch.isfinite(loss)
+    optimizer.zero_grad()
+    loss.backward()
+    optimizer.step()
+    assert all(torch.isfinite(p).all() for p in model.parameters())
+    changed = [not torch.equal(p, b) for p, b in zip(model.parameters(), before, strict=True)]
+    assert all(changed), "every parameter receives a gradient"
+
+
+def test_presets_add_parameters_in_order():
+    count = {p: sum(q.numel() for q in MixerNeRF(preset_config(p)).parameters()) for p in "ABCD"}
+    assert count["A"] < count["B"] < count["D"] and count["A"] < count["C"] < count["D"]
+    assert count["B"] - count["A"] == count["D"] - count["C"]  # SE adds the same in both
+
+
+def test_initial_density_is_positive_and_moderate():
+    # softplus(raw - 1) around 0.31 everywhere: rays start partly opaque, nothing dead.
+    sigma, _ = MixerNeRF(preset_config("A", backend="torch"))(*random_rays(64, 16))
+    assert 0.05 < sigma.min() and sigma.max() < 2.0
+    assert abs(sigma.mean().item() - F.softplus(torch.tensor(-1.0)).item()) < 0.2
+
+
+def test_relu_density_option():
+    model = small_model("A", density_activation="relu")
+    x, d = random_rays(8, 8)
+    raw = model.head(model._trunk_features(x, None, None, None))[..., 0]
+    torch.testing.assert_close(model(x, d)[0], torch.relu(raw))
+
+
+@pytest.mark.parametrize("preset", "AD")
+def test_per_ray_per_sample_and_expanded_directions_agree(preset):
+    model = randomize_(small_model(preset))
+    x, d = random_rays(5, 6)
+    expanded = model(x, d.expand(5, 6, 3))
+    per_ray = model(x, d)
+    per_sample = model(x, d.expand(5, 6, 3).contiguous())
+    for a, b in zip(per_ray, expanded, strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6)
+    for a, b in zip(per_ray, per_sample, strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6)
+
+
+def test_packed_layout_equals_dense_for_full_rays():
+    model = randomize_(small_model("D"))
+    R, S = 4, 5
+    x, d = random_rays(R, S)
+    dense_sigma, dense_rgb = model(x, d)
+    order = torch.randperm(R * S)
+    ray_indices = torch.arange(R).repeat_interleave(S)[order]
+    packed_x, packed_d = x.reshape(-1, 3)[order], d.expand(R, S, 3).reshape(-1, 3)[order]
+    sigma, rgb = model(packed_x, packed_d, ray_indices=ray_indices, num_rays=R)
+    torch.testing.assert_close(sigma, dense_sigma.reshape(-1)[order], rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(rgb, dense_rgb.reshape(-1, 3)[order], rtol=1e-5, atol=1e-6)
+
+
+def test_packed_without_ray_indices_gates_per_point():
+    per_ray = randomize_(small_model("D"))
+    per_point = small_model("D", se_per_point=True)
+    per_point.load_state_dict(per_ray.state_dict())
+    x, d = random_rays(3, 4)
+    expected = per_point(x, d)
+    got = per_ray(x.reshape(-1, 3), d.expand(3, 4, 3).reshape(-1, 3))
+    torch.testing.assert_close(got[0], expected[0].reshape(-1))
+    torch.testing.assert_close(got[1], expected[1].reshape(-1, 3))
+
+
+def test_density_depends_on_direction_only_with_eq7_concat():
+    x, d = random_rays(3, 4)
+    other_d = F.normalize(torch.randn(3, 1, 3), dim=-1)
+    separate = randomize_(small_model("D"))
+    torch.testing.assert_close(separate(x, d)[0], separate(x, other_d)[0])
+    concat = randomize_(small_model("D", mlca_concat_direction=True))
+    assert concat.position_mixer.num_tokens == (1 + 2 * 4) + (1 + 2 * 2)
+    assert not torch.allclose(concat(x, d)[0], concat(x, other_d)[0])
+    concat(x, d)[1].sum().backward()
+    assert concat.position_mixer.token_weight.grad.abs().sum() > 0
+
+
+def test_density_method_matches_forward():
+    model = randomize_(small_model("D"))
+    x, d = random_rays(3, 4)
+    torch.testing.assert_close(model.density(x), model(x, d)[0])
+    packed = x.reshape(-1, 3)
+    torch.testing.assert_close(model.density(packed), model(packed, d.expand(3, 4, 3).reshape(-1, 3))[0])
+    concat = small_model("D", mlca_concat_direction=True)
+    with pytest.raises(ValueError, match="d is required"):
+        concat.density(x)
+    torch.testing.assert_close(concat.density(x, d), concat(x, d)[0])
+
+
+def test_scene_normalisation():
+    # The field sees (x - center) / scale: moving and scaling the points with the box (default
+    # scale 1.5 -> 3.0) leaves the output unchanged.
+    a = small_model("A")
+    b = small_model("A", scene_center=(1.0, -2.0, 0.5), scene_scale=3.0)
+    b.load_state_dict({**a.state_dict(), "scene_center": b.scene_center})
+    x, d = random_rays(2, 3)
+    torch.testing.assert_close(
+        a(x, d)[0], b(x * 2.0 + torch.tensor([1.0, -2.0, 0.5]), d)[0], rtol=1e-4, atol=1e-5
+    )
+
+
+def test_field_gradcheck_float64():
+    model = randomize_(small_model("D", depth=2, skips=(1,), width=8, view_width=4, se_reduction=2)).double()
+    x, d = random_rays(2, 3, torch.float64)
+    x.requires_grad_(True)
+    d.requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda x, d: model(x, d), (x, d))
+
+
+def test_bf16_autocast_keeps_outputs_float32_and_close():
+    model = small_model("D")
+    x, d = random_rays(8, 16)
+    sigma, rgb = model(x, d)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        sigma_bf, rgb_bf = model(x, d)
+    assert sigma_bf.dtype == rgb_bf.dtype == torch.float32
+    # bf16 keeps 8 bits of mantissa; a few roundings through 4 layers stay within a few percent.
+    torch.testing.assert_close(sigma_bf, sigma, rtol=0.1, atol=0.05)
+    torch.testing.assert_close(rgb_bf, rgb, rtol=0.1, atol=0.05)
+    (sigma_bf.sum() + rgb_bf.sum()).backward()
+
+
+def test_empty_and_single_inputs():
+    model = small_model("D")
+    for R, S in ((0, 4), (1, 1), (3, 0)):
+        sigma, rgb = model(*random_rays(R, S))
+        assert sigma.shape == (R, S) and rgb.shape == (R, S, 3)
+        assert torch.isfinite(sigma).all() and torch.isfinite(rgb).all()
+    sigma, rgb = model(torch.zeros(0, 3), torch.zeros(0, 3), ray_indices=torch.zeros(0, dtype=torch.long))
+    assert sigma.shape == (0,) and rgb.shape == (0, 3)
+
+
+def test_kernel_positional_encoding_backend_matches_reference():
+    from mixer_nerf import _extension
+
+    if not _extension.available():
+        pytest.skip("compiled kernels unavailable")
+    model = randomize_(small_model("D"))
+    kernel = small_model("D", backend="kernel")
+    kernel.load_state_dict(model.state_dict())
+    x, d = random_rays(4, 8)
+    for a, b in zip(kernel(x, d), model(x, d), strict=True):
+        # Same maths; the kernel's phases are exact, the reference's rounded: ~1e-6 apart.
+        torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-4)
+
+
+@pytest.mark.parametrize(
+    "x, d, kwargs, error, match",
+    [
+        (torch.zeros(2, 4, 2), torch.zeros(2, 1, 3), {}, ValueError, "x must"),
+        (torch.zeros(2, 4, 3, 1), torch.zeros(2, 1, 3), {}, ValueError, "x must"),
+        (torch.zeros(2, 4, 3), torch.zeros(3, 1, 3), {}, ValueError, "d must"),
+        (torch.zeros(2, 4, 3), torch.zeros(2, 2, 3), {}, ValueError, "d must"),
+        (torch.zeros(5, 3), torch.zeros(4, 3), {}, ValueError, "d must"),
+        (torch.zeros(2, 4, 3, dtype=torch.int64), torch.zeros(2, 1, 3), {}, TypeError, "x must"),
+        (torch.zeros(2, 4, 3), torch.zeros(2, 1, 3, dtype=torch.int32), {}, TypeError, "d must"),
+        (
+            torch.zeros(2, 4, 3),
+            torch.zeros(2, 1, 3),
+            {"ray_indices": torch.zeros(8, dtype=torch.long)},
+            ValueError,
+            "ray_indices",
+        ),
+        (torch.zeros(5, 3), torch.zeros(5, 3), {"ray_indices": torch.zeros(5)}, ValueError, "ray_indices"),
+        (
+            torch.zeros(5, 3),
+            torch.zeros(5, 3),
+            {"ray_indices": torch.zeros(4, dtype=torch.long)},
+            ValueError,
+            "ray_indices",
+        ),
+    ],
+)
+def test_bad_inputs_name_the_argument(x, d, kwargs, error, match):
+    with pytest.raises(error, match=match):
+        small_model("D")(x, d, **kwargs)
+
+
+# ---------------------------------------------------------------- config
+
+
+def test_preset_config_switches_and_overrides():
+    assert (preset_config("a").use_se, preset_config("a").use_mlca) == (False, False)
+    assert (preset_config("B").use_se, preset_config("B").use_mlca) == (True, False)
+    assert (preset_config("C").use_se, preset_config("C").use_mlca) == (False, True)
+    assert (preset_config("D").use_se, preset_config("D").use_mlca) == (True, True)
+    assert preset_config("D", width=64).width == 64
+    assert ModelConfig().preset == "D"
+
+
+def test_config_round_trips_through_json():
+    cfg = preset_config("C", skips=[3], scene_center=[0.5, 0, 0])
+    restored = ModelConfig(**json.loads(json.dumps(dataclasses.asdict(cfg))))
+    assert restored == cfg and restored.skips == (3,)
+
+
+@pytest.mark.parametrize(
+    "kwargs, error",
+    [
+        ({"preset": "E"}, ValueError),
+        ({"wdth": 3}, TypeError),
+        ({"width": 0}, ValueError),
+        ({"skips": (8,)}, ValueError),
+        ({"scene_scale": 0.0}, ValueError),
+        ({"scene_scale": math.inf}, ValueError),
+        ({"mlca_channels": 2}, ValueError),
+        ({"se_reduction": 512}, ValueError),
+        ({"density_activation": "exp"}, ValueError),
+        ({"scene_center": (0.0, 0.0)}, ValueError),
+    ],
+)
+def test_bad_config(kwargs, error):
+    with pytest.raises(error):
+        preset_config(**kwargs)
