@@ -1,0 +1,59 @@
+"""Shared fixtures: tiny generated scenes in both formats, and the optional real data."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mixer_nerf.data.blender import write_blender_split
+from mixer_nerf.data.images import write_png
+from mixer_nerf.data.procedural import orbit_poses
+
+LLFF_HWF = (32.0, 48.0, 40.0)  # full-resolution H, W, focal of the llff_scene fixture
+LLFF_FACTOR = 4  # its images are in images_4/
+
+
+@pytest.fixture
+def blender_scene(tmp_path: Path) -> Path:
+    """Blender scene with splits train (3 views) and test (2), 8x8 random RGBA images, cameras on
+    a sphere of radius 4 looking at the origin."""
+    rng = np.random.default_rng(0)
+    root = tmp_path / "blender"
+    for seed, (split, n) in enumerate((("train", 3), ("test", 2))):
+        write_blender_split(root, split, rng.uniform(size=(n, 8, 8, 4)), orbit_poses(n, seed), 0.69)
+    return root
+
+
+@pytest.fixture
+def llff_scene(tmp_path: Path) -> Path:
+    """LLFF scene of 10 forward-facing views: poses_bounds.npy at 32x48 full resolution and
+    8x12 random RGB images in images_4/."""
+    rng = np.random.default_rng(1)
+    root = tmp_path / "llff"
+    n = 10
+    rows = []
+    for k in range(n):
+        yaw = 0.05 * (k - n / 2)  # OpenGL camera turned about y, looking roughly down -z
+        right = np.array([np.cos(yaw), 0.0, -np.sin(yaw)])
+        up = np.array([0.0, 1.0, 0.0])
+        back = np.cross(right, up)
+        centre = np.array([0.2 * k, 0.1 * np.sin(k), 0.05 * k])
+        llff = np.stack([-up, right, back, centre, LLFF_HWF], axis=-1)  # [down, right, back] order
+        rows.append(np.concatenate([llff.ravel(), [2.0 + 0.1 * k, 20.0 + k]]))
+    root.mkdir()
+    np.save(root / "poses_bounds.npy", np.array(rows))
+    h, w = int(LLFF_HWF[0]) // LLFF_FACTOR, int(LLFF_HWF[1]) // LLFF_FACTOR
+    for k in range(n):
+        write_png(root / f"images_{LLFF_FACTOR}" / f"img_{k:03d}.png", rng.uniform(size=(h, w, 3)))
+    return root
+
+
+@pytest.fixture
+def shared_data() -> Path:
+    """The project's real scenes at ``../shared/data`` beside the repository, or skip."""
+    path = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+    if not path.is_dir():
+        pytest.skip(f"real data not present at {path}")
+    return path
