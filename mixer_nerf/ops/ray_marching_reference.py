@@ -1,0 +1,148 @@
+"""Pure-PyTorch ray marching through an occupancy grid: the definition the kernels are tested against.
+
+Every ray gets its whole lattice of candidate samples as a dense row; samples whose midpoint lies
+in an empty cell are masked out and the rest packed with ``nonzero``. Memory is R times the
+longest ray's lattice: fine for tests and benchmarks, not for training. Arithmetic follows
+``csrc/ray_marching_math.h`` operation for operation (float32 for half/bfloat16/float32 rays,
+float64 for float64), so for ``cone_angle == 0`` the kernels reproduce this sample set exactly.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+_MAX_INDEX = float(2**40)  # kMaxIndex of ray_marching_math.h
+
+
+def march_dtype(dtype: torch.dtype) -> torch.dtype:
+    """Arithmetic type of the march for rays of ``dtype``."""
+    return torch.float64 if dtype == torch.float64 else torch.float32
+
+
+def unpack_bits(bitfield: torch.Tensor, num_cells: int) -> torch.Tensor:
+    """(ceil(num_cells / 8),) uint8, bit ``c % 8`` of byte ``c // 8`` per cell -> (num_cells,) bool."""
+    shifts = torch.arange(8, device=bitfield.device, dtype=torch.uint8)
+    return ((bitfield[:, None] >> shifts) & 1).bool().reshape(-1)[:num_cells]
+
+
+def pack_bits(occupied: torch.Tensor) -> torch.Tensor:
+    """Inverse of :func:`unpack_bits`: (num_cells,) bool -> (ceil(num_cells / 8),) uint8."""
+    flat = occupied.reshape(-1).to(torch.uint8)
+    flat = torch.nn.functional.pad(flat, (0, -flat.numel() % 8))
+    weights = torch.tensor([1 << i for i in range(8)], device=flat.device, dtype=torch.int32)
+    return (flat.view(-1, 8) * weights).sum(-1).to(torch.uint8)
+
+
+def clip_to_box(o, d, near, far, lo, hi):
+    """[t_lo, t_hi] = [near, far] clipped to the box, and whether that is a non-empty finite range."""
+    t_lo, t_hi = near, far
+    hit = torch.isfinite(near) & ~torch.isnan(far) & torch.isfinite(o).all(-1) & torch.isfinite(d).all(-1)
+    moving = torch.zeros_like(hit)
+    for a in range(3):
+        parallel = d[:, a] == 0
+        hit &= ~parallel | ((o[:, a] >= lo[a]) & (o[:, a] <= hi[a]))
+        moving |= ~parallel
+        safe_d = torch.where(parallel, torch.ones_like(d[:, a]), d[:, a])
+        t_a, t_b = (lo[a] - o[:, a]) / safe_d, (hi[a] - o[:, a]) / safe_d
+        t_lo = torch.where(parallel, t_lo, torch.maximum(t_lo, torch.minimum(t_a, t_b)))
+        t_hi = torch.where(parallel, t_hi, torch.minimum(t_hi, torch.maximum(t_a, t_b)))
+    hit &= moving & (t_lo < t_hi) & torch.isfinite(t_hi)
+    zero = torch.zeros_like(t_lo)
+    return torch.where(hit, t_lo, zero), torch.where(hit, t_hi, zero), hit
+
+
+def ray_marching_reference(
+    rays_o: torch.Tensor,
+    rays_d: torch.Tensor,
+    near: torch.Tensor,
+    far: torch.Tensor,
+    jitter: torch.Tensor | None,
+    bitfield: torch.Tensor,
+    aabb: torch.Tensor,
+    resolution: tuple[int, int, int],
+    step_size: float,
+    cone_angle: float = 0.0,
+    max_samples_per_ray: int | None = None,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Packed samples of R rays; arguments as ``torch.ops.mixer_nerf.ray_marching_fwd``.
+
+    Args:
+        rays_o, rays_d: (R, 3). near, far: (R,). jitter: (R,) in [0, 1) or None.
+        bitfield: (ceil(X*Y*Z / 8),) uint8 occupancy bits. aabb: (2, 3) box corners.
+        resolution: (X, Y, Z) cells.
+
+    Returns:
+        t_starts (N,), t_ends (N,) in the rays' dtype, ray_indices (N,) int64 and offsets (R+1,)
+        int64: ray r's samples are rows offsets[r]:offsets[r+1], in order along the ray.
+    """
+    R, device, dtype = rays_o.shape[0], rays_o.device, march_dtype(rays_o.dtype)
+    o, d = rays_o.to(dtype), rays_d.to(dtype)
+    box = aabb.to(dtype).reshape(2, 3)
+    lo, hi = box[0], box[1]
+    t_lo, t_hi, hit = clip_to_box(o, d, near.to(dtype), far.to(dtype), lo, hi)
+    o, d = (torch.where(hit[:, None], x, torch.zeros_like(x)) for x in (o, d))  # no NaN into cell indices
+
+    step = torch.tensor(step_size, dtype=dtype, device=device)
+    cone = torch.tensor(cone_angle, dtype=dtype, device=device)
+    u = torch.zeros_like(t_lo) if jitter is None else jitter.to(dtype)
+    t0 = t_lo + u * step
+    if cone_angle > 0:
+        k0 = torch.ceil((step / cone - t0) / step).clamp(0, _MAX_INDEX)
+        geo_t0 = t0 + k0 * step
+    else:
+        k0 = torch.full_like(t0, _MAX_INDEX)
+        geo_t0 = torch.full_like(t0, math.inf)
+
+    # Lattice points t_0 .. t_K of every ray, K covering the longest one.
+    K = _lattice_length(t0, t_hi, hit, step, cone, k0, geo_t0) + 1
+    k = torch.arange(K + 1, device=device, dtype=dtype)
+    linear = t0[:, None] + k * step
+    if cone_angle > 0:
+        growth = torch.ones((), dtype=dtype, device=device) + cone
+        exponent = (k - k0[:, None]).clamp_min(0)
+        lattice = torch.where(k <= k0[:, None], linear, geo_t0[:, None] * torch.pow(growth, exponent))
+    else:
+        lattice = linear
+    t_start, t_end = lattice[:, :-1], torch.minimum(lattice[:, 1:], t_hi[:, None])
+    valid = hit[:, None] & (t_start < t_hi[:, None])
+
+    mid = torch.where(valid, (t_start + t_end) * 0.5, torch.zeros_like(t_start))
+    position = o[:, None, :] + mid[..., None] * d[:, None, :]
+    res = torch.tensor(resolution, device=device)
+    scale = res.to(dtype) / (hi - lo)
+    cell_xyz = (
+        torch.floor((position - lo) * scale)
+        .clamp(min=torch.zeros_like(scale), max=(res - 1).to(dtype))
+        .long()
+    )
+    cell = (cell_xyz[..., 0] * resolution[1] + cell_xyz[..., 1]) * resolution[2] + cell_xyz[..., 2]
+    occupied = ((bitfield.long()[cell >> 3] >> (cell & 7)) & 1).bool()
+    keep = valid & occupied
+    if max_samples_per_ray is not None:
+        keep &= keep.cumsum(1) <= max_samples_per_ray
+
+    ray_indices, index = keep.nonzero(as_tuple=True)
+    offsets = torch.zeros(R + 1, dtype=torch.int64, device=device)
+    torch.cumsum(keep.sum(1), 0, out=offsets[1:])
+    return (
+        t_start[ray_indices, index].to(rays_o.dtype),
+        t_end[ray_indices, index].to(rays_o.dtype),
+        ray_indices,
+        offsets,
+    )
+
+
+def _lattice_length(t0, t_hi, hit, step, cone, k0, geo_t0) -> int:
+    """Lattice points below t_hi on the longest ray (a bound, off by a few; one host sync)."""
+    if not bool(hit.any()):
+        return 0
+    span = torch.where(hit, t_hi - t0, torch.zeros_like(t0)).clamp_min(0)
+    n = torch.ceil(torch.minimum(span, (geo_t0 - t0).clamp_min(0)) / step)
+    if bool(torch.isfinite(geo_t0).any()):
+        beyond = torch.log(torch.maximum(t_hi, geo_t0) / geo_t0.clamp_min(torch.finfo(t0.dtype).tiny))
+        n = n + torch.where(
+            torch.isfinite(geo_t0) & hit, torch.ceil(beyond / torch.log1p(cone)), torch.zeros_like(n)
+        )
+    return int(n.max().item()) + 2

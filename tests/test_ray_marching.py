@@ -1,0 +1,494 @@
+"""Tests of ray_marching (CPU/CUDA kernels against the reference) and filter_by_transmittance.
+
+Marching is discrete: a sample is kept or not. The kernels and the reference do the same IEEE
+operations in the same order with no FMA contraction (csrc/ray_marching_math.h), so their outputs
+are compared for exact equality, not within a tolerance. With cone_angle > 0 the lattice uses pow,
+which may round differently between libm, CUDA and PyTorch; those comparisons allow a few
+samples to differ (see assert_nearly_same).
+"""
+
+from __future__ import annotations
+
+import math
+import random
+
+import pytest
+import torch
+
+from mixer_nerf import _extension
+from mixer_nerf.ops.ray_marching import PackedSamples, filter_by_transmittance, ray_marching
+from mixer_nerf.ops.ray_marching_reference import clip_to_box, pack_bits
+
+needs_kernels = pytest.mark.skipif(not _extension.available(), reason="mixer_nerf kernels not built")
+on_cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU")
+
+AABB = [[-1.0, -0.5, -2.0], [1.5, 0.7, 1.0]]
+RES = (12, 7, 9)  # non-cubic, not powers of two: catches swapped axes and bit-packing slips
+
+
+@pytest.fixture
+def gen():
+    seed = random.getrandbits(32)
+    print(f"seed={seed}")  # shown by pytest when a test fails
+    return torch.Generator().manual_seed(seed)
+
+
+def random_grid(gen, fraction=0.3, res=RES, device="cpu"):
+    occupied = torch.rand(res, generator=gen) < fraction
+    return pack_bits(occupied).to(device), torch.tensor(AABB, device=device), res
+
+
+def random_rays(R, gen, dtype=torch.float32, device="cpu"):
+    """Origins inside and around the box, random directions and [near, far] ranges."""
+    o = torch.randn(R, 3, generator=gen, dtype=torch.float64) * 2
+    d = torch.randn(R, 3, generator=gen, dtype=torch.float64)
+    near = torch.rand(R, generator=gen, dtype=torch.float64) * 0.5
+    far = near + torch.rand(R, generator=gen, dtype=torch.float64) * 6
+    return [t.to(device, dtype) for t in (o, d, near, far)]
+
+
+def march(rays, grid, step=0.013, backend="kernel", seed=None, **kwargs):
+    generator = None if seed is None else torch.Generator(rays[0].device).manual_seed(seed)
+    return ray_marching(
+        *rays, grid, step, stratified=seed is not None, generator=generator, backend=backend, **kwargs
+    )
+
+
+def assert_same(a: PackedSamples, b: PackedSamples):
+    for name, x, y in zip(PackedSamples._fields, a, b, strict=True):
+        assert x.dtype == y.dtype and x.device == y.device, name
+        assert torch.equal(x, y), f"{name} differ ({x.shape[0]} vs {y.shape[0]} entries)"
+
+
+def assert_nearly_same(a: PackedSamples, b: PackedSamples, max_rays=0.01, rtol=1e-5):
+    """Per-ray sample counts equal on all but a fraction max_rays of the rays (an ulp of pow can
+    move a midpoint across a cell face); on the others, t within rtol."""
+    counts_a, counts_b = a.offsets.diff().cpu(), b.offsets.diff().cpu()
+    differ = counts_a != counts_b
+    assert differ.float().mean() <= max_rays
+    same_rays = (~differ).nonzero().squeeze(1)
+    take = lambda s: torch.isin(s.ray_indices.cpu(), same_rays)  # noqa: E731
+    for x, y in ((a.t_starts, b.t_starts), (a.t_ends, b.t_ends)):
+        torch.testing.assert_close(x.cpu()[take(a)], y.cpu()[take(b)], rtol=rtol, atol=1e-6)
+
+
+def check_layout(s: PackedSamples, R: int):
+    """CSR invariants every result must satisfy."""
+    N = s.t_starts.shape[0]
+    assert s.offsets.shape == (R + 1,) and s.offsets[0] == 0 and s.offsets[-1] == N
+    assert (s.offsets.diff() >= 0).all()
+    assert torch.equal(
+        s.ray_indices, torch.repeat_interleave(torch.arange(R, device=s.offsets.device), s.offsets.diff())
+    )
+    assert torch.isfinite(s.t_starts).all() and torch.isfinite(s.t_ends).all()
+    assert (s.t_ends >= s.t_starts).all()
+    same_ray = s.ray_indices[1:] == s.ray_indices[:-1]
+    assert (s.t_starts[1:][same_ray] >= s.t_ends[:-1][same_ray]).all(), "samples out of order"
+    for t in s:
+        assert not t.requires_grad
+
+
+# --- CPU kernel vs reference -------------------------------------------------------------------
+
+
+@needs_kernels
+@pytest.mark.parametrize("R", [0, 1, 7, 1000])
+@pytest.mark.parametrize("stratified", [False, True])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_kernel_matches_reference(gen, R, stratified, dtype):
+    rays, grid = random_rays(R, gen, dtype), random_grid(gen)
+    seed = 7 if stratified else None
+    got, want = march(rays, grid, seed=seed), march(rays, grid, seed=seed, backend="torch")
+    check_layout(got, R)
+    assert_same(got, want)
+
+
+@needs_kernels
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
+def test_kernel_matches_reference_half(gen, dtype):
+    """Half inputs march in float32 in both; outputs are rounded to the input dtype."""
+    rays, grid = random_rays(300, gen, dtype), random_grid(gen)
+    got = march(rays, grid, step=0.05)
+    assert got.t_starts.dtype == dtype
+    assert_same(got, march(rays, grid, step=0.05, backend="torch"))
+
+
+@needs_kernels
+@pytest.mark.parametrize("cone_angle", [0.004, 0.1])
+def test_cone_angle_matches_reference(gen, cone_angle):
+    rays, grid = random_rays(1000, gen), random_grid(gen)
+    got = march(rays, grid, cone_angle=cone_angle, seed=3)
+    check_layout(got, 1000)
+    assert_nearly_same(got, march(rays, grid, cone_angle=cone_angle, seed=3, backend="torch"))
+
+
+@needs_kernels
+@pytest.mark.parametrize("backend", ["kernel", "torch"])
+def test_max_samples_per_ray(gen, backend):
+    rays, grid = random_rays(500, gen), random_grid(gen, fraction=0.8)
+    full = march(rays, grid, backend=backend)
+    capped = march(rays, grid, backend=backend, max_samples_per_ray=5)
+    assert (capped.offsets.diff() == full.offsets.diff().clamp(max=5)).all()
+    first = torch.arange(full.t_starts.shape[0]) - full.offsets[full.ray_indices] < 5
+    assert torch.equal(capped.t_starts, full.t_starts[first])
+
+
+# --- behaviour (both backends) -----------------------------------------------------------------
+
+BACKENDS = ["torch", pytest.param("kernel", marks=needs_kernels)]
+
+
+def full_grid(res=RES):
+    return pack_bits(torch.ones(res, dtype=torch.bool)), torch.tensor(AABB), res
+
+
+def empty_grid(res=RES):
+    return pack_bits(torch.zeros(res, dtype=torch.bool)), torch.tensor(AABB), res
+
+
+def chord(rays):
+    """[t_lo, t_hi] of each ray within the box, in float64, and whether it hits."""
+    o, d, near, far = (t.double() for t in rays)
+    box = torch.tensor(AABB).double()  # the box as the op sees it: float32 corners
+    return clip_to_box(o, d, near, far, box[0], box[1])
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_full_grid_tiles_the_chord(gen, backend):
+    """Every cell occupied: samples are uniform steps covering [t_lo, t_hi] exactly."""
+    rays = random_rays(400, gen, torch.float64)
+    step = 0.07
+    s = march(rays, full_grid(), step=step, backend=backend)
+    check_layout(s, 400)
+    t_lo, t_hi, hit = chord(rays)
+    counts = s.offsets.diff()
+    assert torch.equal(counts, torch.where(hit, torch.ceil((t_hi - t_lo) / step), 0).long())
+    hit_rays = hit.nonzero().squeeze(1)
+    first, last = s.offsets[hit_rays], s.offsets[hit_rays + 1] - 1
+    assert torch.equal(s.t_starts[first], t_lo[hit_rays])
+    assert torch.equal(s.t_ends[last], t_hi[hit_rays])
+    same_ray = s.ray_indices[1:] == s.ray_indices[:-1]
+    assert torch.equal(s.t_starts[1:][same_ray], s.t_ends[:-1][same_ray]), "samples must tile"
+    lengths = s.t_ends - s.t_starts
+    not_last = torch.ones_like(lengths, dtype=torch.bool)
+    not_last[last] = False
+    torch.testing.assert_close(
+        lengths[not_last], torch.full_like(lengths[not_last], step), rtol=1e-9, atol=1e-12
+    )
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_empty_grid_and_misses_give_no_samples(gen, backend):
+    rays = random_rays(300, gen)
+    s = march(rays, empty_grid(), backend=backend)
+    assert s.t_starts.shape == (0,) and torch.equal(s.offsets, torch.zeros(301, dtype=torch.int64))
+    # Rays pointing away from the box, or whose [near, far] ends before it, miss it.
+    o = torch.tensor([[5.0, 0, 0], [5.0, 0, 0], [0.0, 0, 5]])
+    d = torch.tensor([[1.0, 0, 0], [-1.0, 0, 0], [0.0, 1, 0]])
+    s = ray_marching(
+        o, d, torch.tensor([0.0, 0, 0]), torch.tensor([10.0, 2.0, 10]), full_grid(), 0.01, backend=backend
+    )
+    assert s.offsets.tolist() == [0, 0, 0, 0]
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_one_occupied_cell(gen, backend):
+    occupied = torch.zeros(RES, dtype=torch.bool)
+    cell = (5, 3, 4)
+    occupied[cell] = True
+    grid = pack_bits(occupied), torch.tensor(AABB), RES
+    box = torch.tensor(AABB)
+    size = (box[1] - box[0]) / torch.tensor(RES)
+    lo = box[0] + torch.tensor(cell) * size
+    rays = random_rays(2000, gen)
+    s = march(rays, grid, step=0.01, backend=backend)
+    check_layout(s, 2000)
+    mid = rays[0][s.ray_indices] + ((s.t_starts + s.t_ends) / 2)[:, None] * rays[1][s.ray_indices]
+    assert ((mid >= lo - 1e-5) & (mid <= lo + size + 1e-5)).all()
+    # A ray along x through the cell's centre crosses it in size_x / step samples.
+    centre = lo + size / 2
+    o = torch.stack([torch.tensor(-3.0), centre[1], centre[2]])[None]
+    s = ray_marching(o, torch.tensor([[1.0, 0, 0]]), 0.0, 10.0, grid, 0.01, backend=backend)
+    assert abs(s.t_starts.shape[0] - size[0].item() / 0.01) <= 1
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_degenerate_directions(backend):
+    """Axis-aligned rays, rays along faces, edges and cell boundaries, diagonals through corners,
+    zero and non-finite inputs: finite outputs, the expected counts, the reference's samples."""
+    lo, hi = torch.tensor(AABB)
+    step = 0.05
+    o, d, expected = [], [], []
+    for axis in range(3):
+        for sign in (1.0, -1.0):
+            direction = torch.zeros(3)
+            direction[axis] = sign
+            start = (lo + hi) / 2
+            start[axis] = (lo if sign > 0 else hi)[axis] - sign * 1.0
+            o.append(start)
+            d.append(direction)
+            expected.append((hi[axis] - lo[axis]).item() / step)
+    # The box's diagonal (corner to corner for t in [1, 2]); along an edge, a face, a cell face.
+    o += [
+        lo - (hi - lo),
+        torch.tensor([-3.0, lo[1], lo[2]]),
+        torch.tensor([-3.0, 0.0, hi[2]]),
+        torch.tensor([-3.0, 0.1, -1.0]),
+    ]
+    d += [hi - lo, torch.tensor([1.0, 0, 0]), torch.tensor([1.0, 0, 0]), torch.tensor([1.0, 0, 0])]
+    expected += [1 / step, None, None, None]
+    # Zero direction, NaN and inf origins/directions, NaN near: no samples.
+    o += [
+        torch.zeros(3),
+        torch.tensor([math.nan, 0, 0]),
+        torch.tensor([0.0, 0, 0]),
+        torch.tensor([-3.0, 0, 0]),
+    ]
+    d += [
+        torch.zeros(3),
+        torch.tensor([1.0, 0, 0]),
+        torch.tensor([math.inf, 0, 0]),
+        torch.tensor([1e-45, 1e-45, 1e-45]),
+    ]
+    expected += [0, 0, 0, 0]
+    o, d = torch.stack(o), torch.stack(d)
+    far = torch.full((len(o),), math.inf)
+    s = ray_marching(o, d, 0.0, far, full_grid(), step, backend=backend)
+    check_layout(s, len(o))
+    counts = s.offsets.diff().tolist()
+    for i, want in enumerate(expected):
+        if want is not None:  # the last lattice point may round to either side of the box's face
+            assert abs(counts[i] - want) <= 1, f"ray {i}: {counts[i]} samples, expected {want}"
+    assert all(c > 0 for c in counts[7:10]), "rays along the box's faces and edges are inside it"
+    assert_same(s, ray_marching(o, d, 0.0, far, full_grid(), step, backend="torch"))
+    assert_same(
+        ray_marching(o, d, 0.0, far, random_grid(torch.Generator().manual_seed(0)), step, backend=backend),
+        ray_marching(o, d, 0.0, far, random_grid(torch.Generator().manual_seed(0)), step, backend="torch"),
+    )
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_stratified_offsets(gen, backend):
+    rays, step = random_rays(500, gen, torch.float64), 0.05
+    s = march(rays, full_grid(), step=step, backend=backend, seed=11)
+    t_lo, _, hit = chord(rays)
+    hit_rays = (hit & (s.offsets.diff() > 0)).nonzero().squeeze(1)
+    offset = s.t_starts[s.offsets[hit_rays]] - t_lo[hit_rays]
+    assert (offset >= 0).all() and (offset < step).all() and offset.std() > step / 5
+    assert_same(s, march(rays, full_grid(), step=step, backend=backend, seed=11))
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_cone_angle_steps_grow(gen, backend):
+    o = torch.tensor([[0.0, 0.1, -1.9]])
+    d = torch.tensor([[0.0, 0.0, 1.0]])
+    step, cone = 0.01, 0.02
+    s = ray_marching(o, d, 0.0, 10.0, full_grid(), step, cone_angle=cone, backend=backend)
+    lengths = (s.t_ends - s.t_starts)[:-1]
+    want = torch.clamp(s.t_starts[:-1] * cone, min=step)
+    torch.testing.assert_close(lengths, want, rtol=0.03, atol=1e-6)  # steps grow within one step of t*cone
+    assert s.t_ends[-1] == 2.9 and s.t_starts[0] == 0.0
+
+
+# --- filter_by_transmittance -------------------------------------------------------------------
+
+
+def naive_keep(sigmas, s: PackedSamples, threshold, alpha_threshold):
+    keep = torch.zeros_like(sigmas, dtype=torch.bool)
+    for r in range(s.offsets.shape[0] - 1):
+        optical_depth = 0.0
+        for i in range(s.offsets[r], s.offsets[r + 1]):
+            tau = sigmas[i].item() * (s.t_ends[i] - s.t_starts[i]).item()
+            alpha = -math.expm1(-tau)
+            keep[i] = math.exp(-optical_depth) >= threshold and alpha >= alpha_threshold
+            optical_depth += tau
+    return keep
+
+
+@pytest.mark.parametrize("threshold,alpha_threshold", [(1e-4, 0.0), (1e-2, 1e-3), (0.0, 0.0), (0.0, 0.5)])
+def test_filter_by_transmittance_matches_naive(gen, threshold, alpha_threshold):
+    rays = random_rays(40, gen, torch.float64)
+    s = march(rays, full_grid(), step=0.1, backend="torch")
+    sigmas = torch.rand(s.t_starts.shape, generator=gen, dtype=torch.float64) * 20
+    sigmas[torch.rand(sigmas.shape, generator=gen) < 0.3] = 0
+    keep = filter_by_transmittance(sigmas, s, threshold, alpha_threshold)
+    assert torch.equal(keep, naive_keep(sigmas, s, threshold, alpha_threshold))
+    kept = s.select(keep)
+    check_layout(kept, 40)
+    assert torch.equal(
+        kept.offsets.diff(), torch.zeros(40, dtype=torch.int64).index_add_(0, s.ray_indices, keep.long())
+    )
+
+
+def test_filter_by_transmittance_adversarial(gen):
+    """inf, 1e30 and NaN densities end (or, NaN, don't touch) their own ray only."""
+    rays = random_rays(50, gen)
+    s = march(rays, full_grid(), step=0.1, backend="torch")
+    sigmas = torch.full(s.t_starts.shape, 1e-3)
+    counts = s.offsets.diff()
+    long_rays = (counts >= 3).nonzero().squeeze(1)[:3]
+    for r, value in zip(long_rays, (math.inf, 1e30, math.nan), strict=True):
+        sigmas[s.offsets[r]] = value
+    keep = filter_by_transmittance(sigmas, s)
+    for r, value in zip(long_rays, (math.inf, 1e30, math.nan), strict=True):
+        ray_keep = keep[s.offsets[r] : s.offsets[r + 1]]
+        assert ray_keep[0] and (ray_keep[1:].all() if math.isnan(value) else not ray_keep[1:].any())
+    others = ~torch.isin(s.ray_indices, long_rays)
+    assert keep[others].all()
+
+
+# --- input validation and op registration ------------------------------------------------------
+
+
+def valid_args():
+    gen = torch.Generator().manual_seed(0)
+    return random_rays(4, gen), random_grid(gen)
+
+
+@pytest.mark.parametrize(
+    "change,error,name",
+    [
+        (lambda r, g: ((r[0][0], *r[1:]), g), ValueError, "rays_o"),
+        (lambda r, g: ((r[0][:, :2], *r[1:]), g), ValueError, "rays_o"),
+        (lambda r, g: ((r[0], r[1][:3], *r[2:]), g), ValueError, "rays_d"),
+        (lambda r, g: ((r[0].long(), *r[1:]), g), TypeError, "rays_o"),
+        (lambda r, g: ((r[0], r[1].double(), *r[2:]), g), TypeError, "rays_d"),
+        (lambda r, g: ((*r[:2], r[2][:3], r[3]), g), ValueError, "near"),
+        (lambda r, g: ((*r[:3], r[3].long()), g), TypeError, "far"),
+        (lambda r, g: (r, g[0]), TypeError, "grid"),
+        (lambda r, g: (r, (g[0].long(), *g[1:])), TypeError, "bitfield"),
+        (lambda r, g: (r, (g[0][:-1], *g[1:])), ValueError, "bitfield"),
+        (lambda r, g: (r, (g[0], g[1][0], g[2])), ValueError, "aabb"),
+        (lambda r, g: (r, (g[0], g[1].long(), g[2])), TypeError, "aabb"),
+        (lambda r, g: (r, (*g[:2], (4, 4))), ValueError, "resolution"),
+    ],
+)
+def test_bad_inputs(change, error, name):
+    rays, grid = change(*valid_args())
+    for backend in ("torch", "auto"):
+        with pytest.raises(error, match=name):
+            ray_marching(*rays, grid, 0.1, backend=backend)
+
+
+@pytest.mark.parametrize(
+    "kwargs,name",
+    [
+        ({"step_size": 0.0}, "step_size"),
+        ({"step_size": math.nan}, "step_size"),
+        ({"cone_angle": -0.1}, "cone_angle"),
+        ({"max_samples_per_ray": 0}, "max_samples_per_ray"),
+        ({"backend": "cuda"}, "backend"),
+    ],
+)
+def test_bad_options(kwargs, name):
+    rays, grid = valid_args()
+    with pytest.raises(ValueError, match=name):
+        ray_marching(*rays, grid, **{"step_size": 0.1, **kwargs})
+
+
+def test_filter_bad_inputs():
+    rays, grid = valid_args()
+    s = ray_marching(*rays, full_grid(), 0.1, backend="torch")
+    with pytest.raises(ValueError, match="sigmas"):
+        filter_by_transmittance(torch.zeros(s.t_starts.shape[0] + 1), s)
+    with pytest.raises(TypeError, match="sigmas"):
+        filter_by_transmittance(torch.zeros(s.t_starts.shape[0], dtype=torch.long), s)
+    with pytest.raises(ValueError, match="threshold"):
+        filter_by_transmittance(torch.zeros(s.t_starts.shape[0]), s, threshold=2.0)
+
+
+def test_no_grad_outputs(gen):
+    o, d, near, far = random_rays(20, gen)
+    s = ray_marching(o.requires_grad_(), d.requires_grad_(), near, far, full_grid(), 0.1)
+    check_layout(s, 20)
+
+
+@needs_kernels
+def test_opcheck(gen):
+    rays, grid = random_rays(50, gen), random_grid(gen)
+    ray_marching(*rays, grid, 0.05, backend="kernel")  # registers the fake
+    aabb = grid[1]
+    for jitter, cone, cap in ((None, 0.0, None), (torch.rand(50, generator=gen), 0.05, 4)):
+        args = (*rays, jitter, grid[0], aabb, list(grid[2]), 0.05, cone, cap)
+        torch.library.opcheck(torch.ops.mixer_nerf.ray_marching_fwd.default, args)
+
+
+# --- CUDA --------------------------------------------------------------------------------------
+
+
+def poison_allocator(nbytes_list, copies=2):
+    """Fill freed CUDA caching-allocator blocks of the outputs' sizes with 0xFF bytes (NaN as
+    float, -1 as int64) so that an output element the kernel never writes keeps that value. The
+    outputs are then compared for equality with the CPU kernel's: no poisoned element can pass."""
+    torch.cuda.synchronize()
+    torch.cuda.empty_cache()
+    blocks = [
+        torch.full((max(n, 1),), 255, dtype=torch.uint8, device="cuda")
+        for n in nbytes_list
+        for _ in range(copies)
+    ]
+    del blocks
+    probe = torch.empty(max(nbytes_list[0], 1), dtype=torch.uint8, device="cuda")
+    assert (probe == 255).all(), "poisoning did not reach the allocator"
+    del probe
+
+
+def check_cuda(rays, grid, exact=True, **kwargs):
+    cpu = march(rays, grid, **kwargs)
+    reference = march(rays, grid, backend="torch", **kwargs)
+    cuda_rays = [t.cuda() for t in rays]
+    cuda_grid = (grid[0].cuda(), grid[1].cuda(), grid[2])
+    poison_allocator([t.numel() * t.element_size() for t in cpu])
+    got = march(cuda_rays, cuda_grid, **kwargs)
+    check_layout(got, rays[0].shape[0])
+    got_cpu = PackedSamples(*(t.cpu() for t in got))
+    if exact:
+        assert_same(got_cpu, cpu)
+        assert_same(cpu, reference)
+    else:
+        assert_nearly_same(got_cpu, cpu)
+        assert_nearly_same(got_cpu, reference)
+    # The reference on the GPU (eager PyTorch ops) agrees too.
+    assert_same(
+        PackedSamples(*(t.cpu() for t in march(cuda_rays, cuda_grid, backend="torch", **kwargs))), reference
+    )
+
+
+@pytest.mark.cuda
+@on_cuda
+@pytest.mark.parametrize("R", [1, 31, 1000, 70001])
+@pytest.mark.parametrize("stratified", [False, True])
+def test_cuda_matches_cpu_and_reference(gen, R, stratified):
+    check_cuda(random_rays(R, gen), random_grid(gen), seed=5 if stratified else None)
+
+
+@pytest.mark.cuda
+@on_cuda
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float16])
+def test_cuda_dtypes(gen, dtype):
+    check_cuda(random_rays(500, gen, dtype), random_grid(gen), step=0.05)
+
+
+@pytest.mark.cuda
+@on_cuda
+def test_cuda_cone_and_cap(gen):
+    check_cuda(random_rays(2000, gen), random_grid(gen), exact=False, cone_angle=0.02)
+    check_cuda(random_rays(2000, gen), random_grid(gen, 0.9), max_samples_per_ray=7)
+
+
+@pytest.mark.cuda
+@on_cuda
+def test_cuda_edge_grids(gen):
+    rays = random_rays(3000, gen)
+    check_cuda(rays, full_grid())
+    check_cuda(rays, empty_grid())
+    check_cuda([t[:0] for t in rays], full_grid())
+
+
+@pytest.mark.cuda
+@on_cuda
+def test_cuda_128_grid_and_mixed_devices(gen):
+    grid = random_grid(gen, 0.05, res=(128, 128, 128))
+    check_cuda(random_rays(20000, gen), grid, step=0.005)
+    with pytest.raises(ValueError, match="device"):
+        ray_marching(*random_rays(4, gen), (grid[0].cuda(), grid[1].cuda(), grid[2]), 0.1)
