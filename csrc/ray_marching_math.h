@@ -10,10 +10,11 @@
 // so a kernel can jump to any index. Sample k is [t_k, min(t_{k+1}, t_hi)] for t_k < t_hi; it is
 // kept iff the grid cell holding its midpoint is occupied, up to max_samples per ray.
 //
-// Empty space costs one lookup per cell crossed: from a sample in an empty cell the march jumps
-// to index floor(k(t_exit) - 1/2), k(t) being the fractional lattice index of the cell's exit,
-// so every skipped sample ends half a step before the exit and lies in the same empty cell.
-// Which samples are kept therefore depends only on the per-sample test, never on the jumps.
+// Empty space costs about two lookups per cell crossed: from a sample in an empty cell the march
+// jumps to index floor(k(t_exit) - 1/2), k(t) being the fractional lattice index of the cell's
+// exit, so every skipped sample ends half a step before the exit and lies in the same empty cell
+// (the sample jumped to is tested as usual; usually it is the cell's last). Which samples are
+// kept therefore depends only on the per-sample test, never on the jumps.
 //
 // Each product that feeds a sum goes through mul()/add(), which nvcc never contracts into an
 // FMA (the host build has no FMA without -mfma, nor has eager PyTorch): lattice points,
@@ -58,8 +59,6 @@ C10_HOST_DEVICE inline double add(double a, double b) {
 #endif
 }
 
-C10_HOST_DEVICE inline float floor_(float x) { return floorf(x); }
-C10_HOST_DEVICE inline double floor_(double x) { return ::floor(x); }
 C10_HOST_DEVICE inline float ceil_(float x) { return ceilf(x); }
 C10_HOST_DEVICE inline double ceil_(double x) { return ::ceil(x); }
 C10_HOST_DEVICE inline float pow_(float a, float b) { return powf(a, b); }
@@ -104,25 +103,23 @@ struct Grid {
     }
   }
 
-  // Cell index along axis a of coordinate x, clamped into the grid (x is inside the box up to
-  // rounding).
+  // Cell index along axis a of finite coordinate x, clamped into the grid (x is inside the box
+  // up to rounding). Clamping first makes truncation a floor, without a libm call on the host.
   C10_HOST_DEVICE int64_t axis_cell(int a, T x) const {
-    const T f = floor_((x - lo[a]) * scale[a]);
-    return int64_t(min_(max_(f, T(0)), T(res[a] - 1)));
+    return int64_t(min_(max_((x - lo[a]) * scale[a], T(0)), T(res[a] - 1)));
   }
 
-  C10_HOST_DEVICE bool occupied(const int64_t c[3]) const {
-    const int64_t cell = (c[0] * res[1] + c[1]) * res[2] + c[2];
-    return (bits[cell >> 3] >> (cell & 7)) & 1;
-  }
+  C10_HOST_DEVICE int64_t flat(const int64_t c[3]) const { return (c[0] * res[1] + c[1]) * res[2] + c[2]; }
 
-  // Where the ray leaves cell c (+inf if it never does).
-  C10_HOST_DEVICE T cell_exit(const int64_t c[3], const T o[3], const T d[3]) const {
+  C10_HOST_DEVICE bool occupied(int64_t cell) const { return (bits[cell >> 3] >> (cell & 7)) & 1; }
+
+  // Where the ray leaves cell c (+inf if it never does); inv_d = 1 / d (inf where d is 0).
+  C10_HOST_DEVICE T cell_exit(const int64_t c[3], const T o[3], const T d[3], const T inv_d[3]) const {
     T t = T(INFINITY);
     for (int a = 0; a < 3; ++a) {
       if (d[a] == T(0)) continue;
       const T face = add(lo[a], mul(T(c[a] + (d[a] > T(0))), cell_size[a]));
-      t = min_(t, (face - o[a]) / d[a]);
+      t = min_(t, (face - o[a]) * inv_d[a]);
     }
     return t;
   }
@@ -153,11 +150,11 @@ C10_HOST_DEVICE bool clip_to_box(const T o[3], const T d[3], T near, T far, cons
 // The sample lattice of one ray (see the top of this file).
 template <typename T>
 struct Lattice {
-  T t0, step, growth, log_growth;
+  T t0, step, inv_step, growth, log_growth;
   T geo_t0;  // t_K0, where steps start to grow; +inf when they never do
   int64_t k0;
 
-  C10_HOST_DEVICE Lattice(T t_lo, T jitter, T step_, T cone_angle) : t0(add(t_lo, mul(jitter, step_))), step(step_) {
+  C10_HOST_DEVICE Lattice(T t_lo, T jitter, T step_, T cone_angle) : t0(add(t_lo, mul(jitter, step_))), step(step_), inv_step(T(1) / step_) {
     growth = T(1) + cone_angle;
     log_growth = log1p_(cone_angle);
     if (cone_angle > T(0)) {
@@ -176,7 +173,7 @@ struct Lattice {
 
   // Fractional index i with at(i) ~= t, for t >= t0; off by far less than one.
   C10_HOST_DEVICE T index_of(T t) const {
-    return t <= geo_t0 ? (t - t0) / step : T(k0) + log_(t / geo_t0) / log_growth;
+    return t <= geo_t0 ? (t - t0) * inv_step : T(k0) + log_(t / geo_t0) / log_growth;
   }
 };
 
@@ -186,8 +183,11 @@ struct Lattice {
 template <typename T, typename Emit>
 C10_HOST_DEVICE int64_t march_ray(const Grid<T>& grid, const T o[3], const T d[3], T t_hi, const Lattice<T>& lattice,
                                   int64_t max_samples, Emit& emit) {
+  T inv_d[3];
+  for (int a = 0; a < 3; ++a) inv_d[a] = T(1) / d[a];
   int64_t n = 0;
   int64_t k = 0;
+  int64_t skipped_cell = -1;  // the empty cell last jumped through
   T t_start = lattice.at(0);
   while (n < max_samples && t_start < t_hi) {
     const T t_next = lattice.at(k + 1);
@@ -195,17 +195,23 @@ C10_HOST_DEVICE int64_t march_ray(const Grid<T>& grid, const T o[3], const T d[3
     const T mid = (t_start + t_end) * T(0.5);
     int64_t c[3];
     for (int a = 0; a < 3; ++a) c[a] = grid.axis_cell(a, add(o[a], mul(mid, d[a])));
-    if (grid.occupied(c)) {
+    const int64_t cell = grid.flat(c);
+    if (grid.occupied(cell)) {
       emit(n++, t_start, t_end);
-      ++k;
-      t_start = t_next;
-      continue;
+    } else if (cell != skipped_cell) {
+      const T t_exit = grid.cell_exit(c, o, d, inv_d);
+      if (!(t_exit < t_hi)) break;  // the rest of the ray lies in this empty cell
+      const T jump = lattice.index_of(t_exit) - T(0.5);  // > k: truncation is floor
+      if (jump >= T(k + 2)) {
+        k = int64_t(min_(jump, T(kMaxIndex)));
+        skipped_cell = cell;
+        t_start = lattice.at(k);
+        continue;
+      }
     }
-    const T t_exit = grid.cell_exit(c, o, d);
-    if (!(t_exit < t_hi)) break;  // the rest of the ray lies in this empty cell
-    const T jump = floor_(lattice.index_of(t_exit) - T(0.5));
-    k = jump > T(k + 1) ? int64_t(min_(jump, T(kMaxIndex))) : k + 1;
-    t_start = lattice.at(k);
+    // Next sample; also after a jump, which lands on the cell's last sample (still empty).
+    ++k;
+    t_start = t_next;
   }
   return n;
 }
