@@ -250,6 +250,7 @@ def poisoned_output(numel: int, dtype: torch.dtype, device) -> int:
     """Fill a cached CUDA block of exactly the output's size with NaN and free it: the caching
     allocator hands that same block to the next allocation of this size, so an output element the
     kernel does not write stays NaN. Returns the block's address to check that it was reused."""
+    torch.cuda.empty_cache()  # drop other free blocks, so that the freed one is the best fit
     block = torch.full((numel,), float("nan"), dtype=dtype, device=device)
     ptr = block.data_ptr()
     del block
@@ -288,8 +289,12 @@ def test_cuda_matches_cpu_and_truth(shape, num_freqs, include_input, dtype, gen)
         # Same double arithmetic as the CPU kernel up to FMA contraction: equal to the output's rounding.
         torch.testing.assert_close(out.cpu(), out_cpu, rtol=0, atol=2 * HALF_ULP[dtype] + 1e-15)
 
+        xr = xc.clone().requires_grad_()
+        encoded = positional_encoding(xr, num_freqs, include_input, scale, backend="kernel")
         ptr = poisoned_output(x.numel(), dtype, xc.device)
-        _, gx = cuda_forward_backward(xc, num_freqs, include_input, scale, "kernel", gc)
+        (gx,) = torch.autograd.grad(encoded, xr, gc)  # grad_x is the backward's first allocation
+        if gx.numel():
+            assert gx.data_ptr() == ptr
         magnitude = gradient_magnitude(grad, num_freqs, include_input, scale)
         if bool((magnitude < torch.finfo(dtype).max / 4).all()):  # half/bf16 gradients may overflow
             assert bool(torch.isfinite(gx).all())
