@@ -20,9 +20,10 @@ and one to PE(d) before the view branch (T = 9 for 4 octaves); with
 ``ModelConfig.mlca_concat_direction`` (the paper's Eq. 7) the tokens of PE(x) and PE(d) are mixed
 together (T = 30) and fed to the trunk.
 
-Speed: each stage is one dense GEMM on the flattened ``(N, T * C)`` features, with the structured
-weight built per call (``kron(W_token, I_C)``, ``kron(I_T, W_channel)``; tiny, e.g. 168 x 168):
-no reshapes or transposes of the ``N`` points, bf16-autocast and torch.compile friendly.
+Speed: no transposes of the ``N`` points. The lift and the channel mixing are linear layers on a
+free ``(N, T, C)`` view; the token mixing is one GEMM on the flat ``(N, T * C)`` features with the
+structured weight ``kron(W_token, I_C)`` built per call (168 x 168 for positions: ~28k
+multiply-adds per point, ~5% of the 8 x 256 trunk). bf16-autocast and torch.compile friendly.
 """
 
 from __future__ import annotations
@@ -53,7 +54,6 @@ class MLCA(nn.Module):
         self.token_bias = nn.Parameter(torch.zeros(num_tokens))
         self.channel_weight = nn.Parameter(torch.zeros(channels, channels))
         self.channel_bias = nn.Parameter(torch.zeros(channels))
-        self.register_buffer("_eye_tokens", torch.eye(num_tokens), persistent=False)
         self.register_buffer("_eye_channels", torch.eye(channels), persistent=False)
 
     @property
@@ -66,11 +66,15 @@ class MLCA(nn.Module):
                 f"encoded must have {self.num_tokens} x {self.token_dim} = "
                 f"{self.num_tokens * self.token_dim} features, got shape {tuple(encoded.shape)}"
             )
-        lifted = F.linear(encoded, torch.kron(self._eye_tokens, self.lift))
-        token_mix = torch.kron(self.token_weight, self._eye_channels)
-        mixed = lifted + F.gelu(F.linear(lifted, token_mix, self.token_bias.repeat_interleave(self.channels)))
-        channel_mix = torch.kron(self._eye_tokens, self.channel_weight)
-        return mixed + F.gelu(F.linear(mixed, channel_mix, self.channel_bias.repeat(self.num_tokens)))
+        tokens = encoded.unflatten(-1, (self.num_tokens, self.token_dim))  # a view
+        lifted = F.linear(tokens, self.lift).flatten(-2)
+        token_bias = self.token_bias.repeat_interleave(self.channels)
+        token_mixed = lifted + F.gelu(
+            F.linear(lifted, torch.kron(self.token_weight, self._eye_channels), token_bias)
+        )
+        token_mixed = token_mixed.unflatten(-1, (self.num_tokens, self.channels))
+        mixed = token_mixed + F.gelu(F.linear(token_mixed, self.channel_weight, self.channel_bias))
+        return mixed.flatten(-2)
 
     def extra_repr(self) -> str:
         return f"tokens={self.num_tokens}, token_dim={self.token_dim}, channels={self.channels}"
