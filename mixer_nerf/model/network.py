@@ -10,8 +10,11 @@ on Lego collapsed to an all-background image: once the density pre-activation is
 everywhere, ReLU passes no gradient and the field cannot recover. Here the density is
 ``softplus(raw + density_shift)`` (mip-NeRF's choice, shift -1): its gradient ``sigmoid(raw + shift)``
 is never zero, so a field that has been pushed towards empty space still receives a signal
-wherever the images need matter, and the initial density softplus(-1) ~ 0.31 makes every ray
-partly opaque, so both colour and density get gradients from the first step. The trunk and view
+wherever the images need matter. The density row of the head starts at zero, so whatever the
+seed the field starts as the same uniform fog of density softplus(-1) ~ 0.31 (a 4-unit Blender
+ray is ~70% opaque): colour and density both get gradients from the first step, and the start
+does not depend on a random per-network offset of the density (with a random density row the
+initial mean density varied 3x between seeds). The trunk and view
 layers use He (Kaiming-normal, fan-in) init with zero biases, which keeps ReLU activations at unit
 scale through the 8 layers (PyTorch's default shrinks them ~2.4x per layer, leaving the heads
 a nearly constant input); linear heads use Xavier init. ``density_activation="relu"`` keeps the
@@ -63,6 +66,8 @@ class MixerNeRF(nn.Module):
         for layer in (self.head, self.rgb):
             nn.init.xavier_uniform_(layer.weight)
             nn.init.zeros_(layer.bias)
+        with torch.no_grad():
+            self.head.weight[0].zero_()  # every seed starts from density softplus(shift) everywhere
         self.register_buffer("scene_center", torch.tensor(cfg.scene_center, dtype=torch.float32))
 
     def forward(
