@@ -26,18 +26,18 @@ int64_t grain_for(int64_t work_per_ray) {
 
 // Calls emit(n, s) for the sorted samples s of one ray, in order.
 template <typename acc_t, typename Weights, typename Edges, typename Emit>
-void sample_ray(Weights weights, Edges edges, int num_bins, const acc_t* u, int64_t num_samples, acc_t* cdf,
+void sample_ray(Weights weights, Edges edges, int num_bins, const acc_t* u, int64_t num_samples, cdf_t* cdf,
                 Emit emit) {
-  const acc_t total = build_cdf(weights, num_bins, cdf);
-  if (no_pdf(total)) {
+  const cdf_t total = build_cdf(weights, num_bins, cdf);
+  if (no_pdf<acc_t>(total)) {
     for (int64_t n = 0; n < num_samples; ++n) emit(n, sample_uniform(u[n], num_bins, edges));
     return;
   }
   int k = 0;
   for (int64_t n = 0; n < num_samples; ++n) {
-    const acc_t v = u[n] * total;
+    const cdf_t v = cdf_t(u[n]) * total;
     k = walk_to_bin(cdf, num_bins, v, k);
-    emit(n, sample_in_bin(v, k, cdf, weights, edges));
+    emit(n, sample_in_bin<acc_t>(v, k, cdf, weights, edges));
   }
 }
 
@@ -54,7 +54,7 @@ at::Tensor sample_pdf_fwd_cpu(const at::Tensor& bins, const at::Tensor& weights,
     const acc* u_p = u.data_ptr<acc>();
     scalar_t* out_p = samples.data_ptr<scalar_t>();
     at::parallel_for(0, batch.rays, grain_for(num_bins + batch.samples), [&](int64_t begin, int64_t end) {
-      std::vector<acc> cdf(num_bins + 1);
+      std::vector<cdf_t> cdf(num_bins + 1);
       for (int64_t r = begin; r < end; ++r) {
         scalar_t* out = out_p + r * batch.samples;
         sample_ray(PaddedWeights<acc, scalar_t>{weights_p + r * num_bins, static_cast<acc>(weight_padding)},
@@ -85,7 +85,7 @@ std::tuple<at::Tensor, at::Tensor> sample_pdf_bwd_cpu(const at::Tensor& grad_sam
     scalar_t* grad_bins_p = grad_bins.data_ptr<scalar_t>();
     scalar_t* grad_weights_p = grad_weights.data_ptr<scalar_t>();
     at::parallel_for(0, batch.rays, grain_for(num_bins + batch.samples), [&](int64_t begin, int64_t end) {
-      std::vector<acc> scratch(num_bins + 1);
+      std::vector<cdf_t> scratch(num_bins + 1);
       for (int64_t r = begin; r < end; ++r) {
         sample_pdf_ray_backward(grad_p + r * batch.samples, bins_p + r * (num_bins + 1), weights_p + r * num_bins,
                                 u_p + r * batch.u_row_stride, static_cast<int>(num_bins),
@@ -112,7 +112,7 @@ at::Tensor hierarchical_samples_fwd_cpu(const at::Tensor& z_coarse, const at::Te
     const acc* u_p = u.data_ptr<acc>();
     scalar_t* out_p = out.data_ptr<scalar_t>();
     at::parallel_for(0, batch.rays, grain_for(merged), [&](int64_t begin, int64_t end) {
-      std::vector<acc> cdf(num_bins + 1);
+      std::vector<cdf_t> cdf(num_bins + 1);
       for (int64_t r = begin; r < end; ++r) {
         const scalar_t* z = z_p + r * coarse;
         scalar_t* row = out_p + r * merged;

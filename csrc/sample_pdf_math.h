@@ -6,8 +6,9 @@
 //   and "empty" has one meaning),  C_k = w_0 + ... + w_{k-1} (summed sequentially, so C is
 //   non-decreasing and exactly flat over zero-weight bins),  W = C_B,  v = u W,
 //   k = #{j in 1..B-1 : C_j < v},  t = clamp((v - C_k) / w_k, 0, 1) (0 if w_k == 0),
-//   s = min(e_k + t (e_{k+1} - e_k), e_{k+1});  rays with W == 0 (or overflowing to inf)
-//   sample s = min(e_0 + u (e_B - e_0), e_B) instead.
+//   s = min(e_k + t (e_{k+1} - e_k), e_{k+1});  rays with W == 0 (or beyond the accumulation
+//   type's range) sample s = min(e_0 + u (e_B - e_0), e_B) instead.
+// Both clamps only undo rounding, so gradients pass straight through them.
 #pragma once
 
 #include <ATen/ATen.h>
@@ -60,16 +61,23 @@ inline void check_grad(const at::Tensor& grad_samples, const at::Tensor& bins, c
               "grad_samples must be (R, N)");
 }
 
-// A ray whose total weight is zero (after flushing subnormal weights) or overflows has no usable
-// PDF: it samples uniformly between its first and last edge.
+// The CDF, v = u W and the position t inside a bin are carried in double for every input dtype:
+// t = (v - C_k) / w_k subtracts two numbers close to W, which in float32 would cost
+// ~log2(W / w_k) bits of t. In double the float32 samples keep nearly full accuracy, and the
+// sum stays sequential (non-decreasing and exactly flat over zero-weight bins) and cheap.
+using cdf_t = double;
+
 C10_HOST_DEVICE inline float smallest_normal(float) { return FLT_MIN; }
 C10_HOST_DEVICE inline double smallest_normal(double) { return DBL_MIN; }
 C10_HOST_DEVICE inline float largest_finite(float) { return FLT_MAX; }
 C10_HOST_DEVICE inline double largest_finite(double) { return DBL_MAX; }
 
+// A ray whose total weight is zero (after flushing subnormal weights) or exceeds the
+// accumulation type's range has no usable PDF: it samples uniformly between its first and last
+// edge.
 template <typename acc_t>
-C10_HOST_DEVICE inline bool no_pdf(acc_t total) {
-  return !(total >= smallest_normal(acc_t{}) && total <= largest_finite(acc_t{}));
+C10_HOST_DEVICE inline bool no_pdf(cdf_t total) {
+  return !(total >= cdf_t(smallest_normal(acc_t{})) && total <= cdf_t(largest_finite(acc_t{})));
 }
 
 // Padded weights of one ray as the accumulation type, read from any element type; subnormal
@@ -103,10 +111,13 @@ struct MidpointEdges {
 };
 
 // cdf[0..B] = the unnormalised CDF; returns the total weight W = cdf[B].
-template <typename acc_t, typename Weights>
-C10_HOST_DEVICE inline acc_t build_cdf(Weights weights, int num_bins, acc_t* cdf) {
-  acc_t running = 0;
+template <typename Weights>
+C10_HOST_DEVICE inline cdf_t build_cdf(Weights weights, int num_bins, cdf_t* cdf) {
+  cdf_t running = 0;
   cdf[0] = running;
+#ifdef __CUDA_ARCH__
+#pragma unroll 8  // let the weight loads run ahead of the chain of adds
+#endif
   for (int k = 0; k < num_bins; ++k) {
     running += weights(k);
     cdf[k + 1] = running;
@@ -115,8 +126,7 @@ C10_HOST_DEVICE inline acc_t build_cdf(Weights weights, int num_bins, acc_t* cdf
 }
 
 // The bin k holding v: #{j in 1..B-1 : cdf[j] < v}, by binary search.
-template <typename acc_t>
-C10_HOST_DEVICE inline int find_bin(const acc_t* cdf, int num_bins, acc_t v) {
+C10_HOST_DEVICE inline int find_bin(const cdf_t* cdf, int num_bins, cdf_t v) {
   int lo = 1, hi = num_bins;  // answer + 1 lies in [lo, hi]
   while (lo < hi) {
     const int mid = (lo + hi) / 2;
@@ -127,81 +137,71 @@ C10_HOST_DEVICE inline int find_bin(const acc_t* cdf, int num_bins, acc_t v) {
 }
 
 // The same bin found by walking forward from `k`, the bin of a smaller v (sorted u).
-template <typename acc_t>
-C10_HOST_DEVICE inline int walk_to_bin(const acc_t* cdf, int num_bins, acc_t v, int k) {
+C10_HOST_DEVICE inline int walk_to_bin(const cdf_t* cdf, int num_bins, cdf_t v, int k) {
   while (k < num_bins - 1 && cdf[k + 1] < v) ++k;
   return k;
 }
 
-// Where v falls inside bin k: t in [0, 1]; `free` when t was not clamped, i.e. when its
-// gradient reaches the weights.
+// Where v falls inside bin k. `t` is clamped to [0, 1]; the clamp only undoes rounding (the
+// search puts v in (C_k, C_k + w_k]), so gradients take `t_raw` unclamped (straight through).
+// `weighted` is false only for w_k == 0, reached by v == 0 before the first weight: t = 0 and the
+// weights get no gradient from this sample.
 template <typename acc_t>
 struct Fraction {
   acc_t t;
-  bool free;
+  acc_t t_raw;
+  bool weighted;
 };
 
 template <typename acc_t>
-C10_HOST_DEVICE inline Fraction<acc_t> fraction_in_bin(acc_t v, acc_t cdf_k, acc_t w_k) {
-  if (!(w_k > 0)) return {acc_t(0), false};  // only v == C_k == 0 before the first weight
-  const acc_t t = (v - cdf_k) / w_k;
-  if (t < 0) return {acc_t(0), false};
-  if (t > 1) return {acc_t(1), false};
-  return {t, true};
+C10_HOST_DEVICE inline Fraction<acc_t> fraction_in_bin(cdf_t v, cdf_t cdf_k, acc_t w_k) {
+  if (!(w_k > 0)) return {acc_t(0), acc_t(0), false};
+  const cdf_t t = (v - cdf_k) / w_k;
+  return {static_cast<acc_t>(t < 0 ? 0 : (t > 1 ? 1 : t)), static_cast<acc_t>(t), true};
 }
 
-// lo + t (hi - lo), capped at hi (rounding can pass it): `capped` sends the gradient to hi.
+// lo + t (hi - lo) for t in [0, 1], capped at hi, which rounding can pass (the cap is, again,
+// transparent to gradients). Keeps samples in their bin, hence sorted.
 template <typename acc_t>
-struct Lerp {
-  acc_t s;
-  bool capped;
-};
-
-template <typename acc_t>
-C10_HOST_DEVICE inline Lerp<acc_t> lerp_capped(acc_t lo, acc_t hi, acc_t t) {
+C10_HOST_DEVICE inline acc_t lerp_in_bin(acc_t lo, acc_t hi, acc_t t) {
   const acc_t s = lo + t * (hi - lo);
-  if (s > hi) return {hi, true};
-  return {s, false};
+  return s > hi ? hi : s;
 }
 
 // One sample of a ray with a PDF, given its bin.
 template <typename acc_t, typename Weights, typename Edges>
-C10_HOST_DEVICE inline acc_t sample_in_bin(acc_t v, int k, const acc_t* cdf, Weights weights, Edges edges) {
-  const Fraction<acc_t> f = fraction_in_bin(v, cdf[k], weights(k));
-  return lerp_capped(edges(k), edges(k + 1), f.t).s;
+C10_HOST_DEVICE inline acc_t sample_in_bin(cdf_t v, int k, const cdf_t* cdf, Weights weights, Edges edges) {
+  return lerp_in_bin(edges(k), edges(k + 1), fraction_in_bin(v, cdf[k], weights(k)).t);
 }
 
 // One sample of a ray without a PDF.
 template <typename acc_t, typename Edges>
 C10_HOST_DEVICE inline acc_t sample_uniform(acc_t u, int num_bins, Edges edges) {
-  return lerp_capped(edges(0), edges(num_bins), u).s;
+  return lerp_in_bin(edges(0), edges(num_bins), u);
 }
 
 // Gradients of one ray's samples (B >= 1) with respect to its edges and weights, O(B + N), in one
-// reverse pass over the sorted samples. With a_n = dL/dt_n / w_{k_n} for samples whose t is
-// free, dt_n/dw_i = (u_n - [i < k_n] - [i == k_n] t_n) / w_{k_n}, so
+// reverse pass over the sorted samples. ds/de_k = 1 - t, ds/de_{k+1} = t; with
+// a_n = dL/ds_n (e_{k+1} - e_k) / w_{k_n} for weighted samples,
+// dt_n/dw_i = (u_n - [i < k_n] - [i == k_n] t_n) / w_{k_n}, so
 //   dL/dw_i = sum_n a_n u_n - sum_{n: k_n > i} a_n - sum_{n: k_n == i} a_n t_n.
 // Walking the samples from the last one down, the middle sum is a running suffix. Every element
-// of grad_edges (B+1) and grad_weights (B) is written exactly once; cdf (B+1) is scratch that
-// also holds the partial weight gradients, in the accumulation type, until the last step.
+// of grad_bins (B+1) and grad_weights (B) is written exactly once; cdf (B+1) is scratch that
+// also holds the partial weight gradients until the last step.
 template <typename acc_t, typename scalar_t>
 C10_HOST_DEVICE inline void sample_pdf_ray_backward(
     const scalar_t* grad, const scalar_t* bins, const scalar_t* weights, const acc_t* u, int num_bins,
-    int num_samples, acc_t pad, acc_t* cdf, scalar_t* grad_bins, scalar_t* grad_weights) {
+    int num_samples, acc_t pad, cdf_t* cdf, scalar_t* grad_bins, scalar_t* grad_weights) {
   const PaddedWeights<acc_t, scalar_t> padded{weights, pad};
   const GivenEdges<acc_t, scalar_t> edges{bins};
-  const acc_t total = build_cdf(padded, num_bins, cdf);
+  const cdf_t total = build_cdf(padded, num_bins, cdf);
 
-  if (no_pdf(total)) {
+  if (no_pdf<acc_t>(total)) {
     acc_t first = 0, last = 0;
     for (int n = 0; n < num_samples; ++n) {
       const acc_t g = static_cast<acc_t>(grad[n]);
-      if (lerp_capped(edges(0), edges(num_bins), u[n]).capped) {
-        last += g;
-      } else {
-        first += g - g * u[n];
-        last += g * u[n];
-      }
+      first += g - g * u[n];
+      last += g * u[n];
     }
     for (int k = 0; k < num_bins; ++k) grad_weights[k] = scalar_t(0);
     for (int k = 1; k < num_bins; ++k) grad_bins[k] = scalar_t(0);
@@ -219,36 +219,32 @@ C10_HOST_DEVICE inline void sample_pdf_ray_backward(
   auto close_bin = [&]() {
     grad_bins[k + 1] = static_cast<scalar_t>(above_lo + bin_hi);
     above_lo = bin_lo;
-    cdf[k] = -(suffix_a + bin_a_t);  // C_k is no longer needed
+    cdf[k] = -(cdf_t(suffix_a) + cdf_t(bin_a_t));  // C_k is no longer needed
     suffix_a += bin_a;
     bin_a = bin_a_t = bin_lo = bin_hi = 0;
   };
   for (int n = num_samples - 1; n >= 0; --n) {
-    const acc_t v = u[n] * total;
+    const cdf_t v = cdf_t(u[n]) * total;
     while (k > 0 && !(cdf[k] < v)) {
       close_bin();
       --k;
     }
     const acc_t g = static_cast<acc_t>(grad[n]);
-    const acc_t lo = edges(k), hi = edges(k + 1), w_k = padded(k);
+    const acc_t w_k = padded(k);
     const Fraction<acc_t> f = fraction_in_bin(v, cdf[k], w_k);
-    if (lerp_capped(lo, hi, f.t).capped) {
-      bin_hi += g;
-      continue;
-    }
     bin_lo += g - g * f.t;
     bin_hi += g * f.t;
-    if (f.free) {
-      const acc_t a = g * (hi - lo) / w_k;
+    if (f.weighted) {
+      const acc_t a = g * (edges(k + 1) - edges(k)) / w_k;
       sum_a_u += a * u[n];
       bin_a += a;
-      bin_a_t += a * f.t;
+      bin_a_t += a * f.t_raw;
     }
   }
   for (; k >= 0; --k) close_bin();
   grad_bins[0] = static_cast<scalar_t>(above_lo);
   for (int i = 0; i < num_bins; ++i) {
-    grad_weights[i] = padded(i) > 0 ? static_cast<scalar_t>(cdf[i] + sum_a_u) : scalar_t(0);
+    grad_weights[i] = padded(i) > 0 ? static_cast<scalar_t>(cdf[i] + cdf_t(sum_a_u)) : scalar_t(0);
   }
 }
 

@@ -1,15 +1,19 @@
-// sample_pdf and hierarchical_samples on CUDA. The math is sample_pdf_math.h, shared with the CPU
-// kernels, so both build the same CDF bit for bit and pick the same bins.
+// sample_pdf and hierarchical_samples on CUDA: one warp per ray, its data staged in shared memory
+// by coalesced loads. The math is sample_pdf_math.h, shared with the CPU kernels: both build the
+// same CDF bit for bit (lane 0 sums it sequentially; a tree scan would be neither exactly flat
+// over zero-weight bins nor even monotone, and the chain is short) and pick the same bins.
 //
-// Forward: one warp per ray, its data staged in shared memory with coalesced loads. Lane 0 sums
-// the CDF sequentially (a tree scan would not be exactly flat over zero-weight bins, nor even
-// monotone, and the sum is short); then each lane takes samples n = lane, lane + 32, ...: binary
-// search of its bin, one division. hierarchical_samples merges without sorting: the fine sample
-// n lands at n + #{coarse <= it} and coarse depth j at j + #{fine < it}, both binary searches in
-// shared memory, written straight into the ray's output row.
+// Forward: each lane takes samples n = lane, lane + 32, ...: binary search of its bin, one
+// division. hierarchical_samples merges without sorting: fine sample n lands at
+// n + #{coarse <= it} and coarse depth j at j + #{fine < it}, both binary searches in shared
+// memory, written straight into the ray's output row.
 //
-// Backward (sample_pdf only; NeRF's fine depths carry no gradient): one thread per ray running
-// the O(B + N) reverse pass of sample_pdf_ray_backward, its CDF scratch in global memory.
+// Backward (sample_pdf only; NeRF's fine depths carry no gradient), O(B + N) per ray: samples are
+// sorted, so their bins are too, and each chunk of 32 samples reduces its per-bin sums (edge
+// gradients, a_n and a_n t_n of sample_pdf_ray_backward) with a segmented warp scan keyed by bin;
+// the last lane of each segment adds them into shared per-bin sums, chunk after chunk. A reverse
+// warp scan over the bins then gives dL/dw_i = sum a_n u_n - sum_{bins above i} a - sum_i a t.
+// No atomics anywhere: the results do not depend on scheduling.
 #include <torch/library.h>
 
 #include <ATen/ATen.h>
@@ -17,6 +21,7 @@
 #include <c10/cuda/CUDAGuard.h>
 #include <c10/cuda/CUDAStream.h>  // = at::cuda::getCurrentCUDAStream, without the cuSPARSE/cuBLAS headers
 
+#include <climits>
 #include <tuple>
 
 #include "common.h"
@@ -28,8 +33,8 @@ namespace {
 using namespace sample_pdf_math;
 
 constexpr int kWarpSize = 32;
+constexpr unsigned kFullMask = 0xffffffffu;
 constexpr int kMaxWarpsPerBlock = 8;
-constexpr int kBackwardThreads = 128;
 constexpr size_t kDefaultSharedBytes = 48 * 1024;
 
 // #{i < n : a[i] <= x} (kInclusive) or #{i < n : a[i] < x}, for sorted a.
@@ -44,64 +49,79 @@ __device__ int count_before(const acc_t* a, int n, acc_t x) {
   return lo;
 }
 
-// Shared memory of one warp, in accumulation-type elements: cdf (B+1), padded weights (B),
-// edges (B+1); when merging also the coarse depths (S = B+2) and the fine samples (N).
+// Shared memory of one warp: the CDF (B+1, cdf_t), then in the accumulation type the padded
+// weights (B), the edges (B+1) and `tail` more elements for the kernel's own use. Each warp's
+// region is a multiple of 16 bytes, so every CDF stays aligned.
 struct WarpLayout {
   int num_bins;
-  int coarse;  // 0 unless merging
-  int samples;
-  __host__ __device__ int elements() const { return 3 * num_bins + 2 + (coarse ? coarse + samples : 0); }
+  int tail;
+  template <typename acc_t>
+  __host__ __device__ size_t bytes() const {
+    const size_t acc_elements = 2 * size_t(num_bins) + 1 + size_t(tail);
+    return (sizeof(cdf_t) * (num_bins + 1) + sizeof(acc_t) * acc_elements + 15) / 16 * 16;
+  }
 };
 
+template <typename acc_t>
+struct WarpShared {
+  cdf_t* cdf;    // (B+1)
+  acc_t* w;      // (B) padded, flushed
+  acc_t* edges;  // (B+1)
+  acc_t* tail;
+
+  __device__ WarpShared(unsigned char* raw, const WarpLayout& layout, int warp) {
+    cdf = reinterpret_cast<cdf_t*>(raw + warp * layout.bytes<acc_t>());
+    w = reinterpret_cast<acc_t*>(cdf + layout.num_bins + 1);
+    edges = w + layout.num_bins;
+    tail = edges + layout.num_bins + 1;
+  }
+};
+
+// Forward. Tail: sample_pdf: u then samples (N); hierarchical_samples: the coarse depths (S), then
+// u then the fine samples (N).
 template <typename scalar_t, bool kMerge>
-__global__ void sample_forward_kernel(const scalar_t* __restrict__ edges_or_z, const scalar_t* __restrict__ weights,
-                                      const acc_t<scalar_t>* __restrict__ u, int64_t u_row_stride,
-                                      scalar_t* __restrict__ out, int64_t rays, WarpLayout layout,
-                                      acc_t<scalar_t> pad) {
+__global__ void sample_forward_kernel(int64_t rays, WarpLayout layout, const scalar_t* __restrict__ edges_or_z,
+                                      const scalar_t* __restrict__ weights, const acc_t<scalar_t>* __restrict__ u,
+                                      int64_t u_row_stride, int num_samples, acc_t<scalar_t> pad,
+                                      scalar_t* __restrict__ out) {
   using acc = acc_t<scalar_t>;
   extern __shared__ __align__(16) unsigned char shared_raw[];
   const int warp = threadIdx.x / kWarpSize, lane = threadIdx.x % kWarpSize;
   const int64_t ray = int64_t(blockIdx.x) * (blockDim.x / kWarpSize) + warp;
   if (ray >= rays) return;  // whole warps only: blockDim is a multiple of 32
 
-  const int B = layout.num_bins, S = layout.coarse, N = layout.samples;
-  acc* cdf = reinterpret_cast<acc*>(shared_raw) + int64_t(warp) * layout.elements();
-  acc* w = cdf + B + 1;
-  acc* edges = w + B;
-  acc* z = edges + B + 1;  // merging only
-  acc* fine = z + S;       // merging only
+  const int B = layout.num_bins, N = num_samples, S = kMerge ? B + 2 : 0;
+  const WarpShared<acc> sh(shared_raw, layout, warp);
+  acc* z = sh.tail;         // (S), merging only
+  acc* fine = sh.tail + S;  // (N): u, then the samples in place
 
-  // Coarse weights keep S per row and the bins use weights[:, 1:-1].
+  // Every load of the ray in one loop, so they are all in flight together. Coarse weights keep
+  // S per row and the bins use weights[:, 1:-1].
   const scalar_t* weights_row = kMerge ? weights + ray * S + 1 : weights + ray * B;
-  for (int k = lane; k < B; k += kWarpSize) w[k] = PaddedWeights<acc, scalar_t>{weights_row, pad}(k);
-  if constexpr (kMerge) {
-    const scalar_t* z_row = edges_or_z + ray * S;
-    for (int j = lane; j < S; j += kWarpSize) z[j] = static_cast<acc>(z_row[j]);
-    __syncwarp();
-    for (int k = lane; k <= B; k += kWarpSize) edges[k] = MidpointEdges<acc, acc>{z}(k);
-  } else {
-    const scalar_t* bins_row = edges_or_z + ray * (B + 1);
-    for (int k = lane; k <= B; k += kWarpSize) edges[k] = static_cast<acc>(bins_row[k]);
+  const scalar_t* edges_row = edges_or_z + ray * (kMerge ? S : B + 1);
+  const acc* u_row = u + ray * u_row_stride;
+  const int longest = max(max(B + 2, N), 1);
+  for (int i = lane; i < longest; i += kWarpSize) {
+    if (i < B) sh.w[i] = PaddedWeights<acc, scalar_t>{weights_row, pad}(i);
+    if (kMerge ? i < S : i <= B) (kMerge ? z : sh.edges)[i] = static_cast<acc>(edges_row[i]);
+    if (i < N) fine[i] = u_row[i];
   }
   __syncwarp();
-  const PaddedWeights<acc, acc> padded{w, acc(0)};  // already padded and flushed: unchanged
-  if (lane == 0) build_cdf(padded, B, cdf);
+  if constexpr (kMerge) {
+    for (int k = lane; k <= B; k += kWarpSize) sh.edges[k] = MidpointEdges<acc, acc>{z}(k);
+  }
+  const PaddedWeights<acc, acc> padded{sh.w, acc(0)};  // already padded and flushed: unchanged
+  if (lane == 0) build_cdf(padded, B, sh.cdf);
   __syncwarp();
 
-  const acc total = cdf[B];
-  const bool uniform = no_pdf(total);
-  const GivenEdges<acc, acc> given{edges};
-  const acc* u_row = u + ray * u_row_stride;
+  const cdf_t total = sh.cdf[B];
+  const bool uniform = no_pdf<acc>(total);
+  const GivenEdges<acc, acc> given{sh.edges};
   const int64_t out_row = ray * (int64_t(N) + S);
   for (int n = lane; n < N; n += kWarpSize) {
-    const acc un = u_row[n];
-    acc s;
-    if (uniform) {
-      s = sample_uniform(un, B, given);
-    } else {
-      const acc v = un * total;
-      s = sample_in_bin(v, find_bin(cdf, B, v), cdf, padded, given);
-    }
+    const acc un = fine[n];
+    const cdf_t v = cdf_t(un) * total;
+    const acc s = uniform ? sample_uniform(un, B, given) : sample_in_bin<acc>(v, find_bin(sh.cdf, B, v), sh.cdf, padded, given);
     if constexpr (kMerge) fine[n] = s;
     else out[out_row + n] = static_cast<scalar_t>(s);
   }
@@ -111,48 +131,154 @@ __global__ void sample_forward_kernel(const scalar_t* __restrict__ edges_or_z, c
     for (int n = lane; n < N; n += kWarpSize) {
       out[out_row + n + count_before<true>(z, S, fine[n])] = static_cast<scalar_t>(fine[n]);
     }
-    const scalar_t* z_row = edges_or_z + ray * S;
-    for (int j = lane; j < S; j += kWarpSize) out[out_row + j + count_before<false>(fine, N, z[j])] = z_row[j];
+    for (int j = lane; j < S; j += kWarpSize) {
+      out[out_row + j + count_before<false>(fine, N, z[j])] = edges_row[j];
+    }
   }
 }
 
-template <typename scalar_t>
-__global__ void sample_pdf_backward_kernel(const scalar_t* __restrict__ grad, const scalar_t* __restrict__ bins,
-                                           const scalar_t* __restrict__ weights,
-                                           const acc_t<scalar_t>* __restrict__ u, int64_t u_row_stride,
-                                           int64_t rays, int num_bins, int num_samples, acc_t<scalar_t> pad,
-                                           acc_t<scalar_t>* __restrict__ scratch, scalar_t* __restrict__ grad_bins,
-                                           scalar_t* __restrict__ grad_weights) {
-  const int64_t ray = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
-  if (ray >= rays) return;
-  const int64_t edges = num_bins + 1;
-  sample_pdf_ray_backward(grad + ray * num_samples, bins + ray * edges, weights + ray * num_bins,
-                          u + ray * u_row_stride, num_bins, num_samples, pad, scratch + ray * edges,
-                          grad_bins + ray * edges, grad_weights + ray * num_bins);
+// Inclusive scan over lanes of the segments of equal (sorted) keys.
+template <typename acc_t>
+__device__ void segmented_scan(int key, int lane, acc_t& a, acc_t& b, acc_t& c, acc_t& d) {
+#pragma unroll
+  for (int offset = 1; offset < kWarpSize; offset *= 2) {
+    const int key_up = __shfl_up_sync(kFullMask, key, offset);
+    const acc_t a_up = __shfl_up_sync(kFullMask, a, offset), b_up = __shfl_up_sync(kFullMask, b, offset);
+    const acc_t c_up = __shfl_up_sync(kFullMask, c, offset), d_up = __shfl_up_sync(kFullMask, d, offset);
+    if (lane >= offset && key_up == key) a += a_up, b += b_up, c += c_up, d += d_up;
+  }
 }
 
-// Launches the forward kernel with as many warps per block as fit the default shared memory
-// (at least one, opting in to more shared memory for very long rays).
-template <typename scalar_t, bool kMerge>
-void launch_forward(const at::Tensor& edges_or_z, const at::Tensor& weights, const at::Tensor& u,
-                    const RayBatch& batch, WarpLayout layout, double weight_padding, at::Tensor& out) {
+template <typename acc_t>
+__device__ acc_t warp_sum(acc_t x) {
+#pragma unroll
+  for (int offset = kWarpSize / 2; offset > 0; offset /= 2) x += __shfl_xor_sync(kFullMask, x, offset);
+  return x;  // the same value in every lane: each step adds the same two numbers everywhere
+}
+
+// Backward. Tail: per bin, sum a, sum a t, gradient reaching its lower and its upper edge (4 B).
+template <typename scalar_t>
+__global__ void sample_pdf_backward_kernel(int64_t rays, WarpLayout layout, const scalar_t* __restrict__ grad,
+                                           const scalar_t* __restrict__ bins, const scalar_t* __restrict__ weights,
+                                           const acc_t<scalar_t>* __restrict__ u, int64_t u_row_stride,
+                                           int num_samples, acc_t<scalar_t> pad, scalar_t* __restrict__ grad_bins,
+                                           scalar_t* __restrict__ grad_weights) {
   using acc = acc_t<scalar_t>;
-  const size_t warp_bytes = size_t(layout.elements()) * sizeof(acc);
+  extern __shared__ __align__(16) unsigned char shared_raw[];
+  const int warp = threadIdx.x / kWarpSize, lane = threadIdx.x % kWarpSize;
+  const int64_t ray = int64_t(blockIdx.x) * (blockDim.x / kWarpSize) + warp;
+  if (ray >= rays) return;
+
+  const int B = layout.num_bins, N = num_samples;
+  const WarpShared<acc> sh(shared_raw, layout, warp);
+  acc* bin_a = sh.tail;
+  acc* bin_a_t = bin_a + B;
+  acc* bin_lo = bin_a_t + B;
+  acc* bin_hi = bin_lo + B;
+  const scalar_t* grad_row = grad + ray * N;
+  const acc* u_row = u + ray * u_row_stride;
+  scalar_t* grad_bins_row = grad_bins + ray * (B + 1);
+  scalar_t* grad_weights_row = grad_weights + ray * B;
+
+  for (int i = lane; i <= B; i += kWarpSize) {
+    if (i < B) {
+      sh.w[i] = PaddedWeights<acc, scalar_t>{weights + ray * B, pad}(i);
+      bin_a[i] = bin_a_t[i] = bin_lo[i] = bin_hi[i] = acc(0);
+    }
+    sh.edges[i] = static_cast<acc>(bins[ray * (B + 1) + i]);
+  }
+  __syncwarp();
+  const PaddedWeights<acc, acc> padded{sh.w, acc(0)};
+  if (lane == 0) build_cdf(padded, B, sh.cdf);
+  __syncwarp();
+  const cdf_t total = sh.cdf[B];
+
+  if (no_pdf<acc>(total)) {  // s = e_0 + u (e_B - e_0): only the end edges get gradient
+    acc first = 0, last = 0;
+    for (int n = lane; n < N; n += kWarpSize) {
+      const acc g = static_cast<acc>(grad_row[n]);
+      first += g - g * u_row[n];
+      last += g * u_row[n];
+    }
+    first = warp_sum(first);
+    last = warp_sum(last);
+    for (int i = lane; i <= B; i += kWarpSize) {
+      if (i < B) grad_weights_row[i] = scalar_t(0);
+      grad_bins_row[i] = static_cast<scalar_t>(i == 0 ? first : (i == B ? last : acc(0)));
+    }
+    return;
+  }
+
+  acc sum_a_u = 0;
+  for (int base = 0; base < N; base += kWarpSize) {  // the same trip count in every lane
+    const int n = base + lane;
+    int key = INT_MAX;  // lanes past the end form their own segment and write nothing
+    acc a = 0, a_t = 0, lo = 0, hi = 0;
+    if (n < N) {
+      const acc g = static_cast<acc>(grad_row[n]);
+      const cdf_t v = cdf_t(u_row[n]) * total;
+      key = find_bin(sh.cdf, B, v);
+      const acc w_k = sh.w[key];
+      const Fraction<acc> f = fraction_in_bin(v, sh.cdf[key], w_k);
+      lo = g - g * f.t;
+      hi = g * f.t;
+      if (f.weighted) {
+        a = g * (sh.edges[key + 1] - sh.edges[key]) / w_k;
+        a_t = a * f.t_raw;
+        sum_a_u += a * u_row[n];
+      }
+    }
+    segmented_scan(key, lane, a, a_t, lo, hi);
+    const int key_down = __shfl_down_sync(kFullMask, key, 1);
+    if (n < N && (lane == kWarpSize - 1 || key_down != key)) {
+      bin_a[key] += a;
+      bin_a_t[key] += a_t;
+      bin_lo[key] += lo;
+      bin_hi[key] += hi;
+    }
+    __syncwarp();  // a bin can continue in the next chunk
+  }
+  sum_a_u = warp_sum(sum_a_u);
+
+  // dL/dw_i = sum a u - (sum of bin_a above i) - bin_a_t[i], from the last bin down: lane 0 takes
+  // the highest bin of each chunk, and `above` carries the chunks already done.
+  acc above = 0;
+  for (int base = 0; base < B; base += kWarpSize) {
+    const int i = B - 1 - base - lane;
+    acc inclusive = i >= 0 ? bin_a[i] : acc(0);
+#pragma unroll
+    for (int offset = 1; offset < kWarpSize; offset *= 2) {
+      const acc up = __shfl_up_sync(kFullMask, inclusive, offset);
+      if (lane >= offset) inclusive += up;
+    }
+    const acc exclusive = lane == 0 ? acc(0) : __shfl_up_sync(kFullMask, inclusive, 1);
+    if (i >= 0) {
+      grad_weights_row[i] = sh.w[i] > 0 ? static_cast<scalar_t>(sum_a_u - (above + exclusive) - bin_a_t[i]) : scalar_t(0);
+    }
+    above += __shfl_sync(kFullMask, inclusive, kWarpSize - 1);
+  }
+  for (int e = lane; e <= B; e += kWarpSize) {
+    grad_bins_row[e] = static_cast<scalar_t>((e < B ? bin_lo[e] : acc(0)) + (e > 0 ? bin_hi[e - 1] : acc(0)));
+  }
+}
+
+// Launches a warp-per-ray kernel with as many warps per block as fit the default shared memory
+// (at least one, opting in to more shared memory for very long rays).
+template <typename acc, typename Kernel, typename... Args>
+void launch_warp_per_ray(Kernel kernel, const WarpLayout& layout, int64_t rays, Args... args) {
+  const size_t warp_bytes = layout.bytes<acc>();
   const int warps = int(std::max<size_t>(1, std::min<size_t>(kMaxWarpsPerBlock, kDefaultSharedBytes / warp_bytes)));
   const size_t shared = warps * warp_bytes;
-  auto kernel = sample_forward_kernel<scalar_t, kMerge>;
   if (shared > kDefaultSharedBytes) {
     int device = 0, optin = 0;
     C10_CUDA_CHECK(cudaGetDevice(&device));
     C10_CUDA_CHECK(cudaDeviceGetAttribute(&optin, cudaDevAttrMaxSharedMemoryPerBlockOptin, device));
-    TORCH_CHECK(shared <= size_t(optin), "sample_pdf: ", layout.elements(), " bins and samples per ray need ",
-                shared, " bytes of shared memory, more than the GPU's ", optin);
+    TORCH_CHECK(shared <= size_t(optin), "sample_pdf: ", layout.num_bins, " bins and ", layout.tail,
+                " more values per ray need ", shared, " bytes of shared memory, more than the GPU's ", optin);
     C10_CUDA_CHECK(cudaFuncSetAttribute(kernel, cudaFuncAttributeMaxDynamicSharedMemorySize, int(shared)));
   }
-  const int64_t blocks = (batch.rays + warps - 1) / warps;
-  kernel<<<blocks, warps * kWarpSize, shared, c10::cuda::getCurrentCUDAStream()>>>(
-      edges_or_z.data_ptr<scalar_t>(), weights.data_ptr<scalar_t>(), u.data_ptr<acc>(), batch.u_row_stride,
-      out.data_ptr<scalar_t>(), batch.rays, layout, static_cast<acc>(weight_padding));
+  const int64_t blocks = (rays + warps - 1) / warps;
+  kernel<<<blocks, warps * kWarpSize, shared, c10::cuda::getCurrentCUDAStream()>>>(rays, layout, args...);
   C10_CUDA_KERNEL_LAUNCH_CHECK();
 }
 
@@ -163,9 +289,13 @@ at::Tensor sample_pdf_fwd_cuda(const at::Tensor& bins, const at::Tensor& weights
   const c10::cuda::CUDAGuard guard(bins.device());
   at::Tensor samples = at::empty({batch.rays, batch.samples}, bins.options());
   if (samples.numel() == 0) return samples;
-  const WarpLayout layout{int(weights.size(1)), 0, int(batch.samples)};
+  const int num_bins = int(weights.size(1)), num_samples = int(batch.samples);
   MIXER_NERF_DISPATCH_FLOATING(bins.scalar_type(), "sample_pdf_fwd_cuda", [&] {
-    launch_forward<scalar_t, false>(bins, weights, u, batch, layout, weight_padding, samples);
+    using acc = acc_t<scalar_t>;
+    launch_warp_per_ray<acc>(sample_forward_kernel<scalar_t, false>, WarpLayout{num_bins, num_samples}, batch.rays,
+                             bins.data_ptr<scalar_t>(), weights.data_ptr<scalar_t>(), u.data_ptr<acc>(),
+                             batch.u_row_stride, num_samples, static_cast<acc>(weight_padding),
+                             samples.data_ptr<scalar_t>());
   });
   return samples;
 }
@@ -175,12 +305,15 @@ at::Tensor hierarchical_samples_fwd_cuda(const at::Tensor& z_coarse, const at::T
   const RayBatch batch = check_batch(z_coarse, weights, u, at::kCUDA);
   check_coarse(z_coarse, weights);
   const c10::cuda::CUDAGuard guard(z_coarse.device());
-  const int coarse = int(z_coarse.size(1));
+  const int coarse = int(z_coarse.size(1)), num_samples = int(batch.samples);
   at::Tensor merged = at::empty({batch.rays, coarse + batch.samples}, z_coarse.options());
   if (batch.rays == 0) return merged;
-  const WarpLayout layout{coarse - 2, coarse, int(batch.samples)};
   MIXER_NERF_DISPATCH_FLOATING(z_coarse.scalar_type(), "hierarchical_samples_fwd_cuda", [&] {
-    launch_forward<scalar_t, true>(z_coarse, weights, u, batch, layout, weight_padding, merged);
+    using acc = acc_t<scalar_t>;
+    launch_warp_per_ray<acc>(sample_forward_kernel<scalar_t, true>, WarpLayout{coarse - 2, coarse + num_samples},
+                             batch.rays, z_coarse.data_ptr<scalar_t>(), weights.data_ptr<scalar_t>(),
+                             u.data_ptr<acc>(), batch.u_row_stride, num_samples, static_cast<acc>(weight_padding),
+                             merged.data_ptr<scalar_t>());
   });
   return merged;
 }
@@ -195,16 +328,14 @@ std::tuple<at::Tensor, at::Tensor> sample_pdf_bwd_cuda(const at::Tensor& grad_sa
   at::Tensor grad_bins = at::empty_like(bins);
   at::Tensor grad_weights = at::empty_like(weights);
   if (batch.rays == 0) return {grad_bins, grad_weights};
-  const int num_bins = int(weights.size(1));
+  const int num_bins = int(weights.size(1)), num_samples = int(batch.samples);
   MIXER_NERF_DISPATCH_FLOATING(bins.scalar_type(), "sample_pdf_bwd_cuda", [&] {
     using acc = acc_t<scalar_t>;
-    at::Tensor scratch = at::empty({batch.rays, num_bins + 1}, bins.options().dtype(c10::CppTypeToScalarType<acc>::value));
-    const int64_t blocks = (batch.rays + kBackwardThreads - 1) / kBackwardThreads;
-    sample_pdf_backward_kernel<scalar_t><<<blocks, kBackwardThreads, 0, c10::cuda::getCurrentCUDAStream()>>>(
-        grad_samples.data_ptr<scalar_t>(), bins.data_ptr<scalar_t>(), weights.data_ptr<scalar_t>(), u.data_ptr<acc>(),
-        batch.u_row_stride, batch.rays, num_bins, int(batch.samples), static_cast<acc>(weight_padding),
-        scratch.data_ptr<acc>(), grad_bins.data_ptr<scalar_t>(), grad_weights.data_ptr<scalar_t>());
-    C10_CUDA_KERNEL_LAUNCH_CHECK();
+    launch_warp_per_ray<acc>(sample_pdf_backward_kernel<scalar_t>, WarpLayout{num_bins, 4 * num_bins}, batch.rays,
+                             grad_samples.data_ptr<scalar_t>(), bins.data_ptr<scalar_t>(),
+                             weights.data_ptr<scalar_t>(), u.data_ptr<acc>(), batch.u_row_stride, num_samples,
+                             static_cast<acc>(weight_padding), grad_bins.data_ptr<scalar_t>(),
+                             grad_weights.data_ptr<scalar_t>());
   });
   return {grad_bins, grad_weights};
 }

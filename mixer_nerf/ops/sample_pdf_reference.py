@@ -9,17 +9,21 @@ autograd through this file gives the kernels' gradients:
   v    = u * W                                            (u in [0, 1], sorted)
   k    = #{j in 1..B-1 : C_j < v}                         (the bin with C_k < v <= C_{k+1})
   t    = clamp((v - C_k) / w_k, 0, 1)    if w_k > 0, else 0
-  s    = min(b_k + t * (b_{k+1} - b_k), b_{k+1})         (torch.clamp: at a tie the gradient
-                                                           goes to the unclamped value)
+  s    = min(b_k + t * (b_{k+1} - b_k), b_{k+1})
 
 This is the quantile function Q(u) = inf{x : F(x) >= u} of the piecewise-constant PDF w / W:
 bins of zero weight are never sampled (u = 0 with leading zero-weight bins gives b_0, u = 1 gives
 the right edge of the last bin with weight), and a zero-width bin gives its edge. Working with the
-unnormalised CDF divides once by the bin's own weight instead of by a difference of CDF values,
-so there is no cancellation and no epsilon. ``t`` only leaves [0, 1] and ``s`` only passes b_{k+1}
+unnormalised CDF divides by the bin's own weight, never by a difference of CDF values, so no
+epsilon is needed. ``t`` only leaves [0, 1] and ``s`` only passes b_{k+1}
 by rounding; the clamps keep every sample inside its bin, hence sorted and within
-[b_0, b_B]. A ray whose weights are all 0 (after flushing), or whose total overflows, has no
-PDF: it samples uniformly, s = min(b_0 + u (b_B - b_0), b_B), and its weights get zero gradient.
+[b_0, b_B], and since they only undo rounding they are transparent to gradients (straight
+through): a sample whose t rounds to 1 gets the same gradient as its neighbours.
+The kernels carry C, v and t in float64 (see csrc/sample_pdf_math.h), so they are at least as
+accurate as this float32 path; the formulas are the same.
+
+A ray whose weights are all 0 (after flushing), or whose total overflows, has no PDF: it samples
+uniformly, s = min(b_0 + u (b_B - b_0), b_B), and its weights get zero gradient.
 
 Half and bfloat16 inputs are computed in float32 and the result cast back, like the kernels.
 """
@@ -58,15 +62,21 @@ def sample_pdf_reference(
     w_k = torch.gather(w, 1, k)
     has_weight = (w_k > 0) & ~empty
     t = (v - torch.gather(cdf, 1, k)) / torch.where(has_weight, w_k, torch.ones_like(w_k))
-    t = torch.where(has_weight, t.clamp(0.0, 1.0), torch.zeros_like(t))
+    t = torch.where(has_weight, _straight_through(t.clamp(0.0, 1.0), t), torch.zeros_like(t))
     lo = torch.gather(edges, 1, k)
     hi = torch.gather(edges, 1, k + 1)
 
     t = torch.where(empty, u, t)
     lo = torch.where(empty, edges[:, :1], lo)
     hi = torch.where(empty, edges[:, -1:], hi)
-    samples = torch.clamp(lo + t * (hi - lo), max=hi)
+    samples = lo + t * (hi - lo)
+    samples = _straight_through(torch.minimum(samples, hi), samples)
     return samples.to(bins.dtype)
+
+
+def _straight_through(value: torch.Tensor, carrier: torch.Tensor) -> torch.Tensor:
+    """Exactly ``value``, with the gradient of ``carrier`` (adding carrier - carrier is exactly 0)."""
+    return value.detach() + (carrier - carrier.detach())
 
 
 def hierarchical_samples_reference(
