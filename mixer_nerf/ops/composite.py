@@ -63,9 +63,10 @@ def composite(
     if not use_kernel(backend, sigmas.device):
         return CompositeResult(*composite_reference(sigmas, rgbs, t_starts, t_ends, background))
     _register_fakes()
-    inputs = [x.contiguous() for x in (sigmas, rgbs, t_starts, t_ends)]
-    bg = None if background is None else background.contiguous()
-    return CompositeResult(*_CompositeFunction.apply(*inputs, bg))
+    tensors = [None if x is None else x.contiguous() for x in (sigmas, rgbs, t_starts, t_ends, background)]
+    if torch.is_grad_enabled() and any(x is not None and x.requires_grad for x in tensors):
+        return CompositeResult(*_CompositeFunction.apply(*tensors))
+    return CompositeResult(*torch.ops.mixer_nerf.composite_fwd(*tensors))  # inference: no autograd bookkeeping
 
 
 def _validate(sigmas, rgbs, t_starts, t_ends, background, check_values: bool) -> None:
