@@ -1,0 +1,183 @@
+"""Validation PSNR against training wall-clock time, one method per call (each call < 10 min).
+
+    python -m benchmarks.time_to_quality --method nerfacc --data .data/lego_400 \
+        --checkpoints 30,60,120,240 --out benchmarks/results/ttq
+
+Methods:
+  nerfacc   nerfacc 0.5.3's vanilla-MLP recipe through its public API (OccGridEstimator 128^3
+            updated every 16 steps, render step sqrt(3)*3/1024, 65536 samples per step with a
+            dynamic ray batch, smooth-L1 loss, Adam 5e-4 with step decay) around our preset-A MLP.
+  ours      our trainer (``mixer_nerf.train``), any preset, every skip switchable.
+The clock counts training only: it stops for validation, and JIT builds (nerfacc's and ours) and
+data loading happen before it starts. Validation renders every view of the val split.
+Writes ``<out>/<label>.json`` with the curve; ``benchmarks/plot_time_to_quality.py`` plots them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+
+from mixer_nerf.data import load_scene
+from mixer_nerf.metrics import psnr
+
+
+class TrainingClock:
+    """Wall-clock seconds spent training, paused while validating."""
+
+    def __init__(self) -> None:
+        self.elapsed, self._start = 0.0, None
+
+    def start(self) -> None:
+        torch.cuda.synchronize()
+        self._start = time.perf_counter()
+
+    def stop(self) -> float:
+        torch.cuda.synchronize()
+        self.elapsed += time.perf_counter() - self._start
+        self._start = None
+        return self.elapsed
+
+    def now(self) -> float:
+        return self.elapsed + (time.perf_counter() - self._start if self._start is not None else 0.0)
+
+
+@torch.no_grad()
+def validate(render: Callable, val, chunk: int = 1 << 15) -> float:
+    """Mean PSNR over every val view; ``render(rays_o, rays_d) -> rgb``."""
+    scores = []
+    for i in range(len(val)):
+        rays_o, rays_d = val.rays_for_image(i)
+        rgb = torch.cat([render(rays_o[j:j + chunk], rays_d[j:j + chunk]) for j in range(0, len(rays_o), chunk)])
+        scores.append(psnr(rgb.reshape(val.H, val.W, 3).clamp(0, 1), val.images[i]).item())
+    return sum(scores) / len(scores)
+
+
+def run_curve(step_fn: Callable[[int], dict], render: Callable, val, checkpoints: list[float], log: Callable) -> list[dict]:
+    """Train with ``step_fn(step)`` until the last checkpoint, validating at each one."""
+    clock, curve, step, stats = TrainingClock(), [], 0, {}
+    pending = sorted(checkpoints)
+    clock.start()
+    while pending:
+        stats = step_fn(step)
+        step += 1
+        if step % 16 == 0 and clock.now() >= pending[0]:
+            elapsed = clock.stop()
+            point = {"seconds": round(elapsed, 2), "step": step, "val_psnr": validate(render, val), **stats}
+            curve.append(point)
+            log(point)
+            pending.pop(0)
+            if pending:
+                clock.start()
+    return curve
+
+
+def nerfacc_method(args, train, val, device) -> tuple[Callable, Callable]:
+    import nerfacc
+
+    from mixer_nerf.model import MixerNeRF, preset_config
+
+    aabb = torch.tensor([-1.5, -1.5, -1.5, 1.5, 1.5, 1.5], device=device)
+    step_size = (aabb[3:] - aabb[:3]).max().item() * math.sqrt(3) / 1024
+    estimator = nerfacc.OccGridEstimator(roi_aabb=aabb, resolution=128, levels=1).to(device)
+    field = MixerNeRF(preset_config("A")).to(device)
+    optimizer = torch.optim.Adam(field.parameters(), lr=5e-4, eps=1e-15)
+    steps = args.nominal_steps
+    scheduler = torch.optim.lr_scheduler.MultiStepLR(
+        optimizer, milestones=[steps // 2, steps * 3 // 4, steps * 5 // 6, steps * 9 // 10], gamma=0.33)
+    rays_o_all, rays_d_all, rgb_all = (t.to(device) for t in train.all_rays())
+    target_samples, state = 1 << 16, {"num_rays": 1024}
+    white = torch.ones(3, device=device)
+
+    def fields(rays_o, rays_d):
+        def sigma_fn(t_starts, t_ends, ray_indices):
+            x = rays_o[ray_indices] + rays_d[ray_indices] * ((t_starts + t_ends) / 2)[:, None]
+            return field(x, F.normalize(rays_d[ray_indices], dim=-1))[0]
+
+        def rgb_sigma_fn(t_starts, t_ends, ray_indices):
+            x = rays_o[ray_indices] + rays_d[ray_indices] * ((t_starts + t_ends) / 2)[:, None]
+            sigma, rgb = field(x, F.normalize(rays_d[ray_indices], dim=-1))
+            return rgb, sigma
+
+        return sigma_fn, rgb_sigma_fn
+
+    def render(rays_o, rays_d, background=white, stratified=False):
+        sigma_fn, rgb_sigma_fn = fields(rays_o, rays_d)
+        ray_indices, t_starts, t_ends = estimator.sampling(
+            rays_o, rays_d, sigma_fn=sigma_fn, render_step_size=step_size, stratified=stratified)
+        rgb, opacity, _, _ = nerfacc.rendering(
+            t_starts, t_ends, ray_indices, n_rays=len(rays_o), rgb_sigma_fn=rgb_sigma_fn, render_bkgd=background)
+        return rgb, opacity, len(t_starts)
+
+    def step_fn(step: int) -> dict:
+        field.train()
+        estimator.train()
+        estimator.update_every_n_steps(
+            step=step, occ_eval_fn=lambda x: field(x, torch.zeros_like(x))[0][:, None] * step_size, occ_thre=1e-2)
+        idx = torch.randint(0, len(rays_o_all), (state["num_rays"],), device=device)
+        # Our loader composites on white (no alpha kept), so both methods train on white.
+        target = rgb_all[idx]
+        rgb, opacity, n_samples = render(rays_o_all[idx], rays_d_all[idx], white, stratified=True)
+        if n_samples == 0:
+            return {}
+        state["num_rays"] = min(int(state["num_rays"] * target_samples / n_samples), 1 << 16)
+        alive = opacity.squeeze(-1) > 0
+        loss = F.smooth_l1_loss(rgb[alive], target[alive])
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+        scheduler.step()
+        return {"samples_per_step": n_samples, "samples_per_ray": n_samples / len(idx), "rays": len(idx)}
+
+    def render_val(rays_o, rays_d):
+        field.eval()
+        estimator.eval()
+        return render(rays_o, rays_d)[0]
+
+    # Build nerfacc's CUDA extension before the clock starts.
+    render_val(rays_o_all[:8], rays_d_all[:8])
+    return step_fn, render_val
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--method", choices=["nerfacc", "ours"], required=True)
+    parser.add_argument("--label", default=None)
+    parser.add_argument("--data", default=".data/lego_400")
+    parser.add_argument("--checkpoints", default="30,60,120,240")
+    parser.add_argument("--nominal-steps", type=int, default=50000, help="schedule length (nerfacc recipe)")
+    parser.add_argument("--out", default="benchmarks/results/ttq")
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args()
+
+    torch.manual_seed(args.seed)
+    torch.backends.cuda.matmul.allow_tf32 = True
+    torch.backends.cudnn.allow_tf32 = True
+    device = torch.device("cuda")
+    train = load_scene(args.data, split="train").to(device)
+    val = load_scene(args.data, split="val").to(device)
+    checkpoints = [float(c) for c in args.checkpoints.split(",")]
+    label = args.label or args.method
+
+    if args.method == "nerfacc":
+        step_fn, render = nerfacc_method(args, train, val, device)
+    else:
+        raise SystemExit("method 'ours' is wired in by mixer_nerf.train")
+
+    curve = run_curve(step_fn, render, val, checkpoints, log=lambda p: print(label, json.dumps(p), flush=True))
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    record = {"label": label, "method": args.method, "data": args.data, "device": torch.cuda.get_device_name(),
+              "val_views": len(val), "curve": curve}
+    (out / f"{label}.json").write_text(json.dumps(record, indent=1))
+
+
+if __name__ == "__main__":
+    main()

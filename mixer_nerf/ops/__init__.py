@@ -1,0 +1,12 @@
+"""The fused ops. Each takes ``backend="auto" | "kernel" | "torch"``:
+
+- ``"kernel"``: our C++ (CPU) or CUDA kernel with its hand-written backward;
+- ``"torch"``: the pure-PyTorch reference path (``<op>_reference.py`` beside each wrapper);
+- ``"auto"``: the kernel where one is built for the tensors' device, else the reference path.
+"""
+
+from .composite import composite
+from .positional_encoding import positional_encoding
+from .sample_pdf import hierarchical_samples, sample_pdf
+
+__all__ = ["composite", "hierarchical_samples", "positional_encoding", "sample_pdf"]
