@@ -20,8 +20,12 @@ ROOT = Path(__file__).resolve().parent.parent
 CSRC = ROOT / "csrc"
 
 
-def command(path: Path, obj: Path) -> list[str]:
-    includes = [f"-I{p}" for p in [*include_paths(), sysconfig.get_paths()["include"], str(CSRC)]]
+# A CPU wheel of torch ships the c10/cuda headers but not this one, which its CMake build generates.
+CUDA_CMAKE_MACROS = "#pragma once\n#define C10_CUDA_BUILD_SHARED_LIBS\n"
+
+
+def command(path: Path, obj: Path, stub_dir: Path) -> list[str]:
+    includes = [f"-I{p}" for p in [*include_paths(), sysconfig.get_paths()["include"], str(CSRC), str(stub_dir)]]
     defines = ["-DTORCH_EXTENSION_NAME=_C", "-DTORCH_API_INCLUDE_EXTENSION_H"]
     if path.suffix == ".cu":
         return [
@@ -34,9 +38,12 @@ def command(path: Path, obj: Path) -> list[str]:
 def main(argv: list[str]) -> int:
     files = [Path(a).resolve() for a in argv] or sorted(CSRC.glob("*.cpp")) + sorted(CSRC.glob("cuda/*.cu"))
     with tempfile.TemporaryDirectory() as tmp:
+        stub = Path(tmp) / "stub" / "c10" / "cuda" / "impl" / "cuda_cmake_macros.h"
+        stub.parent.mkdir(parents=True)
+        stub.write_text(CUDA_CMAKE_MACROS)
         for path in files:
             print(f"compile-check {path.relative_to(ROOT)}", flush=True)
-            result = subprocess.run(command(path, Path(tmp) / (path.stem + ".o")))
+            result = subprocess.run(command(path, Path(tmp) / (path.stem + ".o"), Path(tmp) / "stub"))
             if result.returncode != 0:
                 print(f"FAILED: {path.relative_to(ROOT)}", file=sys.stderr)
                 return result.returncode
