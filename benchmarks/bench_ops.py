@@ -20,7 +20,7 @@ import torch
 
 from benchmarks.harness import Result, copy_bandwidth_gbps, run_case
 
-OPS = ("positional_encoding", "sample_pdf", "composite")
+OPS = ("positional_encoding", "sample_pdf", "composite", "ray_marching")
 
 
 def device_name(device: torch.device) -> str:

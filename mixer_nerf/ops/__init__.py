@@ -7,6 +7,15 @@
 
 from .composite import composite
 from .positional_encoding import positional_encoding
+from .ray_marching import PackedSamples, filter_by_transmittance, ray_marching
 from .sample_pdf import hierarchical_samples, sample_pdf
 
-__all__ = ["composite", "hierarchical_samples", "positional_encoding", "sample_pdf"]
+__all__ = [
+    "PackedSamples",
+    "composite",
+    "filter_by_transmittance",
+    "hierarchical_samples",
+    "positional_encoding",
+    "ray_marching",
+    "sample_pdf",
+]
