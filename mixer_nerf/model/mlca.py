@@ -23,7 +23,10 @@ together (T = 30) and fed to the trunk.
 Speed: no transposes of the ``N`` points. The lift and the channel mixing are linear layers on a
 free ``(N, T, C)`` view; the token mixing is one GEMM on the flat ``(N, T * C)`` features with the
 structured weight ``kron(W_token, I_C)`` built per call (168 x 168 for positions: ~28k
-multiply-adds per point, ~5% of the 8 x 256 trunk). bf16-autocast and torch.compile friendly.
+multiply-adds per point, ~5% of the 8 x 256 trunk). Measured on an H100 (262k points, forward +
+backward, bf16 autocast): NeRF 10.9 ms, NeRF + MLCA 13.1 ms. The lift and channel mixing are very
+skinny GEMMs (K = 3 and 8 over 21 rows per point) and the elementwise GELU/residual passes are
+memory-bound; they are the first candidates for a fused kernel.
 """
 
 from __future__ import annotations
