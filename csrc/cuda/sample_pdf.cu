@@ -251,7 +251,8 @@ __global__ void sample_pdf_backward_kernel(int64_t rays, WarpLayout layout, cons
       const acc up = __shfl_up_sync(kFullMask, inclusive, offset);
       if (lane >= offset) inclusive += up;
     }
-    const acc exclusive = lane == 0 ? acc(0) : __shfl_up_sync(kFullMask, inclusive, 1);
+    const acc below = __shfl_up_sync(kFullMask, inclusive, 1);  // every lane: the mask says all 32
+    const acc exclusive = lane == 0 ? acc(0) : below;
     if (i >= 0) {
       grad_weights_row[i] = sh.w[i] > 0 ? static_cast<scalar_t>(sum_a_u - (above + exclusive) - bin_a_t[i]) : scalar_t(0);
     }
