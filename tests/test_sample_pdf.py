@@ -26,20 +26,34 @@ needs_cuda = pytest.mark.skipif(not HAS_CUDA, reason="needs a CUDA GPU")
 SHAPES = [(1, 1, 1), (1, 8, 1), (5, 1, 7), (0, 4, 3), (6, 5, 0), (40, 63, 128), (17, 37, 45)]
 
 
-def tolerance(dtype: torch.dtype, num_bins: int) -> float:
-    """Absolute tolerance on samples whose bins span [0, 1].
+def tolerance(dtype: torch.dtype, num_bins: int, scale: float = 1.0) -> float:
+    """Absolute tolerance of samples of magnitude <= scale against the float64 reference.
 
-    The kernels sum the CDF sequentially in the accumulation dtype; torch.cumsum (the reference)
-    sums in another order/precision, so C differs by up to ~B ulp(W). A sample moves by
-    dC / w_k * (bin width); the test weights are >= 0.1 (or 0) with W <= 1.1 B, so
-    W / w_k <= 11 B, and the bound is ~B * eps * 11 B * (bin width) <= 1e-4 for B <= 64 in
-    float32 (observed differences are ~1e-7). float64 gets the same bound scaled by its eps.
-    Half/bfloat16 results are the float32 ones rounded, so one ulp of the output at 1.
+    The kernels carry the CDF, v = u W and t in float64 for every dtype, so a float32 (or half)
+    sample is the float64 one up to the rounding of e_k + t (e_{k+1} - e_k) and of the output: a
+    few ulps. Comparing with a reference in the input dtype instead would be wrong near flat
+    stretches of the CDF (zero-weight bins), where the quantile jumps: a float32 v = u W can round
+    onto the other side of such a jump (seen 3 times in 8.4M samples). In float64 the kernel's
+    sequential CDF and torch.cumsum differ by ~B ulp(W), which moves a sample by
+    ~B eps W / w_k <= 11 B^2 eps (test weights are 0 or in [0.1, 1.1]).
     """
-    eps = {torch.float64: 2.2e-16, torch.float32: 1.2e-7}.get(dtype)
-    if eps is None:
-        return 2 * torch.finfo(dtype).eps
-    return max(12 * (num_bins + 2) ** 2 * eps, 10 * eps)
+    rounding = 4 * torch.finfo(dtype).eps if dtype != torch.float64 else 0.0
+    return (rounding + 12 * (num_bins + 2) ** 2 * torch.finfo(torch.float64).eps) * scale
+
+
+def grad_tolerance(dtype: torch.dtype) -> float:
+    """Gradient tolerance relative to the largest gradient of a tensor: each gradient sums up to
+    N = 128 per-sample terms carrying ~eps relative error each, in another order than autograd."""
+    return {torch.float64: 1e-10, torch.float32: 1e-4}.get(dtype, 0.02)
+
+
+def reference_samples(bins, weights, u, weight_padding=0.0):
+    """The reference evaluated in float64 (what the kernels approximate), cast to the input dtype."""
+    return sample_pdf_reference(bins.double(), weights.double(), u.double(), weight_padding).to(bins.dtype)
+
+
+def reference_merged(z, weights, u, weight_padding=0.0):
+    return hierarchical_samples_reference(z.double(), weights.double(), u.double(), weight_padding).to(z.dtype)
 
 
 def random_pdf(rays, bins, dtype=torch.float32, device=CPU, zero_fraction=0.3):
@@ -80,19 +94,29 @@ def kernels():
 def test_sample_pdf_forward_matches_reference(shape, dtype, u_kind):
     R, B, N = shape
     bins, weights = random_pdf(R, B, dtype)
-    kwargs = {
-        "per_ray": {"u": sorted_u(R, N, dtype)},
-        "shared": {"u": sorted_u(1, N, dtype)[0]},
-        "deterministic": {"deterministic": True},
-        "stratified": {"generator": torch.Generator().manual_seed(3)},
+    acc = accumulation_dtype(dtype)
+    strata = torch.arange(N, dtype=acc)
+    kwargs, u = {
+        "per_ray": ({}, sorted_u(R, N, dtype)),
+        "shared": ({}, sorted_u(1, N, dtype)[0]),
+        # the documented positions: (i + 1/2) / N, and (i + xi) / N with xi drawn by torch.rand
+        "deterministic": ({"deterministic": True}, (strata + 0.5) / N),
+        "stratified": (
+            {"generator": torch.Generator().manual_seed(3)},
+            (strata + torch.rand(R, N, generator=torch.Generator().manual_seed(3), dtype=acc)) / N,
+        ),
     }[u_kind]
+    if u_kind in ("per_ray", "shared"):
+        kwargs = {"u": u}
     ours = sample_pdf(bins, weights, N, backend="kernel", **kwargs)
-    if u_kind == "stratified":
-        kwargs["generator"] = torch.Generator().manual_seed(3)  # the same draws for the reference
-    ref = sample_pdf(bins, weights, N, backend="torch", **kwargs)
     assert ours.shape == (R, N) and ours.dtype == dtype
-    torch.testing.assert_close(ours, ref, atol=tolerance(dtype, B), rtol=0)
+    torch.testing.assert_close(ours, reference_samples(bins, weights, u), atol=tolerance(dtype, B), rtol=0)
     assert_valid_samples(ours, bins)
+    if u_kind == "stratified":
+        kwargs = {"generator": torch.Generator().manual_seed(3)}  # the same draws again
+    ref = sample_pdf(bins, weights, N, backend="torch", **kwargs)
+    if ours.numel():  # the reference path in the input dtype agrees but at jumps of the quantile
+        assert (ours - ref).abs().gt(1e-4).float().mean() < 1e-3
 
 
 @pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
@@ -100,9 +124,8 @@ def test_low_precision_forward_and_backward(dtype):
     bins, weights = random_pdf(9, 12, dtype)
     u = sorted_u(9, 20, dtype)
     ours = sample_pdf(bins, weights, 20, u=u, backend="kernel")
-    ref = sample_pdf(bins, weights, 20, u=u, backend="torch")
     assert ours.dtype == dtype
-    torch.testing.assert_close(ours, ref, atol=tolerance(dtype, 12), rtol=0)
+    torch.testing.assert_close(ours, reference_samples(bins, weights, u), atol=tolerance(dtype, 12), rtol=0)
     assert_valid_samples(ours, bins)
     for ours_g, ref_g in zip(_grads("kernel", bins, weights, u), _reference_grads(bins, weights, u)):
         assert ours_g.dtype == dtype
@@ -110,14 +133,14 @@ def test_low_precision_forward_and_backward(dtype):
         torch.testing.assert_close(ours_g.float(), ref_g.float(), atol=0.02 * ref_g.float().abs().max() + 1e-3, rtol=0.02)
     z = torch.sort(torch.rand(9, 12), dim=-1).values.to(dtype)
     merged = hierarchical_samples(z, weights, 20, u=u, backend="kernel")
-    torch.testing.assert_close(merged, hierarchical_samples(z, weights, 20, u=u, backend="torch"), atol=tolerance(dtype, 12), rtol=0)
+    torch.testing.assert_close(merged, reference_merged(z, weights, u), atol=tolerance(dtype, 12), rtol=0)
 
 
 def test_weight_padding_matches_reference():
     bins, weights = random_pdf(20, 16, zero_fraction=0.9)
     u = sorted_u(20, 33)
     ours = sample_pdf(bins, weights, 33, u=u, weight_padding=1e-5, backend="kernel")
-    torch.testing.assert_close(ours, sample_pdf(bins, weights, 33, u=u, weight_padding=1e-5, backend="torch"))
+    torch.testing.assert_close(ours, reference_samples(bins, weights, u, 1e-5), atol=tolerance(torch.float32, 16), rtol=0)
     assert not torch.equal(ours, sample_pdf(bins, weights, 33, u=u, backend="kernel"))
 
 
@@ -191,8 +214,7 @@ def test_backward_matches_reference_autograd(shape, dtype):
     ref = _reference_grads(bins, weights, u)
     for got, want in zip(ours, ref):
         scale = want.abs().max().item() if want.numel() else 1.0
-        # a sum over <= N samples of per-sample gradients each carrying the forward's error
-        torch.testing.assert_close(got, want, atol=tolerance(dtype, B) * max(scale, 1.0) * 10, rtol=0)
+        torch.testing.assert_close(got, want, atol=grad_tolerance(dtype) * max(scale, 1.0), rtol=0)
         assert torch.isfinite(got).all()
 
 
@@ -206,15 +228,17 @@ def _both(bins, weights, u, float64_reference=True, **kwargs):
     weights)."""
     N = u.shape[-1]
     ours = sample_pdf(bins, weights, N, u=u, backend="kernel", **kwargs)
-    ref = sample_pdf(bins, weights, N, u=u, backend="torch", **kwargs)
+    if float64_reference:
+        ref = reference_samples(bins, weights, u, **kwargs)
+    else:
+        ref = sample_pdf(bins, weights, N, u=u, backend="torch", **kwargs)
     torch.testing.assert_close(ours, ref, rtol=0, atol=tolerance(bins.dtype, weights.shape[1]))
     assert_valid_samples(ours, bins)
     reference_grads = _reference_grads if float64_reference else functools.partial(_grads, "torch")
     for got, want in zip(_grads("kernel", bins, weights, u, **kwargs), reference_grads(bins, weights, u, **kwargs)):
         assert torch.isfinite(got).all()
-        # the same terms summed in another order: relative to the largest gradient
         scale = want.abs().max().item() if want.numel() else 0.0
-        torch.testing.assert_close(got, want, rtol=0, atol=1e-5 * max(scale, 1.0))
+        torch.testing.assert_close(got, want, rtol=0, atol=grad_tolerance(bins.dtype) * max(scale, 1.0))
     return ours
 
 
@@ -306,9 +330,8 @@ def test_hierarchical_matches_reference(shape, dtype, shared_u):
     z, weights = random_coarse(R, S, dtype)
     u = sorted_u(1, N, dtype)[0] if shared_u else sorted_u(R, N, dtype)
     ours = hierarchical_samples(z, weights, N, u=u, backend="kernel")
-    ref = hierarchical_samples(z, weights, N, u=u, backend="torch")
     assert ours.shape == (R, S + N) and ours.dtype == dtype
-    torch.testing.assert_close(ours, ref, atol=4 * tolerance(dtype, S), rtol=0)
+    torch.testing.assert_close(ours, reference_merged(z, weights, u), atol=tolerance(dtype, S, scale=8), rtol=0)
     assert_valid_samples(ours, z)
     # the coarse depths are all there, bit for bit, and the fine ones are sample_pdf's
     mids = 0.5 * (z[:, 1:] + z[:, :-1])
@@ -453,7 +476,7 @@ def test_cuda_forward_and_grads(shape, dtype):
     cpu = torch.ops.mixer_nerf.sample_pdf_fwd(bins.cpu(), weights.cpu(), u.cpu(), 0.0)
     # same sequential CDF as the CPU kernel; only FMA contraction differs (a few ulp)
     torch.testing.assert_close(samples.cpu(), cpu, atol=1e-6 if dtype == torch.float32 else 1e-14, rtol=0)
-    torch.testing.assert_close(samples, sample_pdf_reference(bins, weights, u), atol=tolerance(dtype, B), rtol=0)
+    torch.testing.assert_close(samples, reference_samples(bins, weights, u), atol=tolerance(dtype, B), rtol=0)
 
     grad = torch.randn(R, N, dtype=dtype, device=dev)
     addresses = _poisoned((bins.shape, dtype), (weights.shape, dtype))
@@ -463,12 +486,12 @@ def test_cuda_forward_and_grads(shape, dtype):
     cpu_grads = torch.ops.mixer_nerf.sample_pdf_bwd(grad.cpu(), bins.cpu(), weights.cpu(), u.cpu(), 0.0)
     for got, want in zip((grad_bins, grad_weights), cpu_grads):
         scale = max(want.abs().max().item(), 1.0) if want.numel() else 1.0
-        torch.testing.assert_close(got.cpu(), want, atol=1e-4 * scale if dtype == torch.float32 else 1e-11 * scale, rtol=0)
+        torch.testing.assert_close(got.cpu(), want, atol=grad_tolerance(dtype) * scale, rtol=0)
     if R <= 1000:
         ref = _reference_grads(bins, weights, u, upstream=grad)
         for got, want in zip((grad_bins, grad_weights), ref):
             scale = max(want.abs().max().item(), 1.0) if want.numel() else 1.0
-            torch.testing.assert_close(got, want, atol=tolerance(dtype, B) * scale * 10, rtol=0)
+            torch.testing.assert_close(got, want, atol=grad_tolerance(dtype) * scale, rtol=0)
 
 
 @cuda
@@ -492,8 +515,7 @@ def test_cuda_hierarchical(shape, dtype, shared_u):
     atol = {torch.float32: 1e-6, torch.float64: 1e-14, torch.float16: 4e-3}[dtype]
     torch.testing.assert_close(merged.cpu(), cpu, atol=atol, rtol=0)
     if R <= 1000:
-        ref = hierarchical_samples_reference(z, weights, u)
-        torch.testing.assert_close(merged, ref, atol=4 * tolerance(dtype, S) * 4, rtol=0)
+        torch.testing.assert_close(merged, reference_merged(z, weights, u), atol=tolerance(dtype, S, scale=8), rtol=0)
 
 
 @cuda
