@@ -52,7 +52,9 @@ def nerfacc_importance_samples(bins: torch.Tensor, weights: torch.Tensor) -> tor
 
     cdf = torch.cumsum(weights, dim=-1) / weights.sum(dim=-1, keepdim=True)
     cdf = torch.cat([torch.zeros_like(cdf[:, :1]), cdf], dim=-1)
-    _, samples = nerfacc.importance_sampling(RayIntervals(vals=bins.contiguous()), cdf.contiguous(), FINE, False)
+    _, samples = nerfacc.importance_sampling(
+        RayIntervals(vals=bins.contiguous()), cdf.contiguous(), FINE, False
+    )
     return samples.vals
 
 
@@ -75,7 +77,10 @@ def hierarchical_case(size: str, inputs: dict, device: torch.device, determinist
     z, weights = inputs["z"], inputs["weights"]
     u = deterministic_u(device) if deterministic else inputs["u"]
     variants = [
-        Variant("kernel", lambda: hierarchical_samples(z, weights, FINE, u=u, backend="kernel", check_values=False)),
+        Variant(
+            "kernel",
+            lambda: hierarchical_samples(z, weights, FINE, u=u, backend="kernel", check_values=False),
+        ),
         Variant("torch", lambda: hierarchical_samples_reference(z, weights, u)),
     ]
     if device.type == "cuda":
@@ -133,7 +138,14 @@ def sample_pdf_cases(size: str, inputs: dict, device: torch.device) -> list[Case
     # backward: read grad_samples, bins, weights; write grad_bins, grad_weights
     bwd_bytes = (R * FINE + 2 * (R * (B + 1) + R * B)) * item
     return [
-        Case("sample_pdf", "fwd", size, fwd_variants, lambda: forward(sample_pdf_reference, torch.float64), fwd_bytes),
+        Case(
+            "sample_pdf",
+            "fwd",
+            size,
+            fwd_variants,
+            lambda: forward(sample_pdf_reference, torch.float64),
+            fwd_bytes,
+        ),
         Case(
             "sample_pdf",
             "fwd+bwd",

@@ -53,7 +53,9 @@ def reference_samples(bins, weights, u, weight_padding=0.0):
 
 
 def reference_merged(z, weights, u, weight_padding=0.0):
-    return hierarchical_samples_reference(z.double(), weights.double(), u.double(), weight_padding).to(z.dtype)
+    return hierarchical_samples_reference(z.double(), weights.double(), u.double(), weight_padding).to(
+        z.dtype
+    )
 
 
 def random_pdf(rays, bins, dtype=torch.float32, device=CPU, zero_fraction=0.3):
@@ -66,7 +68,9 @@ def random_pdf(rays, bins, dtype=torch.float32, device=CPU, zero_fraction=0.3):
 
 
 def sorted_u(rays, samples, dtype=torch.float32, device=CPU):
-    return torch.sort(torch.rand(rays, samples, dtype=accumulation_dtype(dtype), device=device), dim=-1).values
+    return torch.sort(
+        torch.rand(rays, samples, dtype=accumulation_dtype(dtype), device=device), dim=-1
+    ).values
 
 
 def assert_valid_samples(samples, bins):
@@ -127,10 +131,14 @@ def test_low_precision_forward_and_backward(dtype):
     assert ours.dtype == dtype
     torch.testing.assert_close(ours, reference_samples(bins, weights, u), atol=tolerance(dtype, 12), rtol=0)
     assert_valid_samples(ours, bins)
-    for ours_g, ref_g in zip(_grads("kernel", bins, weights, u), _reference_grads(bins, weights, u)):
+    for ours_g, ref_g in zip(
+        _grads("kernel", bins, weights, u), _reference_grads(bins, weights, u), strict=True
+    ):
         assert ours_g.dtype == dtype
         # float32 (kernel) vs float64 (reference) math, then one rounding of each gradient
-        torch.testing.assert_close(ours_g.float(), ref_g.float(), atol=0.02 * ref_g.float().abs().max() + 1e-3, rtol=0.02)
+        torch.testing.assert_close(
+            ours_g.float(), ref_g.float(), atol=0.02 * ref_g.float().abs().max() + 1e-3, rtol=0.02
+        )
     z = torch.sort(torch.rand(9, 12), dim=-1).values.to(dtype)
     merged = hierarchical_samples(z, weights, 20, u=u, backend="kernel")
     torch.testing.assert_close(merged, reference_merged(z, weights, u), atol=tolerance(dtype, 12), rtol=0)
@@ -140,7 +148,9 @@ def test_weight_padding_matches_reference():
     bins, weights = random_pdf(20, 16, zero_fraction=0.9)
     u = sorted_u(20, 33)
     ours = sample_pdf(bins, weights, 33, u=u, weight_padding=1e-5, backend="kernel")
-    torch.testing.assert_close(ours, reference_samples(bins, weights, u, 1e-5), atol=tolerance(torch.float32, 16), rtol=0)
+    torch.testing.assert_close(
+        ours, reference_samples(bins, weights, u, 1e-5), atol=tolerance(torch.float32, 16), rtol=0
+    )
     assert not torch.equal(ours, sample_pdf(bins, weights, 33, u=u, backend="kernel"))
 
 
@@ -212,7 +222,7 @@ def test_backward_matches_reference_autograd(shape, dtype):
     u = sorted_u(R, N, dtype)
     ours = _grads("kernel", bins, weights, u)
     ref = _reference_grads(bins, weights, u)
-    for got, want in zip(ours, ref):
+    for got, want in zip(ours, ref, strict=True):
         scale = want.abs().max().item() if want.numel() else 1.0
         torch.testing.assert_close(got, want, atol=grad_tolerance(dtype) * max(scale, 1.0), rtol=0)
         assert torch.isfinite(got).all()
@@ -235,7 +245,9 @@ def _both(bins, weights, u, float64_reference=True, **kwargs):
     torch.testing.assert_close(ours, ref, rtol=0, atol=tolerance(bins.dtype, weights.shape[1]))
     assert_valid_samples(ours, bins)
     reference_grads = _reference_grads if float64_reference else functools.partial(_grads, "torch")
-    for got, want in zip(_grads("kernel", bins, weights, u, **kwargs), reference_grads(bins, weights, u, **kwargs)):
+    for got, want in zip(
+        _grads("kernel", bins, weights, u, **kwargs), reference_grads(bins, weights, u, **kwargs), strict=True
+    ):
         assert torch.isfinite(got).all()
         scale = want.abs().max().item() if want.numel() else 0.0
         torch.testing.assert_close(got, want, rtol=0, atol=grad_tolerance(bins.dtype) * max(scale, 1.0))
@@ -253,7 +265,9 @@ def test_all_zero_weights_sample_uniformly(dtype):
     torch.testing.assert_close(samples[0], (6 * U_WITH_ENDS).to(dtype))
     assert (samples[1] == -1).all()
     tiny = torch.full((1, 3), 1e-39 if dtype == torch.float32 else 1e-309, dtype=dtype)  # subnormal total
-    torch.testing.assert_close(_both(bins[:1], tiny, U_WITH_ENDS.to(accumulation_dtype(dtype)), False)[0], samples[0])
+    torch.testing.assert_close(
+        _both(bins[:1], tiny, U_WITH_ENDS.to(accumulation_dtype(dtype)), False)[0], samples[0]
+    )
 
 
 @pytest.mark.parametrize("hot", [0, 2, 4])
@@ -291,7 +305,9 @@ def test_scale_invariance_tiny_and_huge_weights():
         torch.testing.assert_close(sample_pdf(bins, weights * scale, 12, u=u, backend="kernel"), base)
     bins32, weights32 = bins.float(), weights.float()
     for scale in (1e-30, 1e30):
-        torch.testing.assert_close(_both(bins32, weights32 * scale, u.float()), base.float(), atol=1e-4, rtol=0)
+        torch.testing.assert_close(
+            _both(bins32, weights32 * scale, u.float()), base.float(), atol=1e-4, rtol=0
+        )
 
 
 def test_overflowing_total_is_finite():
@@ -303,7 +319,9 @@ def test_overflowing_total_is_finite():
 
 def test_single_bin_single_sample_empty_batch():
     bins = torch.tensor([[2.0, 4.0]])
-    torch.testing.assert_close(_both(bins, torch.tensor([[0.7]]), torch.tensor([0.25])), torch.tensor([[2.5]]))
+    torch.testing.assert_close(
+        _both(bins, torch.tensor([[0.7]]), torch.tensor([0.25])), torch.tensor([[2.5]])
+    )
     empty = sample_pdf(torch.zeros(0, 4), torch.zeros(0, 3), 5, backend="kernel")
     assert empty.shape == (0, 5)
     bins.requires_grad_()
@@ -331,7 +349,9 @@ def test_hierarchical_matches_reference(shape, dtype, shared_u):
     u = sorted_u(1, N, dtype)[0] if shared_u else sorted_u(R, N, dtype)
     ours = hierarchical_samples(z, weights, N, u=u, backend="kernel")
     assert ours.shape == (R, S + N) and ours.dtype == dtype
-    torch.testing.assert_close(ours, reference_merged(z, weights, u), atol=tolerance(dtype, S, scale=8), rtol=0)
+    torch.testing.assert_close(
+        ours, reference_merged(z, weights, u), atol=tolerance(dtype, S, scale=8), rtol=0
+    )
     assert_valid_samples(ours, z)
     # the coarse depths are all there, bit for bit, and the fine ones are sample_pdf's
     mids = 0.5 * (z[:, 1:] + z[:, :-1])
@@ -340,7 +360,9 @@ def test_hierarchical_matches_reference(shape, dtype, shared_u):
 
 
 def test_hierarchical_adversarial():
-    z = torch.tensor([[1.0, 1.0, 2.0, 2.0, 2.0, 3.0], [0.0, 1.0, 2.0, 3.0, 4.0, 5.0], [0.0, 1.0, 2.0, 3.0, 4.0, 5.0]])
+    z = torch.tensor(
+        [[1.0, 1.0, 2.0, 2.0, 2.0, 3.0], [0.0, 1.0, 2.0, 3.0, 4.0, 5.0], [0.0, 1.0, 2.0, 3.0, 4.0, 5.0]]
+    )
     weights = torch.tensor([[0.2, 1.0, 0.0, 1.0, 0.0, 0.3], [0.0] * 6, [9.0, 0.0, 0.0, 1.0, 0.0, 9.0]])
     for u in (U_WITH_ENDS, torch.tensor([0.5]), torch.linspace(0, 1, 40)):
         ours = hierarchical_samples(z, weights, u.numel(), u=u, backend="kernel")
@@ -372,7 +394,10 @@ def test_opcheck(dtype):
     acc = accumulation_dtype(dtype)
     for u in (sorted_u(5, 9, dtype), sorted_u(1, 9, dtype)[0]):
         opcheck(torch.ops.mixer_nerf.sample_pdf_fwd.default, (bins, weights, u, 0.0))
-        opcheck(torch.ops.mixer_nerf.sample_pdf_bwd.default, (torch.randn(5, 9, dtype=dtype), bins, weights, u, 1e-5))
+        opcheck(
+            torch.ops.mixer_nerf.sample_pdf_bwd.default,
+            (torch.randn(5, 9, dtype=dtype), bins, weights, u, 1e-5),
+        )
         z, coarse_weights = random_coarse(5, 8, dtype)
         opcheck(torch.ops.mixer_nerf.hierarchical_samples_fwd.default, (z, coarse_weights, u.to(acc), 0.0))
 
@@ -397,8 +422,16 @@ BAD_SAMPLE_PDF = [
     (lambda: sample_pdf(_bins(3, 5), -torch.rand(3, 4), 2), ValueError, "weights"),
     (lambda: sample_pdf(_bins(3, 5), torch.rand(3, 4), -1), ValueError, "num_samples"),
     (lambda: sample_pdf(_bins(3, 5), torch.rand(3, 4), 2.0), TypeError, "num_samples"),
-    (lambda: sample_pdf(_bins(3, 5), torch.rand(3, 4), 2, weight_padding=-1e-5), ValueError, "weight_padding"),
-    (lambda: sample_pdf(_bins(3, 5), torch.rand(3, 4), 2, weight_padding=float("nan")), ValueError, "weight_padding"),
+    (
+        lambda: sample_pdf(_bins(3, 5), torch.rand(3, 4), 2, weight_padding=-1e-5),
+        ValueError,
+        "weight_padding",
+    ),
+    (
+        lambda: sample_pdf(_bins(3, 5), torch.rand(3, 4), 2, weight_padding=float("nan")),
+        ValueError,
+        "weight_padding",
+    ),
     (lambda: sample_pdf(_bins(3, 5), torch.rand(3, 4), 2, weight_padding="1"), TypeError, "weight_padding"),
     (lambda: sample_pdf(_bins(3, 5), torch.rand(3, 4), 2, u=torch.tensor([0.1, 0.2, 0.3])), ValueError, "u"),
     (lambda: sample_pdf(_bins(3, 5), torch.rand(3, 4), 2, u=_bins(2, 2)), ValueError, "u"),
@@ -406,7 +439,11 @@ BAD_SAMPLE_PDF = [
     (lambda: sample_pdf(_bins(3, 5), torch.rand(3, 4), 2, u=torch.tensor([0.5, 0.2])), ValueError, "u"),
     (lambda: sample_pdf(_bins(3, 5), torch.rand(3, 4), 2, u=torch.tensor([0.5, 1.5])), ValueError, "u"),
     (lambda: sample_pdf(_bins(3, 5), torch.rand(3, 4), 2, u=torch.tensor([0, 1])), TypeError, "u"),
-    (lambda: sample_pdf(_bins(3, 5), torch.rand(3, 4), 2, u=torch.tensor([0.2, 0.5]), deterministic=True), ValueError, "u"),
+    (
+        lambda: sample_pdf(_bins(3, 5), torch.rand(3, 4), 2, u=torch.tensor([0.2, 0.5]), deterministic=True),
+        ValueError,
+        "u",
+    ),
     (lambda: sample_pdf(_bins(3, 5), torch.rand(3, 4), 2, backend="cuda"), ValueError, "backend"),
     (lambda: sample_pdf([[0.0, 1.0]], torch.rand(1, 1), 2), TypeError, "bins"),
     (lambda: hierarchical_samples(_bins(3, 2), torch.rand(3, 2), 2), ValueError, "z_coarse"),
@@ -484,12 +521,12 @@ def test_cuda_forward_and_grads(shape, dtype):
     assert R == 0 or {grad_bins.data_ptr(), grad_weights.data_ptr()} <= addresses
     assert torch.isfinite(grad_bins).all() and torch.isfinite(grad_weights).all()
     cpu_grads = torch.ops.mixer_nerf.sample_pdf_bwd(grad.cpu(), bins.cpu(), weights.cpu(), u.cpu(), 0.0)
-    for got, want in zip((grad_bins, grad_weights), cpu_grads):
+    for got, want in zip((grad_bins, grad_weights), cpu_grads, strict=True):
         scale = max(want.abs().max().item(), 1.0) if want.numel() else 1.0
         torch.testing.assert_close(got.cpu(), want, atol=grad_tolerance(dtype) * scale, rtol=0)
     if R <= 1000:
         ref = _reference_grads(bins, weights, u, upstream=grad)
-        for got, want in zip((grad_bins, grad_weights), ref):
+        for got, want in zip((grad_bins, grad_weights), ref, strict=True):
             scale = max(want.abs().max().item(), 1.0) if want.numel() else 1.0
             torch.testing.assert_close(got, want, atol=grad_tolerance(dtype) * scale, rtol=0)
 
@@ -498,7 +535,8 @@ def test_cuda_forward_and_grads(shape, dtype):
 @needs_cuda
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64, torch.float16])
 @pytest.mark.parametrize(
-    "shape", [(1, 3, 1), (5, 64, 128), (3, 33, 31), (65536, 64, 128), (0, 5, 2), (7, 200, 300)],
+    "shape",
+    [(1, 3, 1), (5, 64, 128), (3, 33, 31), (65536, 64, 128), (0, 5, 2), (7, 200, 300)],
     ids=lambda s: "x".join(map(str, s)),
 )
 @pytest.mark.parametrize("shared_u", [False, True])
@@ -515,7 +553,9 @@ def test_cuda_hierarchical(shape, dtype, shared_u):
     atol = {torch.float32: 1e-6, torch.float64: 1e-14, torch.float16: 4e-3}[dtype]
     torch.testing.assert_close(merged.cpu(), cpu, atol=atol, rtol=0)
     if R <= 1000:
-        torch.testing.assert_close(merged, reference_merged(z, weights, u), atol=tolerance(dtype, S, scale=8), rtol=0)
+        torch.testing.assert_close(
+            merged, reference_merged(z, weights, u), atol=tolerance(dtype, S, scale=8), rtol=0
+        )
 
 
 @cuda
@@ -537,12 +577,16 @@ def test_cuda_adversarial():
             cpu = sample_pdf(bins, weights, u.numel(), u=u, backend="kernel")
             torch.testing.assert_close(gpu.cpu(), cpu, rtol=0, atol=1e-6)
             cpu_grads = _grads("kernel", bins, weights, u)
-            for got, want in zip(_grads("kernel", bins.to(dev), weights.to(dev), u.to(dev)), cpu_grads):
+            for got, want in zip(
+                _grads("kernel", bins.to(dev), weights.to(dev), u.to(dev)), cpu_grads, strict=True
+            ):
                 assert torch.isfinite(got).all()
                 torch.testing.assert_close(got.cpu(), want, rtol=1e-5, atol=1e-5)
             if bins.shape[1] >= 3:  # as coarse depths: S >= 3
                 coarse_w = torch.cat([weights[:, :1], weights], dim=-1)
-                gpu = hierarchical_samples(bins.to(dev), coarse_w.to(dev), u.numel(), u=u.to(dev), backend="kernel")
+                gpu = hierarchical_samples(
+                    bins.to(dev), coarse_w.to(dev), u.numel(), u=u.to(dev), backend="kernel"
+                )
                 cpu = hierarchical_samples(bins, coarse_w, u.numel(), u=u, backend="kernel")
                 torch.testing.assert_close(gpu.cpu(), cpu, rtol=0, atol=1e-6)
 
@@ -554,6 +598,8 @@ def test_cuda_opcheck():
     bins, weights = random_pdf(5, 7, device=dev)
     u = sorted_u(5, 9, device=dev)
     opcheck(torch.ops.mixer_nerf.sample_pdf_fwd.default, (bins, weights, u, 0.0))
-    opcheck(torch.ops.mixer_nerf.sample_pdf_bwd.default, (torch.randn(5, 9, device=dev), bins, weights, u, 0.0))
+    opcheck(
+        torch.ops.mixer_nerf.sample_pdf_bwd.default, (torch.randn(5, 9, device=dev), bins, weights, u, 0.0)
+    )
     z, coarse_weights = random_coarse(5, 8, device=dev)
     opcheck(torch.ops.mixer_nerf.hierarchical_samples_fwd.default, (z, coarse_weights, u, 0.0))
