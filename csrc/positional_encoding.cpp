@@ -134,7 +134,8 @@ at::Tensor positional_encoding_bwd_cpu(const at::Tensor& grad_out, const at::Ten
   const Encoding enc{x.size(-1), num_freqs, include_input, scale};
   auto out_shape = x.sizes().vec();
   out_shape.back() = enc.width();
-  TORCH_CHECK(grad_out.sizes().vec() == out_shape, "grad_out must have shape ", out_shape, ", got ", grad_out.sizes());
+  TORCH_CHECK(grad_out.sizes() == at::IntArrayRef(out_shape), "grad_out must have shape ", at::IntArrayRef(out_shape),
+              ", got ", grad_out.sizes());
   TORCH_CHECK(grad_out.scalar_type() == x.scalar_type(), "grad_out must have the dtype of x");
   at::Tensor grad_x = at::empty_like(x);
   const int64_t n = x.numel() / enc.dims;

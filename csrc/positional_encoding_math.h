@@ -35,27 +35,40 @@ C10_HOST_DEVICE inline double round_even(double v) {
 #endif
 }
 
-// sin(pi f), cos(pi f) for |f| <= 1/4 by their Taylor series in double: the first omitted term
-// is below 1e-19 of the result there. Rounding this once to float is correctly rounded except
-// within ~1e-16 relative of a rounding boundary, so float outputs are at most ~0.5 ulp off.
+// sin(pi f), cos(pi f) for |f| <= 1/4 by their Taylor series in double. For double results the
+// first omitted term is below 1e-19 of the result; for float (also half/bf16) results the series
+// stops earlier, its first omitted term below 7e-12 relative: either way the one final rounding
+// to the accumulation type dominates (float: at most ~0.5 ulp + 7e-12).
+template <bool kDoubleResult>
 C10_HOST_DEVICE inline void sincospi_quarter(double f, double& s, double& c) {
   const double z = f * f;
-  s = f * (3.141592653589793 +
-           z * (-5.16771278004997 +
-                z * (2.5501640398773455 +
-                     z * (-0.5992645293207921 +
-                          z * (0.08214588661112823 +
-                               z * (-0.0073704309457143504 +
-                                    z * (0.00046630280576761255 +
-                                         z * (-2.1915353447830217e-05 + z * 7.952054001475513e-07))))))));
-  c = 1.0 + z * (-4.934802200544679 +
-                 z * (4.0587121264167685 +
-                      z * (-1.3352627688545895 +
-                           z * (0.2353306303588932 +
-                                z * (-0.02580689139001406 +
-                                     z * (0.0019295743094039231 +
-                                          z * (-0.0001046381049248457 +
-                                               z * (4.303069587032947e-06 + z * -1.3878952462213771e-07))))))));
+  if constexpr (kDoubleResult) {
+    s = f * (3.141592653589793 +
+             z * (-5.16771278004997 +
+                  z * (2.5501640398773455 +
+                       z * (-0.5992645293207921 +
+                            z * (0.08214588661112823 +
+                                 z * (-0.0073704309457143504 +
+                                      z * (0.00046630280576761255 +
+                                           z * (-2.1915353447830217e-05 + z * 7.952054001475513e-07))))))));
+    c = 1.0 + z * (-4.934802200544679 +
+                   z * (4.0587121264167685 +
+                        z * (-1.3352627688545895 +
+                             z * (0.2353306303588932 +
+                                  z * (-0.02580689139001406 +
+                                       z * (0.0019295743094039231 +
+                                            z * (-0.0001046381049248457 +
+                                                 z * (4.303069587032947e-06 + z * -1.3878952462213771e-07))))))));
+  } else {
+    s = f * (3.141592653589793 +
+             z * (-5.16771278004997 +
+                  z * (2.5501640398773455 +
+                       z * (-0.5992645293207921 + z * (0.08214588661112823 + z * -0.0073704309457143504)))));
+    c = 1.0 + z * (-4.934802200544679 +
+                   z * (4.0587121264167685 +
+                        z * (-1.3352627688545895 +
+                             z * (0.2353306303588932 + z * (-0.02580689139001406 + z * 0.0019295743094039231)))));
+  }
 }
 
 // sin(pi p), cos(pi p), rounded once to T, for a phase p = hi + lo in half-turns, |lo| << |hi|, both
@@ -70,12 +83,21 @@ C10_HOST_DEVICE inline void sincospi(phase_t hi, phase_t lo, T& s, T& c) {
   double q = (n_hi - 4 * round_even(0.25 * n_hi)) + n_r;  // quarter turns mod 4, then
   q -= 4 * round_even(0.25 * q);                           // into {-2, -1, 0, 1, 2}
   double sf, cf;
-  sincospi_quarter(f, sf, cf);
-  // angle = pi f + q pi/2: rotate by cos(q pi/2) = 1 - |q| and sin(q pi/2) = q (2 - |q|), both
-  // in {-1, 0, 1}, so every product and sum below is exact (and branch-free, for vectorising).
+  sincospi_quarter<(sizeof(T) >= 8)>(f, sf, cf);
+  // angle = pi f + q pi/2: odd q swaps sin and cos, and the signs follow the quadrant.
+#ifdef __CUDA_ARCH__
+  // On the GPU as integer selects, sparing the (slower) double pipe.
+  const int quadrant = static_cast<int>(q) & 3;  // {-2, -1, 0, 1, 2} -> {2, 3, 0, 1, 2}
+  const double sin_mag = (quadrant & 1) ? cf : sf, cos_mag = (quadrant & 1) ? sf : cf;
+  s = static_cast<T>((quadrant & 2) ? -sin_mag : sin_mag);       // negative in quadrants 2, 3
+  c = static_cast<T>(((quadrant + 1) & 2) ? -cos_mag : cos_mag);  // negative in quadrants 1, 2
+#else
+  // On the host as a rotation by cos(q pi/2) = 1 - |q| and sin(q pi/2) = q (2 - |q|), both in
+  // {-1, 0, 1}: every product and sum is exact, and branch-free loops vectorise.
   const double rot_cos = 1 - std::fabs(q), rot_sin = q * (2 - std::fabs(q));
   s = static_cast<T>(sf * rot_cos + cf * rot_sin);
   c = static_cast<T>(cf * rot_cos - sf * rot_sin);
+#endif
 }
 
 // x itself, or 0 where |c_hi x| >= 2^900: such phases are meaningless at any precision, and

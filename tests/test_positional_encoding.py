@@ -69,7 +69,7 @@ def bound(angles: torch.Tensor, dtype: torch.dtype, scale: float) -> torch.Tenso
     """The documented kernel error bound per element (plus the output dtype's rounding)."""
     if dtype == torch.float64:
         return 5e-16 + (0.0 if scale == math.pi else 2.0**-53) * angles
-    return HALF_ULP[dtype] + 2.0**-25 + 2.0**-52 + 2.0**-78 * angles
+    return HALF_ULP[dtype] + 2.0**-25 + 7e-12 + 2.0**-78 * angles
 
 
 def assert_within_bound(out, x, num_freqs, include_input, scale):
@@ -286,8 +286,11 @@ def test_cuda_matches_cpu_and_truth(shape, num_freqs, include_input, dtype, gen)
         assert bool(torch.isfinite(out).all())
         if num_freqs <= 16:
             assert_within_bound(out, x, num_freqs, include_input, scale)
-        # Same double arithmetic as the CPU kernel up to FMA contraction: equal to the output's rounding.
-        torch.testing.assert_close(out.cpu(), out_cpu, rtol=0, atol=2 * HALF_ULP[dtype] + 1e-15)
+        # Same double phase as the CPU kernel; the polynomials differ by FMA contraction only, so the
+        # two agree to the output's rounding (float64 x: plus their shared phase rounding bound).
+        _, angles = truth(x, num_freqs, include_input, scale)
+        phase = 2.0**-52 * angles if dtype == torch.float64 else 0.0
+        assert bool(((out.cpu().double() - out_cpu.double()).abs() <= 2 * HALF_ULP[dtype] + 1e-15 + phase).all())
 
         xr = xc.clone().requires_grad_()
         encoded = positional_encoding(xr, num_freqs, include_input, scale, backend="kernel")

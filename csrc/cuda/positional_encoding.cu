@@ -15,6 +15,7 @@
 #include <c10/cuda/CUDAStream.h>  // = at::cuda::getCurrentCUDAStream, without the cuSPARSE/cuBLAS headers
 
 #include <algorithm>
+#include <cstdint>
 
 #include "common.h"
 #include "positional_encoding_math.h"
@@ -52,7 +53,7 @@ __device__ void encode_feature(scalar_t x, scalar_t* row, const Encoding& e) {
   double hi = e.turns.hi, lo = e.turns.lo;  // c 2^k, doubled per octave (exact)
   for (int64_t k = 0; k < e.num_freqs; ++k, hi *= 2, lo *= 2, col += 2 * e.dims) {
     acc s, c;
-    pem::sincospi<acc>(hi * xs, lo * xs, s, c);
+    pem::sincospi<acc>(__dmul_rn(hi, xs), __dmul_rn(lo, xs), s, c);  // rounded products, as on the CPU
     row[col] = static_cast<scalar_t>(s);
     row[col + e.dims] = static_cast<scalar_t>(c);
   }
@@ -74,10 +75,37 @@ __device__ scalar_t encode_feature_backward(scalar_t x, const scalar_t* row, con
   acc freq = static_cast<acc>(e.scale);
   for (int64_t k = 0; k < e.num_freqs; ++k, hi *= 2, lo *= 2, freq *= 2, col += 2 * e.dims) {
     acc s, c;
-    pem::sincospi<acc>(hi * xs, lo * xs, s, c);
+    pem::sincospi<acc>(__dmul_rn(hi, xs), __dmul_rn(lo, xs), s, c);
     grad += freq * (static_cast<acc>(row[col]) * c - static_cast<acc>(row[col + e.dims]) * s);
   }
   return static_cast<scalar_t>(grad);
+}
+
+// Copies `count` elements between a tile and global memory: 16-byte accesses when both ends are
+// 16-byte aligned (every full tile is, see tile_points), four of them in flight per thread, so
+// enough loads are outstanding to stream at full bandwidth.
+template <typename scalar_t>
+__device__ void copy_tile(scalar_t* __restrict__ dst, const scalar_t* __restrict__ src, int count) {
+  int done = 0;
+  if (((reinterpret_cast<uintptr_t>(dst) | reinterpret_cast<uintptr_t>(src)) & 15) == 0) {
+    constexpr int kPerVector = 16 / sizeof(scalar_t), kUnroll = 4;
+    const int vectors = count / kPerVector;
+    auto* dst4 = reinterpret_cast<uint4*>(dst);
+    const auto* src4 = reinterpret_cast<const uint4*>(src);
+    for (int base = threadIdx.x; base < vectors; base += kUnroll * blockDim.x) {
+      uint4 v[kUnroll];
+#pragma unroll
+      for (int u = 0; u < kUnroll; ++u) {
+        if (base + u * blockDim.x < vectors) v[u] = src4[base + u * blockDim.x];
+      }
+#pragma unroll
+      for (int u = 0; u < kUnroll; ++u) {
+        if (base + u * blockDim.x < vectors) dst4[base + u * blockDim.x] = v[u];
+      }
+    }
+    done = vectors * kPerVector;
+  }
+  for (int i = done + threadIdx.x; i < count; i += blockDim.x) dst[i] = src[i];
 }
 
 // Shared-memory tile of `tile_points` whole output rows, typed for scalar_t.
@@ -99,8 +127,7 @@ __global__ void encode_tiles(const scalar_t* __restrict__ x, scalar_t* __restric
     encode_feature(x[first * D + j], tile + p * W + (j - p * D), e);
   }
   __syncthreads();
-  scalar_t* rows = out + first * W;
-  for (int i = threadIdx.x; i < points * W; i += blockDim.x) rows[i] = tile[i];
+  copy_tile(out + first * W, tile, points * W);
 }
 
 template <typename scalar_t>
@@ -110,8 +137,7 @@ __global__ void encode_tiles_backward(const scalar_t* __restrict__ grad, const s
   const int64_t first = static_cast<int64_t>(blockIdx.x) * tile_points;
   const int points = static_cast<int>(e.points - first < tile_points ? e.points - first : tile_points);
   const int D = static_cast<int>(e.dims), W = static_cast<int>(e.width());
-  const scalar_t* rows = grad + first * W;
-  for (int i = threadIdx.x; i < points * W; i += blockDim.x) tile[i] = rows[i];
+  copy_tile(tile, grad + first * W, points * W);
   __syncthreads();
   for (int j = threadIdx.x; j < points * D; j += blockDim.x) {
     const int p = j / D;
@@ -139,10 +165,14 @@ __global__ void encode_direct_backward(const scalar_t* __restrict__ grad, const 
   }
 }
 
-// Whole points per tile (0: a row does not fit, use the direct kernels).
+// Whole points per tile (0: a row does not fit, use the direct kernels): about one per thread and
+// feature, rounded down to a multiple of 8 where possible so that every tile starts 16-byte
+// aligned (8 rows of 2-byte elements are a multiple of 16 bytes).
 int tile_points(const Encoding& e, int64_t element_bytes) {
   const int64_t row_bytes = std::max<int64_t>(1, e.width()) * element_bytes;
-  return static_cast<int>(std::min<int64_t>(std::max<int64_t>(1, kThreads / e.dims), kTileBytes / row_bytes));
+  int64_t points = std::min<int64_t>(std::max<int64_t>(1, kThreads / e.dims), kTileBytes / row_bytes);
+  if (points >= 8) points -= points % 8;
+  return static_cast<int>(points);
 }
 
 int direct_blocks(const Encoding& e) {

@@ -42,7 +42,7 @@ def positional_encoding(
     turns and sin/cos of the remainder are evaluated in float64 and rounded once. ``scale ==
     math.pi`` is read as π itself (exact phase). The error of every sin/cos is thus
 
-        float32 (half/bf16: before their final rounding):  <= 2^-25 + 2^-52 + |θ| 2^-78
+        float32 (half/bf16: before their final rounding):  <= 2^-25 + 7e-12 + |θ| 2^-78
         float64:                                            <= 5e-16 + |θ| 2^-53 (0 for math.pi)
 
     i.e. half an ulp of float32 for any frequency a float32 input can need: the only rounding that
