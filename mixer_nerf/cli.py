@@ -1,0 +1,213 @@
+"""The ``mixer-nerf`` command line: train, eval, render and demo.
+
+Errors a user can fix (missing or malformed data, unwritable output, bad checkpoints, a run that
+went non-finite) print one line naming the file and exit with status 1; usage errors exit with 2.
+Set ``MIXER_NERF_DEBUG=1`` to see the full traceback instead.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from .train.config import BACKENDS, DEMO_SETTINGS, FORMATS, PRECISIONS, PRESETS, TrainConfig
+
+DEMO_OUT = "runs/demo"
+DEMO_VIDEO_FRAMES = 40
+VIDEO_PATHS = ("auto", "turntable", "spiral")
+
+# Train options whose default depends on the scene (demo or real data) are None in argparse, so
+# that only what the user typed overrides TrainConfig's defaults or DEMO_SETTINGS.
+TRAIN_OPTIONS: dict[str, dict[str, Any]] = {
+    "--format": {"choices": FORMATS, "help": "scene format (default: detected)"},
+    "--preset": {"choices": PRESETS, "help": "A NeRF, B +SE, C +MLCA, D Mixer-NeRF (default D)"},
+    "--steps": {"type": int, "help": "training steps, also the length of the lr schedule"},
+    "--batch-rays": {"type": int, "help": "rays per step"},
+    "--num-coarse": {"type": int, "help": "coarse samples per ray"},
+    "--num-fine": {"type": int, "help": "fine samples per ray (0: no fine pass)"},
+    "--lr": {"type": float, "help": "initial learning rate (decays exponentially to lr/10)"},
+    "--precision": {"choices": PRECISIONS, "help": "MLP precision (default: bf16 on CUDA, fp32 on CPU)"},
+    "--seed": {"type": int, "help": "random seed"},
+    "--val-every": {"type": int, "help": "validate every N steps"},
+    "--ckpt-every": {"type": int, "help": "checkpoint every N steps (a killed run loses at most N)"},
+    "--time-budget": {"type": float, "metavar": "SECONDS", "help": "stop after this much training time"},
+    "--downscale": {"type": int, "help": "integer image downscale (Blender scenes)"},
+}
+
+
+class UserError(Exception):
+    """A problem the user can fix; printed as one line."""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="mixer-nerf", description="Train, evaluate and render Mixer-NeRF.")
+    commands = parser.add_subparsers(dest="command", metavar="COMMAND")
+
+    train = commands.add_parser("train", help="train a model (no --data: the built-in demo, end to end)")
+    train.add_argument("--data", help="scene folder (Blender or LLFF); default: the built-in procedural scene")
+    _add_train_options(train, default_out="runs/<scene>; runs/demo without --data")
+
+    evaluate = commands.add_parser("eval", help="score a checkpoint on held-out views")
+    evaluate.add_argument("--ckpt", required=True, help="checkpoint file (e.g. runs/demo/checkpoint.pt)")
+    evaluate.add_argument("--data", help="scene folder (default: the one trained on)")
+    evaluate.add_argument("--split", choices=("test", "val", "train"),
+                          help="default: test, or val when the scene has no test views")
+    evaluate.add_argument("--out", help="output folder (default: <checkpoint folder>/eval_<split>)")
+    evaluate.add_argument("--max-images", type=int, help="score only the first N views")
+    _add_device_options(evaluate)
+
+    render = commands.add_parser("render", help="render a turntable/spiral video and depth maps")
+    render.add_argument("--ckpt", required=True, help="checkpoint file")
+    render.add_argument("--frames", type=int, default=120, help="number of frames (default 120)")
+    render.add_argument("--path", choices=VIDEO_PATHS, default="auto",
+                        help="camera path (default: spiral for forward-facing scenes, else turntable)")
+    render.add_argument("--fps", type=int, default=30)
+    render.add_argument("--scale", type=float, default=1.0, help="resolution relative to the training images")
+    render.add_argument("--out", help="output folder (default: <checkpoint folder>/video)")
+    _add_device_options(render)
+
+    demo = commands.add_parser("demo", help="train, evaluate and render the built-in scene (a few CPU minutes)")
+    _add_train_options(demo, default_out=DEMO_OUT)
+    demo.set_defaults(data=None)
+    return parser
+
+
+def train_config_from_args(args: argparse.Namespace) -> TrainConfig:
+    """TrainConfig defaults, then the demo settings when no --data is given, then what was typed."""
+    values: dict[str, Any] = {} if args.data else dict(DEMO_SETTINGS)
+    typed = {flag.lstrip("-").replace("-", "_") for flag in TRAIN_OPTIONS} | {"data", "device", "backend"}
+    values.update({k: getattr(args, k) for k in typed if getattr(args, k, None) is not None})
+    if "lr" in values:
+        values["lr_final"] = values["lr"] / 10
+    values["out"] = args.out or (f"runs/{Path(args.data).name}" if args.data else DEMO_OUT)
+    values["progress"] = not args.no_progress
+    return TrainConfig(**values)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.command is None:
+        parser.print_help()
+        return 2
+    try:
+        return COMMANDS[args.command](args)
+    except KeyboardInterrupt:
+        print("mixer-nerf: interrupted (the last checkpoint is kept)", file=sys.stderr)
+        return 130
+    except Exception as e:
+        if os.environ.get("MIXER_NERF_DEBUG") or not _is_user_error(e):
+            raise
+        print(f"mixer-nerf: error: {e}", file=sys.stderr)
+        return 1
+
+
+def run_train(args: argparse.Namespace) -> int:
+    cfg = train_config_from_args(args)
+    if args.data is None and not args.resume:
+        chosen = {k: getattr(cfg, k) for k in DEMO_SETTINGS}
+        print("no --data: training on the built-in procedural scene with CPU-friendly settings:\n  "
+              + ", ".join(f"{k}={v}" for k, v in chosen.items()))
+    summary = _train(cfg, args.resume)
+    ckpt = Path(summary["checkpoint"])
+    held_out = _evaluate(ckpt, device=cfg.device, backend=cfg.backend)
+    video = _render(ckpt, DEMO_VIDEO_FRAMES, device=cfg.device, backend=cfg.backend) if args.data is None else None
+    _report(summary, held_out, video)
+    return 0
+
+
+def run_eval(args: argparse.Namespace) -> int:
+    from .evaluate import evaluate
+
+    if args.max_images is not None and args.max_images < 1:
+        raise UserError(f"--max-images must be positive, got {args.max_images}")
+    record = evaluate(args.ckpt, data=args.data, split=args.split, out=args.out, device=args.device,
+                      backend=args.backend)
+    _print_eval(record)
+    return 0
+
+
+def run_render(args: argparse.Namespace) -> int:
+    from .video import render_video
+
+    result = render_video(args.ckpt, out=args.out, frames=args.frames, path=args.path, fps=args.fps,
+                          scale=args.scale, device=args.device, backend=args.backend)
+    _print_video(result)
+    return 0
+
+
+COMMANDS = {"train": run_train, "eval": run_eval, "render": run_render, "demo": run_train}
+
+
+def _train(cfg: TrainConfig, resume: bool) -> dict[str, Any]:
+    from .train import Trainer
+
+    trainer = Trainer(cfg, resume=resume)
+    c = trainer.cfg
+    print(f"training {c.steps} steps on {c.device} ({c.precision}, backend {c.backend}), preset {c.preset}, "
+          f"{c.batch_rays} rays x ({c.num_coarse} + {c.num_fine}) samples -> {trainer.files.root}")
+    summary = trainer.fit()
+    print(f"training {summary['status']} at step {summary['step']} after {summary['train_seconds']:.1f} s")
+    return summary
+
+
+def _evaluate(ckpt: Path, **kwargs: Any) -> dict[str, Any]:
+    from .evaluate import evaluate
+
+    return evaluate(ckpt, log=lambda _: None, **kwargs)
+
+
+def _render(ckpt: Path, frames: int, **kwargs: Any) -> dict[str, Any]:
+    from .video import render_video
+
+    return render_video(ckpt, frames=frames, log=lambda _: None, **kwargs)
+
+
+def _report(summary: dict[str, Any], held_out: dict[str, Any], video: dict[str, Any] | None) -> None:
+    root = Path(summary["checkpoint"]).parent
+    print(f"checkpoint:   {summary['checkpoint']}")
+    print(f"logs:         {root / 'train_log.csv'}, {root / 'val_log.csv'}, plot {summary['curves']}")
+    _print_eval(held_out)
+    if video is not None:
+        _print_video(video)
+
+
+def _print_eval(record: dict[str, Any]) -> None:
+    s = record["summary"]
+    scores = ", ".join(f"{name} {s[f'mean_{name}']:.4g}" for name in ("psnr", "ssim", "lpips")
+                       if s[f"mean_{name}"] is not None)
+    print(f"eval ({s['split']}, {s['images']} views): {scores}")
+    print(f"  renders and metrics in {record['out']} (metrics.json, metrics.csv, images/, depth/)")
+    for note in record["notes"]:
+        print(f"  note: {note}")
+
+
+def _print_video(result: dict[str, Any]) -> None:
+    print(f"video ({result['path']}, {result['frames']} frames, {result['format']}): {result['video']}")
+    print(f"  depth: {result['depth_video']} and {result['depth_frames']}/")
+
+
+def _add_train_options(parser: argparse.ArgumentParser, default_out: str) -> None:
+    for flag, options in TRAIN_OPTIONS.items():
+        parser.add_argument(flag, default=None, **options)
+    parser.add_argument("--out", help=f"run folder (default: {default_out})")
+    parser.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
+    _add_device_options(parser)
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def _add_device_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--device", choices=("cpu", "cuda"), help="default: cuda when available")
+    parser.add_argument("--backend", choices=BACKENDS, help="ops: compiled kernels or the PyTorch reference")
+
+
+def _is_user_error(e: Exception) -> bool:
+    from .data import DatasetError
+    from .train import CheckpointError, NonFiniteError, OutputError
+
+    return isinstance(e, (UserError, DatasetError, CheckpointError, NonFiniteError, OutputError,
+                          FileNotFoundError, PermissionError, ValueError))

@@ -1,0 +1,110 @@
+"""Training configuration: one flat dataclass, saved in every checkpoint and in ``config.json``."""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any
+
+PRESETS = ("A", "B", "C", "D")
+PRECISIONS = ("bf16", "tf32", "fp32")
+BACKENDS = ("auto", "kernel", "torch")
+FORMATS = ("auto", "blender", "llff")
+
+
+@dataclass
+class TrainConfig:
+    """Everything that defines a training run.
+
+    ``None`` in ``precision`` and ``device`` means "pick for the machine" (see :meth:`resolved`).
+    ``steps`` is also the length of the learning-rate schedule (``lr`` decays exponentially to
+    ``lr_final`` at ``steps``), also when ``time_budget`` stops the run earlier.
+    """
+
+    data: str | None = None  # scene folder; None = the built-in procedural scene
+    format: str = "auto"
+    downscale: int = 1  # integer image downscale for real scenes
+    procedural_resolution: int = 100  # image size of the built-in scene
+    procedural_views: int = 100  # its number of training views
+    preset: str = "D"
+    model_overrides: dict[str, Any] = field(default_factory=dict)  # passed to preset_config
+    fine_network: bool = True  # a separate fine MLP, as in NeRF (False: the coarse one is reused)
+    steps: int = 50_000
+    batch_rays: int = 4096
+    num_coarse: int = 64
+    num_fine: int = 128
+    lr: float = 5e-4
+    lr_final: float = 5e-5
+    seed: int = 0
+    precision: str | None = None  # bf16 / tf32 / fp32; None: bf16 on CUDA, fp32 on CPU
+    device: str | None = None  # cpu / cuda; None: cuda when available
+    backend: str = "auto"  # kernels or the PyTorch reference ops
+    out: str = "runs/default"
+    val_every: int = 2500
+    val_images: int = 3  # validation renders this many val views
+    ckpt_every: int = 1000
+    log_every: int = 100
+    time_budget: float | None = None  # seconds of training (validation excluded); None: no limit
+    chunk: int = 8192  # rays per chunk when rendering whole images
+    check_grads: bool = True  # the non-finite guard also checks every gradient
+    progress: bool = True  # progress bar on stderr
+
+    def __post_init__(self) -> None:
+        _one_of("format", self.format, FORMATS)
+        _one_of("preset", self.preset, PRESETS)
+        _one_of("backend", self.backend, BACKENDS)
+        if self.precision is not None:
+            _one_of("precision", self.precision, PRECISIONS)
+        if self.device is not None and self.device.split(":")[0] not in ("cpu", "cuda"):
+            raise ValueError(f"device must be 'cpu' or 'cuda', got {self.device!r}")
+        for name in ("steps", "batch_rays", "num_coarse", "val_every", "val_images", "ckpt_every",
+                     "log_every", "chunk", "downscale", "procedural_resolution", "procedural_views"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
+        if self.num_fine < 0:
+            raise ValueError(f"num_fine must be >= 0, got {self.num_fine}")
+        if not (self.lr > 0 and self.lr_final > 0):
+            raise ValueError(f"lr and lr_final must be positive, got {self.lr} and {self.lr_final}")
+        if self.time_budget is not None and self.time_budget <= 0:
+            raise ValueError(f"time_budget must be positive seconds, got {self.time_budget}")
+
+    def resolved(self, cuda_available: bool) -> TrainConfig:
+        """A copy with ``device`` and ``precision`` chosen for this machine."""
+        device = self.device or ("cuda" if cuda_available else "cpu")
+        if device.startswith("cuda") and not cuda_available:
+            raise ValueError("device 'cuda' was asked for but torch sees no CUDA GPU")
+        precision = self.precision or ("bf16" if device.startswith("cuda") else "fp32")
+        return dataclasses.replace(self, device=device, precision=precision)
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, values: dict[str, Any]) -> TrainConfig:
+        """Inverse of :meth:`to_dict`; unknown keys (from a newer version) are an error."""
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(values) - known)
+        if unknown:
+            raise ValueError(f"unknown training settings: {unknown}")
+        return cls(**values)
+
+
+DEMO_SETTINGS: dict[str, Any] = {
+    "procedural_resolution": 40,
+    "procedural_views": 50,
+    "model_overrides": {"depth": 4, "width": 64, "skips": (2,), "view_width": 32, "pos_freqs": 8, "se_reduction": 8},
+    "steps": 500,
+    "batch_rays": 256,
+    "num_coarse": 16,
+    "num_fine": 16,
+    "val_every": 100,
+    "val_images": 2,
+    "ckpt_every": 100,
+    "log_every": 20,
+}
+"""Defaults for the built-in scene so that a run finishes in a few minutes on a 2-core CPU."""
+
+
+def _one_of(name: str, value: Any, allowed: tuple) -> None:
+    if value not in allowed:
+        raise ValueError(f"{name} must be one of {allowed}, got {value!r}")

@@ -1,0 +1,77 @@
+"""Training logs: CSV tables (train steps, validations) and a loss/PSNR plot."""
+
+from __future__ import annotations
+
+import csv
+import os
+from pathlib import Path
+from typing import Any
+
+
+class CsvLog:
+    """An append-only CSV table whose columns are fixed by the first row written.
+
+    On resume, :meth:`truncate_after` drops the rows a killed run logged after its last
+    checkpoint, so the table matches the state training continues from.
+    """
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+
+    def append(self, row: dict[str, Any]) -> None:
+        new = not self.path.exists() or self.path.stat().st_size == 0
+        with self.path.open("a", newline="") as f:
+            writer = csv.DictWriter(f, fieldnames=list(self.fieldnames() or row))
+            if new:
+                writer.writeheader()
+            writer.writerow(row)
+
+    def rows(self) -> list[dict[str, str]]:
+        if not self.path.exists():
+            return []
+        with self.path.open(newline="") as f:
+            return list(csv.DictReader(f))
+
+    def fieldnames(self) -> list[str] | None:
+        if not self.path.exists() or self.path.stat().st_size == 0:
+            return None
+        with self.path.open(newline="") as f:
+            return next(csv.reader(f), None)
+
+    def truncate_after(self, step: int) -> None:
+        rows, fields = self.rows(), self.fieldnames()
+        if fields is None:
+            return
+        tmp = self.path.with_name(f".{self.path.name}.tmp")
+        with tmp.open("w", newline="") as f:
+            writer = csv.DictWriter(f, fieldnames=fields)
+            writer.writeheader()
+            writer.writerows(r for r in rows if int(r["step"]) <= step)
+        os.replace(tmp, self.path)
+
+
+def plot_curves(train_log: CsvLog, val_log: CsvLog, path: str | Path) -> Path | None:
+    """Loss and PSNR (train batches, validation views) against step, as a PNG; None if no rows."""
+    train, val = train_log.rows(), val_log.rows()
+    if not train:
+        return None
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    steps = [int(r["step"]) for r in train]
+    fig, (ax_loss, ax_psnr) = plt.subplots(1, 2, figsize=(10, 4))
+    ax_loss.semilogy(steps, [float(r["loss"]) for r in train])
+    ax_loss.set(xlabel="step", ylabel="loss (coarse + fine MSE)", title="training loss")
+    ax_psnr.plot(steps, [float(r["psnr"]) for r in train], label="train batch (fine)")
+    if val:
+        ax_psnr.plot([int(r["step"]) for r in val], [float(r["psnr"]) for r in val], "o-", label="validation")
+    ax_psnr.set(xlabel="step", ylabel="PSNR (dB)", title="PSNR")
+    ax_psnr.legend()
+    for ax in (ax_loss, ax_psnr):
+        ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return Path(path)

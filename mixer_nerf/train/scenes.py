@@ -1,0 +1,64 @@
+"""Loading the scene a run trains on, and the camera facts a checkpoint keeps about it."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from ..data import DatasetError, MissingFileError, Scene, detect_format, ensure_procedural_scene, load_scene
+from .config import TrainConfig
+
+PROCEDURAL_HELD_OUT_VIEWS = 4  # val and test views of the built-in scene
+
+
+def scene_source(cfg: TrainConfig) -> tuple[Path, str]:
+    """(folder, format) of the scene ``cfg`` names; renders the built-in scene if needed."""
+    if cfg.data is None:
+        folder = ensure_procedural_scene(
+            resolution=cfg.procedural_resolution, n_train=cfg.procedural_views,
+            n_val=PROCEDURAL_HELD_OUT_VIEWS, n_test=PROCEDURAL_HELD_OUT_VIEWS)
+        return folder, "blender"
+    folder = Path(cfg.data)
+    if not folder.is_dir():
+        raise MissingFileError(f"{folder}: scene folder not found")
+    return folder, detect_format(folder) if cfg.format == "auto" else cfg.format
+
+
+def load_split(folder: Path, format: str, split: str, downscale: int = 1) -> Scene:
+    """One split, refusing an empty one (a loader may return zero views for a short capture)."""
+    kwargs = {"downscale": downscale} if format == "blender" else {}
+    scene = load_scene(folder, format=format, split=split, **kwargs)
+    if len(scene) == 0:
+        raise DatasetError(f"{folder}: the {split!r} split has no images")
+    return scene
+
+
+def held_out_split(folder: Path, format: str, preferred: str, downscale: int = 1) -> tuple[Scene, str]:
+    """``preferred`` split ("test" or "val"), else the other one when that one does not exist
+    (e.g. a scene shipped without its test views). Returns the scene and the split used."""
+    other = {"test": "val", "val": "test"}[preferred]
+    try:
+        return load_split(folder, format, preferred, downscale), preferred
+    except MissingFileError:
+        return load_split(folder, format, other, downscale), other
+
+
+def scene_info(scene: Scene, folder: Path, format: str, cfg: TrainConfig) -> dict[str, Any]:
+    """What rendering needs to know about the training scene, without its images."""
+    return {
+        "name": scene.name,
+        "folder": str(folder),
+        "format": format,
+        "procedural": cfg.data is None,
+        "H": scene.H,
+        "W": scene.W,
+        "focal": float(scene.focal),
+        "cx": float(scene.cx),
+        "cy": float(scene.cy),
+        "near": float(scene.near),
+        "far": float(scene.far),
+        "ndc": bool(scene.ndc),
+        "background": scene.background.detach().cpu().float(),
+        "bbox": None if scene.bbox is None else scene.bbox.detach().cpu().float(),
+        "train_poses": scene.poses.detach().cpu().float(),
+    }

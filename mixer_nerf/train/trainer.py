@@ -1,0 +1,268 @@
+"""The training loop: random ray batches, coarse + fine MSE, Adam with exponential decay,
+periodic validation, atomic checkpoints, logs, a non-finite guard and a wall-clock budget."""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections.abc import Callable
+from typing import Any
+
+import torch
+import torch.nn.functional as F
+
+from ..metrics import psnr
+from ..render import render_rays
+from .checkpoint import capture_rng_state, load_checkpoint, restore_rng_state, save_checkpoint
+from .config import TrainConfig
+from .fields import ImageRenderer, RadianceFields, model_config, model_config_to_dict, set_matmul_precision
+from .guard import NonFiniteError, NonFiniteGuard
+from .logbook import CsvLog, plot_curves
+from .output import RunFiles, prepare_run_folder
+from .sampler import RaySampler
+from .scenes import held_out_split, load_split, scene_info, scene_source
+
+RESUMABLE_OVERRIDES = ("time_budget", "progress")
+"""Settings a resumed run may change; every other one comes from the checkpoint so that the run
+continues exactly as it would have without the interruption."""
+
+
+class TrainingClock:
+    """Seconds spent training (validation and checkpointing excluded), across resumes."""
+
+    def __init__(self, device: torch.device, elapsed: float = 0.0) -> None:
+        self.device, self.elapsed, self._start = device, elapsed, None
+
+    def start(self) -> None:
+        self._sync()
+        self._start = time.perf_counter()
+
+    def pause(self) -> float:
+        self._sync()
+        if self._start is not None:
+            self.elapsed += time.perf_counter() - self._start
+            self._start = None
+        return self.elapsed
+
+    def now(self) -> float:
+        """Host-side reading (no synchronisation): the GPU may lag it by the queued work."""
+        return self.elapsed + (time.perf_counter() - self._start if self._start is not None else 0.0)
+
+    def _sync(self) -> None:
+        if self.device.type == "cuda":
+            torch.cuda.synchronize(self.device)
+
+
+class Trainer:
+    """One training run in ``cfg.out``.
+
+    Args:
+        cfg: the run's settings. With ``resume=True`` they are read from the checkpoint in
+            ``cfg.out`` instead, except those in ``RESUMABLE_OVERRIDES``.
+        resume: continue from ``cfg.out/checkpoint.pt`` bit-for-bit (same batches, same samples).
+        log: where one-line messages go (``print`` by default).
+
+    Raises:
+        OutputError, CheckpointError, DatasetError (and MissingFileError): naming the file.
+    """
+
+    def __init__(self, cfg: TrainConfig, resume: bool = False, log: Callable[[str], None] = print) -> None:
+        self.log = log
+        self.files: RunFiles = prepare_run_folder(cfg.out, resume)
+        state = None
+        if resume:
+            state = load_checkpoint(self.files.checkpoint)
+            saved = TrainConfig.from_dict(state["train_config"])
+            cfg = TrainConfig(**{**saved.to_dict(), **{k: getattr(cfg, k) for k in RESUMABLE_OVERRIDES},
+                                 "out": cfg.out})
+        self.cfg = cfg = cfg.resolved(torch.cuda.is_available())
+        self.device = torch.device(cfg.device)
+        set_matmul_precision(cfg.precision)
+
+        folder, fmt = scene_source(cfg)
+        self.train_scene = load_split(folder, fmt, "train", cfg.downscale).to(self.device)
+        val_scene, self.val_split = held_out_split(folder, fmt, "val", cfg.downscale)
+        self.val_scene = val_scene.to(self.device)
+        self.scene = scene_info(self.train_scene, folder, fmt, cfg)
+        self.background = self.train_scene.background.to(self.device, torch.float32)
+
+        torch.manual_seed(cfg.seed)  # model initialisation
+        self.model_cfg = model_config(cfg.preset, cfg.model_overrides, self.train_scene.bbox, cfg.backend)
+        self.fields = RadianceFields(self.model_cfg, cfg.fine_network).to(self.device)
+        self.coarse_field, self.fine_field = self.fields.runners(cfg.precision, self.device)
+        self.params = [p for p in self.fields.parameters() if p.requires_grad]
+        self.param_names = [n for n, p in self.fields.named_parameters() if p.requires_grad]
+        self.optimizer = torch.optim.Adam(self.params, lr=cfg.lr, fused=self.device.type == "cuda")
+        decay = cfg.lr_final / cfg.lr
+        self.scheduler = torch.optim.lr_scheduler.LambdaLR(
+            self.optimizer, lambda s: decay ** (min(s, cfg.steps) / cfg.steps))
+        self.renderer = ImageRenderer(
+            self.fields, cfg.precision, self.train_scene.near, self.train_scene.far, self.background,
+            cfg.num_coarse, cfg.num_fine, cfg.chunk, cfg.backend)
+        self.sampler = RaySampler(self.train_scene, cfg.batch_rays, cfg.seed)
+        self.guard = NonFiniteGuard(self.param_names, self.device)
+        self.check_every = 1 if self.device.type == "cpu" else min(cfg.log_every, 50)
+        self.train_log, self.val_log = CsvLog(self.files.train_log), CsvLog(self.files.val_log)
+        self.step, self.clock = 0, TrainingClock(self.device)
+        if state is not None:
+            self._load_state(state)
+        self.files.config.write_text(json.dumps(
+            {"train": cfg.to_dict(), "model": model_config_to_dict(self.model_cfg)}, indent=1))
+
+    # -- one step ---------------------------------------------------------------------------
+
+    def train_step(self) -> dict[str, torch.Tensor]:
+        """One optimisation step on a fresh random batch. Returns device scalars (no sync):
+        ``loss`` (coarse + fine MSE) and ``mse`` (of the final, fine colours)."""
+        cfg = self.cfg
+        rays_o, rays_d, target = self.sampler.sample()
+        out = render_rays(
+            self.coarse_field, rays_o, rays_d, self.train_scene.near, self.train_scene.far,
+            num_coarse=cfg.num_coarse, num_fine=cfg.num_fine, fine_field=self.fine_field,
+            stratified=True, background=self.background, backend=cfg.backend,
+            generator=self.sampler.generator)
+        losses = {"loss_coarse": F.mse_loss(out.coarse.color, target)}
+        if out.fine is not None:
+            losses["loss_fine"] = F.mse_loss(out.fine.color, target)
+        loss = sum(losses.values())
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        step = self.step + 1
+        self.guard.observe_losses(step, **losses)
+        if cfg.check_grads:
+            self.guard.observe_grads(step, [p.grad for p in self.params])
+        self.optimizer.step()
+        self.scheduler.step()
+        self.step = step
+        return {"loss": loss.detach(), "mse": losses.get("loss_fine", losses["loss_coarse"]).detach()}
+
+    def render_rgb(self, rays_o: torch.Tensor, rays_d: torch.Tensor) -> torch.Tensor:
+        """Final colours (R, 3) of arbitrary rays with the current fields (deterministic samples)."""
+        return self.renderer(rays_o, rays_d).color
+
+    def validate(self) -> float:
+        """Mean PSNR over ``cfg.val_images`` evenly spaced views of the validation split."""
+        scene, n = self.val_scene, min(self.cfg.val_images, len(self.val_scene))
+        views = torch.linspace(0, len(scene) - 1, n).round().long().tolist()
+        scores = []
+        for i in views:
+            rays_o, rays_d = scene.rays_for_image(i)
+            rgb = self.render_rgb(rays_o.float(), rays_d.float()).reshape(scene.H, scene.W, 3)
+            scores.append(psnr(rgb.clamp(0, 1), scene.images[i]).item())
+        return sum(scores) / len(scores)
+
+    # -- the loop ---------------------------------------------------------------------------
+
+    def fit(self) -> dict[str, Any]:
+        """Train until ``cfg.steps`` or ``cfg.time_budget``; returns the summary (also written to
+        ``summary.json``).
+
+        Raises:
+            NonFiniteError: a loss or gradient went NaN/Inf. The checkpoint on disk is the last
+                good one; logs, plot and summary (status "non-finite") are written first.
+        """
+        from tqdm import tqdm
+
+        cfg = self.cfg
+        bar = tqdm(total=cfg.steps, initial=self.step, disable=not cfg.progress, unit="step",
+                   dynamic_ncols=True, leave=False)
+        status = "finished"
+        mark_step, mark_time = self.step, self.clock.elapsed
+        self.clock.start()
+        try:
+            while self.step < cfg.steps:
+                if cfg.time_budget is not None and self.clock.now() >= cfg.time_budget:
+                    status = "time budget reached"
+                    break
+                stats = self.train_step()
+                bar.update(1)
+                if self.step % self.check_every == 0:
+                    self.guard.raise_if_bad()
+                if self.step % cfg.log_every == 0:
+                    now = self.clock.pause()
+                    self._log_train(stats, rays_per_s=(self.step - mark_step) * cfg.batch_rays
+                                    / max(now - mark_time, 1e-9), bar=bar)
+                    mark_step, mark_time = self.step, now
+                    self.clock.start()
+                if self.step % cfg.val_every == 0:
+                    self._paused(self._log_validation)
+                if self.step % cfg.ckpt_every == 0:
+                    self._paused(self.save)
+            self.clock.pause()
+            self.guard.raise_if_bad()
+            if self.step % cfg.ckpt_every != 0:
+                self.save()
+            if self.step % cfg.val_every != 0:
+                self._log_validation()
+        except NonFiniteError as e:
+            self.clock.pause()
+            status = f"non-finite: {e}"
+            self._finish(status)
+            raise
+        finally:
+            bar.close()
+        return self._finish(status)
+
+    def save(self) -> None:
+        """Atomically write the full training state to ``checkpoint.pt`` (after the guard check)."""
+        self.guard.raise_if_bad()
+        save_checkpoint(self.files.checkpoint, {
+            "step": self.step,
+            "elapsed": self.clock.elapsed,
+            "train_config": self.cfg.to_dict(),
+            "model_config": model_config_to_dict(self.model_cfg),
+            "scene": self.scene,
+            "model": self.fields.state_dict(),
+            "optimizer": self.optimizer.state_dict(),
+            "scheduler": self.scheduler.state_dict(),
+            "rng": capture_rng_state(self.sampler.generator),
+        })
+
+    # -- internals --------------------------------------------------------------------------
+
+    def _load_state(self, state: dict[str, Any]) -> None:
+        self.fields.load_state_dict(state["model"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.scheduler.load_state_dict(state["scheduler"])
+        restore_rng_state(state["rng"], self.sampler.generator)
+        self.step = int(state["step"])
+        self.clock = TrainingClock(self.device, float(state["elapsed"]))
+        # Rows a killed run logged after its last checkpoint describe steps that will be redone.
+        self.train_log.truncate_after(self.step)
+        self.val_log.truncate_after(self.step)
+        self.log(f"resumed {self.files.checkpoint} at step {self.step}")
+
+    def _paused(self, action: Callable[[], Any]) -> None:
+        """Run ``action`` with the training clock paused."""
+        self.clock.pause()
+        action()
+        self.clock.start()
+
+    def _log_train(self, stats: dict[str, torch.Tensor], rays_per_s: float, bar: Any) -> None:
+        loss, mse = stats["loss"].item(), stats["mse"].item()
+        row = {"step": self.step, "seconds": round(self.clock.elapsed, 3),
+               "lr": self.scheduler.get_last_lr()[0], "loss": loss,
+               "psnr": -10.0 * math.log10(max(mse, 1e-30)), "rays_per_s": round(rays_per_s, 1)}
+        self.train_log.append(row)
+        bar.set_postfix(loss=f"{loss:.4f}", psnr=f"{row['psnr']:.2f}", rays_s=f"{rays_per_s:,.0f}")
+
+    def _log_validation(self) -> None:
+        value = self.validate()
+        self.val_log.append({"step": self.step, "seconds": round(self.clock.elapsed, 3), "psnr": value})
+        self.log(f"step {self.step}: validation PSNR {value:.2f} dB ({self.val_split} split)")
+
+    def _finish(self, status: str) -> dict[str, Any]:
+        val = self.val_log.rows()
+        summary = {
+            "status": status,
+            "step": self.step,
+            "train_seconds": round(self.clock.elapsed, 3),
+            "val_psnr": float(val[-1]["psnr"]) if val else None,
+            "checkpoint": str(self.files.checkpoint) if self.files.checkpoint.exists() else None,
+            "curves": str(plot_curves(self.train_log, self.val_log, self.files.curves) or ""),
+            "device": str(self.device),
+            "precision": self.cfg.precision,
+        }
+        self.files.summary.write_text(json.dumps(summary, indent=1))
+        return summary

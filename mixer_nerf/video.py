@@ -1,0 +1,236 @@
+"""Camera paths (turntable, spiral), rendering them from a checkpoint, and writing videos and
+colour-mapped depth maps.
+
+Videos are MP4 (H.264) when ``imageio-ffmpeg`` is installed (it ships its own ffmpeg binary from
+PyPI), else animated GIF; :func:`write_video` returns the path it actually wrote.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from .data.llff import BD_FACTOR
+from .data.rays import camera_rays, ndc_rays
+from .data.scene import NDC_NEAR
+from .train.output import ensure_writable_folder
+from .train.restore import load_trained
+
+PATHS = ("auto", "turntable", "spiral")
+SPIRAL_ROTATIONS = 2
+SPIRAL_Z_RATE = 0.5  # the spiral's in-and-out motion runs at half its angular speed
+DEPTH_COLORMAP = "turbo"
+
+
+# -- camera paths ---------------------------------------------------------------------------------
+
+def look_at(eye: torch.Tensor, target: torch.Tensor, up: torch.Tensor) -> torch.Tensor:
+    """(N, 4, 4) OpenGL camera-to-world matrices at ``eye`` (N, 3) looking at ``target`` (N, 3) or (3,)."""
+    back = _normalize(eye - target)
+    right = _normalize(torch.linalg.cross(up.expand_as(back), back))
+    cam_up = torch.linalg.cross(back, right)
+    c2w = torch.eye(4, dtype=eye.dtype).repeat(len(eye), 1, 1)
+    c2w[:, :3, :] = torch.stack([right, cam_up, back, eye], dim=-1)
+    return c2w
+
+
+def turntable_poses(train_poses: torch.Tensor, n_frames: int, center: torch.Tensor | None = None) -> torch.Tensor:
+    """(n_frames, 4, 4) cameras circling ``center`` (default: the origin) once.
+
+    The rotation axis is the training cameras' mean up vector; radius and elevation are the
+    training cameras' mean distance from ``center`` and mean elevation above the plane normal
+    to that axis (an object-centred capture such as a Blender scene).
+    """
+    poses = train_poses.double()
+    center = torch.zeros(3, dtype=torch.float64) if center is None else center.double()
+    up = _normalize(poses[:, :3, 1].mean(0))
+    offsets = poses[:, :3, 3] - center
+    radius = offsets.norm(dim=-1).mean()
+    elevation = torch.asin((_normalize(offsets) @ up).clamp(-1, 1)).mean()
+    e1 = _normalize(torch.linalg.cross(up, _any_perpendicular(up)))
+    e2 = torch.linalg.cross(up, e1)
+    theta = torch.arange(n_frames, dtype=torch.float64) * (2 * math.pi / n_frames)
+    ring = torch.cos(theta)[:, None] * e1 + torch.sin(theta)[:, None] * e2
+    eye = center + radius * (torch.cos(elevation) * ring + torch.sin(elevation) * up)
+    return look_at(eye, center, up).float()
+
+
+def spiral_poses(train_poses: torch.Tensor, n_frames: int, focus_depth: float) -> torch.Tensor:
+    """(n_frames, 4, 4) cameras on NeRF's spiral for forward-facing captures.
+
+    The cameras move on an ellipse (radii: 90th percentile of the training cameras' offsets from
+    their mean pose, in its frame) with an in-and-out component, ``SPIRAL_ROTATIONS`` turns,
+    always looking at the point ``focus_depth`` in front of the mean pose.
+    """
+    poses = train_poses.double()
+    center = poses[:, :3, 3].mean(0)
+    back = _normalize(poses[:, :3, 2].mean(0))
+    right = _normalize(torch.linalg.cross(poses[:, :3, 1].mean(0), back))
+    up = torch.linalg.cross(back, right)
+    frame = torch.stack([right, up, back], dim=-1)  # mean pose's axes as columns
+    local = (poses[:, :3, 3] - center) @ frame
+    radii = torch.quantile(local.abs(), 0.9, dim=0)
+    theta = torch.arange(n_frames, dtype=torch.float64) * (2 * math.pi * SPIRAL_ROTATIONS / n_frames)
+    wave = torch.stack([torch.cos(theta), -torch.sin(theta), -torch.sin(SPIRAL_Z_RATE * theta)], dim=-1)
+    eye = center + (wave * radii) @ frame.T
+    focus = center - focus_depth * back
+    return look_at(eye, focus, up).float()
+
+
+def spiral_focus_depth(scene: dict[str, Any]) -> float:
+    """NeRF's focus depth 1 / (0.25 / near + 0.75 / (5 far)) of a forward-facing scene.
+
+    For NDC scenes the world is rescaled so that the nearest content is at 1 / BD_FACTOR and the
+    far bound is unknown (treated as infinite), giving near / 0.25 with near = 0.9 / BD_FACTOR.
+    """
+    if scene["ndc"]:
+        return (0.9 / BD_FACTOR) / 0.25
+    return 1.0 / (0.25 / scene["near"] + 0.75 / (5.0 * scene["far"]))
+
+
+def camera_path(scene: dict[str, Any], n_frames: int, kind: str = "auto") -> tuple[torch.Tensor, str]:
+    """Poses for a video of a trained scene and the path kind used ("auto": spiral for
+    forward-facing (NDC or LLFF) scenes, turntable otherwise)."""
+    if kind not in PATHS:
+        raise ValueError(f"path must be one of {PATHS}, got {kind!r}")
+    if kind == "auto":
+        kind = "spiral" if scene["ndc"] or scene["format"] == "llff" else "turntable"
+    if kind == "spiral":
+        return spiral_poses(scene["train_poses"], n_frames, spiral_focus_depth(scene)), kind
+    bbox = scene["bbox"]
+    center = None if bbox is None else (bbox[0] + bbox[1]) / 2
+    return turntable_poses(scene["train_poses"], n_frames, center), kind
+
+
+def frame_rays(scene: dict[str, Any], c2w: torch.Tensor, scale: float = 1.0) -> tuple[torch.Tensor, torch.Tensor, int, int]:
+    """Rays (H*W, 3) of one camera with the training intrinsics scaled by ``scale``; also H, W."""
+    H, W = max(1, round(scene["H"] * scale)), max(1, round(scene["W"] * scale))
+    focal, cx, cy = scene["focal"] * scale, scene["cx"] * scale, scene["cy"] * scale
+    origins, dirs = camera_rays(H, W, focal, c2w.double(), cx, cy)
+    origins, dirs = origins.reshape(-1, 3), dirs.reshape(-1, 3)
+    if scene["ndc"]:
+        origins, dirs = ndc_rays(H, W, focal, NDC_NEAR, origins, dirs)
+    return origins.float(), dirs.float(), H, W
+
+
+# -- images and videos ----------------------------------------------------------------------------
+
+def to_uint8(image: torch.Tensor | np.ndarray) -> np.ndarray:
+    """(H, W, 3) float in [0, 1] -> uint8 (values outside are clipped)."""
+    array = image.detach().float().cpu().numpy() if isinstance(image, torch.Tensor) else np.asarray(image)
+    return (np.clip(array, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+
+
+def depth_range(depths: list[torch.Tensor], opacities: list[torch.Tensor], fallback: tuple[float, float]) -> tuple[float, float]:
+    """Robust (2nd, 98th percentile) depth range over pixels that are mostly opaque."""
+    solid = torch.cat([d[o > 0.5].flatten().float().cpu() for d, o in zip(depths, opacities)])
+    if solid.numel() < 2:
+        return fallback
+    lo, hi = torch.quantile(solid[:1_000_000], torch.tensor([0.02, 0.98])).tolist()
+    return (lo, hi) if hi > lo else fallback
+
+
+def colorize_depth(depth: torch.Tensor, opacity: torch.Tensor, lo: float, hi: float) -> np.ndarray:
+    """(H, W) depth -> (H, W, 3) uint8, near = dark end of the colour map, faded to black where
+    the ray hit nothing (weighted by opacity)."""
+    from matplotlib import colormaps
+
+    t = ((depth.float().cpu() - lo) / max(hi - lo, 1e-12)).clamp(0, 1).numpy()
+    rgb = colormaps[DEPTH_COLORMAP](t)[..., :3] * opacity.float().cpu().clamp(0, 1).numpy()[..., None]
+    return to_uint8(rgb)
+
+
+def write_png(path: str | Path, image: np.ndarray) -> None:
+    import imageio.v3 as iio
+
+    iio.imwrite(path, image)
+
+
+def video_format() -> str:
+    """"mp4" when imageio-ffmpeg is installed, else "gif"."""
+    try:
+        import imageio_ffmpeg  # noqa: F401
+    except ImportError:
+        return "gif"
+    return "mp4"
+
+
+def write_video(stem: str | Path, frames: list[np.ndarray], fps: int) -> Path:
+    """Write uint8 (H, W, 3) ``frames`` to ``stem``.mp4, or ``stem``.gif without ffmpeg. Returns the path."""
+    stem = Path(stem)
+    if video_format() == "mp4":
+        import imageio.v2 as iio2
+
+        path = stem.with_suffix(".mp4")
+        # H.264 in yuv420p needs even sizes: pad by repeating the last row/column.
+        h, w = frames[0].shape[:2]
+        even = [np.pad(f, ((0, h % 2), (0, w % 2), (0, 0)), mode="edge") for f in frames]
+        iio2.mimwrite(path, even, fps=fps, macro_block_size=1, ffmpeg_log_level="error")
+        if path.is_file() and path.stat().st_size > 0:  # ffmpeg failures do not always raise
+            return path
+        path.unlink(missing_ok=True)
+    import imageio.v3 as iio
+
+    path = stem.with_suffix(".gif")
+    iio.imwrite(path, np.stack(frames), duration=1000.0 / fps, loop=0)
+    return path
+
+
+def render_video(
+    ckpt: str | Path,
+    out: str | Path | None = None,
+    frames: int = 120,
+    path: str = "auto",
+    fps: int = 30,
+    scale: float = 1.0,
+    device: str | None = None,
+    backend: str | None = None,
+    log: Callable[[str], None] = print,
+) -> dict[str, Any]:
+    """Render a camera path from a checkpoint: ``video.mp4|gif``, ``depth.mp4|gif`` and
+    ``depth/frame_NNNN.png`` in ``out`` (default: ``<checkpoint folder>/video``).
+
+    Returns:
+        {"video", "depth_video", "depth_frames", "path", "frames", "format", "depth_range"}.
+    """
+    if frames < 1:
+        raise ValueError(f"frames must be positive, got {frames}")
+    if not scale > 0:
+        raise ValueError(f"scale must be positive, got {scale}")
+    run = load_trained(ckpt, device=device, backend=backend)
+    out = Path(out) if out is not None else run.path.parent / "video"
+    depth_dir = out / "depth"
+    ensure_writable_folder(depth_dir)
+    poses, kind = camera_path(run.scene, frames, path)
+    log(f"rendering {frames} frames on a {kind} path from {run.path} (step {run.step})")
+    colors, depths, opacities = [], [], []
+    for c2w in poses:
+        rays_o, rays_d, H, W = frame_rays(run.scene, c2w, scale)
+        result = run.render(rays_o, rays_d)
+        colors.append(to_uint8(result.color.reshape(H, W, 3)))
+        depths.append(result.depth.reshape(H, W).cpu())
+        opacities.append(result.opacity.reshape(H, W).cpu())
+    lo, hi = depth_range(depths, opacities, fallback=(run.scene["near"], run.scene["far"]))
+    depth_frames = [colorize_depth(d, o, lo, hi) for d, o in zip(depths, opacities)]
+    for i, image in enumerate(depth_frames):
+        write_png(depth_dir / f"frame_{i:04d}.png", image)
+    video = write_video(out / "video", colors, fps)
+    depth_video = write_video(out / "depth", depth_frames, fps)
+    return {"video": str(video), "depth_video": str(depth_video), "depth_frames": str(depth_dir),
+            "path": kind, "frames": frames, "format": video.suffix[1:], "depth_range": [lo, hi]}
+
+
+def _normalize(v: torch.Tensor) -> torch.Tensor:
+    return v / v.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+
+
+def _any_perpendicular(v: torch.Tensor) -> torch.Tensor:
+    """A unit vector not parallel to ``v`` (the world axis least aligned with it)."""
+    axis = torch.zeros_like(v)
+    axis[v.abs().argmin()] = 1.0
+    return axis
