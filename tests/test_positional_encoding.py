@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import math
 import random
+import subprocess
+import sys
 
 import pytest
 import torch
@@ -235,9 +237,16 @@ def test_bad_input(call, error, name):
 
 @needs_kernels
 def test_bwd_op_rejects_mismatched_grad():
-    x = torch.ones(4, 3)
-    with pytest.raises(RuntimeError, match="grad_out"):
-        torch.ops.mixer_nerf.positional_encoding_bwd(torch.ones(4, 8), x, 1, True, 1.0)
+    """The kernel's defensive shape check raises. Run in a subprocess: on the GPU machine (torch
+    2.11) an exception thrown from the kernel crashed the interpreter; isolated, that shows up as
+    this test failing instead of ending the whole run."""
+    code = (
+        "import torch\nfrom mixer_nerf import _extension\n_extension.load()\n"
+        "try:\n    torch.ops.mixer_nerf.positional_encoding_bwd(torch.ones(4, 8), torch.ones(4, 3), 1, True, 1.0)\n"
+        "except RuntimeError as exc:\n    print('raised' if 'grad_out' in str(exc) else exc)\n"
+    )
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0 and "raised" in result.stdout, result.stderr[-2000:]
 
 
 # --------------------------------------------------------------------------------------- CUDA
@@ -302,7 +311,8 @@ def test_cuda_matches_cpu_and_truth(shape, num_freqs, include_input, dtype, gen)
             # FMA contraction and the output rounding, a few ulps of the terms' magnitude.
             err = (gx.double().cpu() - gx_cpu.double()).abs()
             eps = 2 * (HALF_ULP[torch.float64 if dtype == torch.float64 else torch.float32])
-            assert bool((err <= 8 * eps * magnitude + 2 * HALF_ULP[dtype] * gx_cpu.double().abs()).all())
+            # (an ulp of the output is up to 4 HALF_ULP of its magnitude, at the bottom of a binade)
+            assert bool((err <= 8 * eps * magnitude + 4 * HALF_ULP[dtype] * gx_cpu.double().abs()).all())
         if dtype == torch.float32 and num_freqs <= 4:
             _, gx_ref = cuda_forward_backward(xc, num_freqs, include_input, scale, "torch", gc)
             # The reference's phases are off by ~|θ| 2^-24 <= 1e-5 here, times scale 2^k <= 25.
