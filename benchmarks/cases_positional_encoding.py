@@ -45,8 +45,9 @@ def encoding_cases(points: int, magnitude: float, device: torch.device) -> list[
         return positional_encoding_reference(x.double(), FREQS, True, math.pi)
 
     def truth_both():
-        return forward_and_grad(lambda t: positional_encoding_reference(t, FREQS, True, math.pi), x.double(),
-                                grad.double())
+        return forward_and_grad(
+            lambda t: positional_encoding_reference(t, FREQS, True, math.pi), x.double(), grad.double()
+        )
 
     def no_grad(fn):
         def run():
@@ -59,11 +60,22 @@ def encoding_cases(points: int, magnitude: float, device: torch.device) -> list[
     fwd_bytes = points * (DIMS + WIDTH) * item
     size = f"N={points} D={DIMS} F={FREQS} |x|<={magnitude:g}"
     return [
-        Case("positional_encoding", "fwd", size, [Variant(n, no_grad(f)) for n, f in impls.items()],
-             truth_forward, fwd_bytes),
-        Case("positional_encoding", "fwd+bwd", size,
-             [Variant(n, lambda f=f: forward_and_grad(f, x, grad)) for n, f in impls.items()],
-             truth_both, fwd_bytes + points * (WIDTH + 2 * DIMS) * item),
+        Case(
+            "positional_encoding",
+            "fwd",
+            size,
+            [Variant(n, no_grad(f)) for n, f in impls.items()],
+            truth_forward,
+            fwd_bytes,
+        ),
+        Case(
+            "positional_encoding",
+            "fwd+bwd",
+            size,
+            [Variant(n, lambda f=f: forward_and_grad(f, x, grad)) for n, f in impls.items()],
+            truth_both,
+            fwd_bytes + points * (WIDTH + 2 * DIMS) * item,
+        ),
     ]
 
 

@@ -24,7 +24,12 @@ needs_kernels = pytest.mark.skipif(not _extension.available(), reason="mixer_ner
 on_cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU")
 
 SCALES = (math.pi, 1.0, 0.7)
-HALF_ULP = {torch.float32: 2.0**-25, torch.float16: 2.0**-12, torch.bfloat16: 2.0**-9, torch.float64: 2.0**-54}
+HALF_ULP = {
+    torch.float32: 2.0**-25,
+    torch.float16: 2.0**-12,
+    torch.bfloat16: 2.0**-9,
+    torch.float64: 2.0**-54,
+}
 
 
 @pytest.fixture
@@ -81,7 +86,9 @@ def assert_within_bound(out, x, num_freqs, include_input, scale):
     truth_err = 2.0**-53 * angles if (x.dtype == torch.float64 and scale != math.pi) else 0.0
     excess = err - bound(angles, out.dtype, scale) - truth_err
     assert out.shape == want.shape
-    assert bool((excess <= 0).all()), f"max error {err.max().item():.3e}, max excess {excess.max().item():.3e}"
+    assert bool((excess <= 0).all()), (
+        f"max error {err.max().item():.3e}, max excess {excess.max().item():.3e}"
+    )
     return err
 
 
@@ -161,7 +168,9 @@ def test_non_contiguous_input(gen):
 @pytest.mark.parametrize("scale", [math.pi, 1.0])
 def test_gradcheck_float64(include_input, scale, gen):
     x = uniform((6, 3), 1.5, gen, torch.float64).requires_grad_()
-    assert torch.autograd.gradcheck(lambda t: positional_encoding(t, 4, include_input, scale, backend="kernel"), (x,))
+    assert torch.autograd.gradcheck(
+        lambda t: positional_encoding(t, 4, include_input, scale, backend="kernel"), (x,)
+    )
 
 
 def gradient_magnitude(grad, num_freqs, include_input, scale):
@@ -275,8 +284,17 @@ def cuda_forward_backward(x, num_freqs, include_input, scale, backend, grad):
 @needs_kernels
 @pytest.mark.parametrize(
     "shape, num_freqs, include_input",
-    [((1, 3), 10, True), ((31, 3), 4, False), ((1000, 1), 16, True), ((257, 5), 0, True), ((0, 3), 3, True),
-     ((3, 7, 3), 10, True), ((40, 200), 3, True), ((9, 3), MAX_FREQS, False), ((4, 2000), 8, True)],
+    [
+        ((1, 3), 10, True),
+        ((31, 3), 4, False),
+        ((1000, 1), 16, True),
+        ((257, 5), 0, True),
+        ((0, 3), 3, True),
+        ((3, 7, 3), 10, True),
+        ((40, 200), 3, True),
+        ((9, 3), MAX_FREQS, False),
+        ((4, 2000), 8, True),
+    ],
 )
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64, torch.float16, torch.bfloat16])
 def test_cuda_matches_cpu_and_truth(shape, num_freqs, include_input, dtype, gen):
@@ -296,7 +314,9 @@ def test_cuda_matches_cpu_and_truth(shape, num_freqs, include_input, dtype, gen)
         # two agree to the output's rounding (float64 x: plus their shared phase rounding bound).
         _, angles = truth(x, num_freqs, include_input, scale)
         phase = 2.0**-52 * angles if dtype == torch.float64 else 0.0
-        assert bool(((out.cpu().double() - out_cpu.double()).abs() <= 2 * HALF_ULP[dtype] + 1e-15 + phase).all())
+        assert bool(
+            ((out.cpu().double() - out_cpu.double()).abs() <= 2 * HALF_ULP[dtype] + 1e-15 + phase).all()
+        )
 
         xr = xc.clone().requires_grad_()
         encoded = positional_encoding(xr, num_freqs, include_input, scale, backend="kernel")
