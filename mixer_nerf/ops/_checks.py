@@ -84,3 +84,20 @@ def check_int(name: str, value: object, minimum: int = 0) -> int:
     if value < minimum:
         raise ValueError(f"{name} must be >= {minimum}, got {value}")
     return value
+
+
+def check_offsets(name: str, offsets: torch.Tensor, num_items: int, check_values: bool = True) -> int:
+    """CSR offsets (R+1,) int64 over ``num_items`` rows: returns R. With ``check_values``, also
+    offsets[0] == 0, offsets[-1] == num_items and non-decreasing (on a GPU: a host sync)."""
+    check_tensor(name, offsets)
+    if offsets.dtype != torch.int64:
+        raise TypeError(f"{name} must be an int64 tensor, got dtype {offsets.dtype}")
+    if offsets.dim() != 1 or offsets.numel() < 1:
+        raise ValueError(f"{name} must have shape (R+1,) with R >= 0, got {tuple(offsets.shape)}")
+    if check_values:
+        first, last = offsets[[0, -1]].tolist()
+        if first != 0 or last != num_items:
+            raise ValueError(f"{name} must start at 0 and end at {num_items} (the number of rows), got {first} .. {last}")
+        if bool((offsets[1:] < offsets[:-1]).any()):
+            raise ValueError(f"{name} must be non-decreasing")
+    return offsets.numel() - 1
