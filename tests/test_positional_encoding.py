@@ -251,7 +251,8 @@ def test_bwd_op_rejects_mismatched_grad():
     this test failing instead of ending the whole run."""
     code = (
         "import torch\nfrom mixer_nerf import _extension\n_extension.load()\n"
-        "try:\n    torch.ops.mixer_nerf.positional_encoding_bwd(torch.ones(4, 8), torch.ones(4, 3), 1, True, 1.0)\n"
+        "try:\n"
+        "    torch.ops.mixer_nerf.positional_encoding_bwd(torch.ones(4, 8), torch.ones(4, 3), 1, True, 1.0)\n"
         "except RuntimeError as exc:\n    print('raised' if 'grad_out' in str(exc) else exc)\n"
     )
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
