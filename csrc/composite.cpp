@@ -1,4 +1,5 @@
-// composite (volume rendering) on the CPU: one sequential scan per ray, rays in parallel.
+// composite and composite_packed (volume rendering) on the CPU: one sequential scan per ray, rays
+// in parallel. A ray is a span of samples (composite.h), so both layouts run the same scans.
 //
 // Per sample: tau = sigma * (t_end - t_start), E_i = sum_{j<i} tau_j, T_i = exp(-E_i),
 // alpha_i = -expm1(-tau_i), w_i = T_i * alpha_i. T is exp of an exclusive sum (never a product
@@ -24,36 +25,10 @@
 #include <vector>
 
 #include "common.h"
+#include "composite.h"
 
 namespace mixer_nerf {
 namespace {
-
-// Inputs of a batch of rays. A ray's samples are `count` consecutive rows from `offset`, so the
-// same per-ray scans serve the padded (R, S) layout and a packed (ragged) one.
-template <typename scalar_t>
-struct CompositeInputs {
-  const scalar_t* sigmas;      // (N)
-  const scalar_t* rgbs;        // (N, C)
-  const scalar_t* t_starts;    // (N)
-  const scalar_t* t_ends;      // (N)
-  const scalar_t* background;  // nullptr, or row r at background + r * background_stride
-  int64_t background_stride;   // 0 for one background (C), C for one per ray (R, C)
-  int64_t channels;
-};
-
-// Upstream gradients; a nullptr stands for zeros. grad_t_* are nullptr when not wanted.
-template <typename scalar_t>
-struct CompositeGrads {
-  const scalar_t* color;    // (R, C)
-  const scalar_t* depth;    // (R)
-  const scalar_t* opacity;  // (R)
-  const scalar_t* weights;  // (N)
-  scalar_t* sigmas;         // (N)
-  scalar_t* rgbs;           // (N, C)
-  scalar_t* t_starts;       // (N) or nullptr
-  scalar_t* t_ends;         // (N) or nullptr
-  acc_t<scalar_t>* background_rows;  // (R, C) per-ray background gradient, or nullptr
-};
 
 template <typename scalar_t>
 struct Sample {
@@ -92,8 +67,8 @@ void composite_forward_ray(const CompositeInputs<scalar_t>& in, int64_t ray, int
 }
 
 // Backward of one ray: a forward pass records T_{i+1} in `transmittance_after` (caller scratch
-// of `count` entries; a reverse pass cannot rebuild it without subtracting sums), then one
-// reverse pass carries G (see the file comment).
+// of at least `count` entries; a reverse pass cannot rebuild it without subtracting sums), then
+// one reverse pass carries G (see the file comment).
 template <typename scalar_t>
 void composite_backward_ray(const CompositeInputs<scalar_t>& in, const CompositeGrads<scalar_t>& g, int64_t ray,
                             int64_t offset, int64_t count, acc_t<scalar_t>* transmittance_after) {
@@ -141,116 +116,96 @@ void composite_backward_ray(const CompositeInputs<scalar_t>& in, const Composite
   }
 }
 
-void check_inputs(const at::Tensor& sigmas, const at::Tensor& rgbs, const at::Tensor& t_starts,
-                  const at::Tensor& t_ends, const std::optional<at::Tensor>& background) {
-  MIXER_NERF_CHECK_INPUT(sigmas, at::kCPU);
-  MIXER_NERF_CHECK_INPUT(rgbs, at::kCPU);
-  MIXER_NERF_CHECK_INPUT(t_starts, at::kCPU);
-  MIXER_NERF_CHECK_INPUT(t_ends, at::kCPU);
-  TORCH_CHECK(sigmas.dim() == 2 && rgbs.dim() == 3, "composite: sigmas (R, S) and rgbs (R, S, C) expected");
-  TORCH_CHECK(rgbs.size(0) == sigmas.size(0) && rgbs.size(1) == sigmas.size(1), "composite: rgbs/sigmas mismatch");
-  TORCH_CHECK(t_starts.sizes() == sigmas.sizes() && t_ends.sizes() == sigmas.sizes(),
-              "composite: t_starts/t_ends must match sigmas");
-  if (background) {
-    MIXER_NERF_CHECK_INPUT(*background, at::kCPU);
-    const bool shared = background->dim() == 1 && background->size(0) == rgbs.size(2);
-    const bool per_ray = background->dim() == 2 && background->size(0) == rgbs.size(0) &&
-                         background->size(1) == rgbs.size(2);
-    TORCH_CHECK(shared || per_ray, "composite: background must be (C) or (R, C)");
-  }
+using composite_layout::DenseRays;
+using composite_layout::PackedRays;
+
+int64_t ray_grain(int64_t samples, int64_t rays) {
+  return std::max<int64_t>(1, 4096 * std::max<int64_t>(1, rays) / std::max<int64_t>(1, samples));
 }
 
-template <typename scalar_t>
-CompositeInputs<scalar_t> inputs_of(const at::Tensor& sigmas, const at::Tensor& rgbs, const at::Tensor& t_starts,
-                                    const at::Tensor& t_ends, const std::optional<at::Tensor>& background) {
-  const bool per_ray = background && background->dim() == 2;
-  return {sigmas.const_data_ptr<scalar_t>(),
-          rgbs.const_data_ptr<scalar_t>(),
-          t_starts.const_data_ptr<scalar_t>(),
-          t_ends.const_data_ptr<scalar_t>(),
-          background ? background->const_data_ptr<scalar_t>() : nullptr,
-          per_ray ? rgbs.size(2) : 0,
-          rgbs.size(2)};
-}
-
-int64_t ray_grain(int64_t samples_per_ray) { return std::max<int64_t>(1, 4096 / std::max<int64_t>(1, samples_per_ray)); }
-
-std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> composite_fwd_cpu(
+template <typename Rays>
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> composite_forward(
     const at::Tensor& sigmas, const at::Tensor& rgbs, const at::Tensor& t_starts, const at::Tensor& t_ends,
-    const std::optional<at::Tensor>& background) {
-  check_inputs(sigmas, rgbs, t_starts, t_ends, background);
-  const int64_t R = sigmas.size(0), S = sigmas.size(1), C = rgbs.size(2);
-  at::Tensor color = at::empty({R, C}, sigmas.options());
-  at::Tensor depth = at::empty({R}, sigmas.options());
-  at::Tensor opacity = at::empty({R}, sigmas.options());
-  at::Tensor weights = at::empty({R, S}, sigmas.options());
+    const std::optional<at::Tensor>& background, int64_t R, Rays rays) {
+  auto outputs = empty_outputs(sigmas, rgbs, R);
+  auto& [color, depth, opacity, weights] = outputs;
+  const int64_t C = rgbs.size(-1);
   MIXER_NERF_DISPATCH_FLOATING(sigmas.scalar_type(), "composite_fwd_cpu", [&] {
     const auto in = inputs_of<scalar_t>(sigmas, rgbs, t_starts, t_ends, background);
-    at::parallel_for(0, R, ray_grain(S), [&](int64_t begin, int64_t end) {
+    at::parallel_for(0, R, ray_grain(sigmas.numel(), R), [&](int64_t begin, int64_t end) {
       std::vector<acc_t<scalar_t>> color_acc(C);
       for (int64_t r = begin; r < end; ++r) {
-        composite_forward_ray(in, r, r * S, S, color_acc.data(), color.data_ptr<scalar_t>(),
+        const composite_layout::RaySpan span = rays(r);
+        composite_forward_ray(in, r, span.offset, span.count, color_acc.data(), color.data_ptr<scalar_t>(),
                               depth.data_ptr<scalar_t>(), opacity.data_ptr<scalar_t>(), weights.data_ptr<scalar_t>());
       }
     });
   });
-  return {color, depth, opacity, weights};
+  return outputs;
 }
 
-const void* data_or_null(const std::optional<at::Tensor>& t) { return t ? t->const_data_ptr() : nullptr; }
+template <typename Rays>
+std::tuple<at::Tensor, at::Tensor, std::optional<at::Tensor>, std::optional<at::Tensor>, std::optional<at::Tensor>>
+composite_backward(const std::optional<at::Tensor>& grad_color, const std::optional<at::Tensor>& grad_depth,
+                   const std::optional<at::Tensor>& grad_opacity, const std::optional<at::Tensor>& grad_weights,
+                   const at::Tensor& sigmas, const at::Tensor& rgbs, const at::Tensor& t_starts,
+                   const at::Tensor& t_ends, const std::optional<at::Tensor>& background, bool interval_grads,
+                   int64_t R, Rays rays) {
+  check_upstream(grad_color, grad_depth, grad_opacity, grad_weights, sigmas, rgbs, R, at::kCPU);
+  CompositeGradTensors grads(sigmas, rgbs, background, R, interval_grads);
+  MIXER_NERF_DISPATCH_FLOATING(sigmas.scalar_type(), "composite_bwd_cpu", [&] {
+    const auto in = inputs_of<scalar_t>(sigmas, rgbs, t_starts, t_ends, background);
+    const auto g = grads.pointers<scalar_t>(grad_color, grad_depth, grad_opacity, grad_weights);
+    at::parallel_for(0, R, ray_grain(sigmas.numel(), R), [&](int64_t begin, int64_t end) {
+      std::vector<acc_t<scalar_t>> transmittance_after;
+      for (int64_t r = begin; r < end; ++r) {
+        const composite_layout::RaySpan span = rays(r);
+        if (static_cast<int64_t>(transmittance_after.size()) < span.count) transmittance_after.resize(span.count);
+        composite_backward_ray(in, g, r, span.offset, span.count, transmittance_after.data());
+      }
+    });
+  });
+  return grads.finish(background);
+}
+
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> composite_fwd_cpu(
+    const at::Tensor& sigmas, const at::Tensor& rgbs, const at::Tensor& t_starts, const at::Tensor& t_ends,
+    const std::optional<at::Tensor>& background) {
+  check_dense(sigmas);
+  check_composite_inputs(sigmas, rgbs, t_starts, t_ends, background, sigmas.size(0), at::kCPU);
+  return composite_forward(sigmas, rgbs, t_starts, t_ends, background, sigmas.size(0), DenseRays{sigmas.size(1)});
+}
 
 std::tuple<at::Tensor, at::Tensor, std::optional<at::Tensor>, std::optional<at::Tensor>, std::optional<at::Tensor>>
 composite_bwd_cpu(const std::optional<at::Tensor>& grad_color, const std::optional<at::Tensor>& grad_depth,
                   const std::optional<at::Tensor>& grad_opacity, const std::optional<at::Tensor>& grad_weights,
                   const at::Tensor& sigmas, const at::Tensor& rgbs, const at::Tensor& t_starts,
                   const at::Tensor& t_ends, const std::optional<at::Tensor>& background, bool interval_grads) {
-  check_inputs(sigmas, rgbs, t_starts, t_ends, background);
-  const int64_t R = sigmas.size(0), S = sigmas.size(1), C = rgbs.size(2);
-  for (const auto* grad : {&grad_color, &grad_depth, &grad_opacity, &grad_weights}) {
-    if (*grad) {
-      const at::Tensor& upstream = **grad;
-      MIXER_NERF_CHECK_INPUT(upstream, at::kCPU);
-      TORCH_CHECK(upstream.scalar_type() == sigmas.scalar_type(), "composite_bwd: gradient dtype mismatch");
-    }
-  }
-  TORCH_CHECK(!grad_color || grad_color->sizes() == at::IntArrayRef({R, C}), "grad_color must be (R, C)");
-  TORCH_CHECK(!grad_depth || grad_depth->sizes() == at::IntArrayRef({R}), "grad_depth must be (R)");
-  TORCH_CHECK(!grad_opacity || grad_opacity->sizes() == at::IntArrayRef({R}), "grad_opacity must be (R)");
-  TORCH_CHECK(!grad_weights || grad_weights->sizes() == sigmas.sizes(), "grad_weights must be (R, S)");
+  check_dense(sigmas);
+  check_composite_inputs(sigmas, rgbs, t_starts, t_ends, background, sigmas.size(0), at::kCPU);
+  return composite_backward(grad_color, grad_depth, grad_opacity, grad_weights, sigmas, rgbs, t_starts, t_ends,
+                            background, interval_grads, sigmas.size(0), DenseRays{sigmas.size(1)});
+}
 
-  at::Tensor grad_sigmas = at::empty_like(sigmas);
-  at::Tensor grad_rgbs = at::empty_like(rgbs);
-  std::optional<at::Tensor> grad_t_starts, grad_t_ends, grad_background;
-  if (interval_grads) {
-    grad_t_starts = at::empty_like(t_starts);
-    grad_t_ends = at::empty_like(t_ends);
-  }
-  const at::ScalarType acc_type = at::toOpMathType(sigmas.scalar_type());
-  at::Tensor background_rows;
-  if (background) background_rows = at::empty({R, C}, sigmas.options().dtype(acc_type));
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> composite_packed_fwd_cpu(
+    const at::Tensor& sigmas, const at::Tensor& rgbs, const at::Tensor& t_starts, const at::Tensor& t_ends,
+    const std::optional<at::Tensor>& background, const at::Tensor& offsets) {
+  const int64_t R = check_packed(sigmas, offsets, at::kCPU);
+  check_composite_inputs(sigmas, rgbs, t_starts, t_ends, background, R, at::kCPU);
+  return composite_forward(sigmas, rgbs, t_starts, t_ends, background, R,
+                           PackedRays{offsets.const_data_ptr<int64_t>(), sigmas.size(0)});
+}
 
-  MIXER_NERF_DISPATCH_FLOATING(sigmas.scalar_type(), "composite_bwd_cpu", [&] {
-    using acc = acc_t<scalar_t>;
-    const auto in = inputs_of<scalar_t>(sigmas, rgbs, t_starts, t_ends, background);
-    const CompositeGrads<scalar_t> g{
-        static_cast<const scalar_t*>(data_or_null(grad_color)),
-        static_cast<const scalar_t*>(data_or_null(grad_depth)),
-        static_cast<const scalar_t*>(data_or_null(grad_opacity)),
-        static_cast<const scalar_t*>(data_or_null(grad_weights)),
-        grad_sigmas.data_ptr<scalar_t>(),
-        grad_rgbs.data_ptr<scalar_t>(),
-        interval_grads ? grad_t_starts->data_ptr<scalar_t>() : nullptr,
-        interval_grads ? grad_t_ends->data_ptr<scalar_t>() : nullptr,
-        background ? background_rows.data_ptr<acc>() : nullptr};
-    at::parallel_for(0, R, ray_grain(S), [&](int64_t begin, int64_t end) {
-      std::vector<acc> transmittance_after(S);
-      for (int64_t r = begin; r < end; ++r) composite_backward_ray(in, g, r, r * S, S, transmittance_after.data());
-    });
-  });
-  if (background) {
-    grad_background = (background->dim() == 1 ? background_rows.sum(0) : background_rows).to(sigmas.scalar_type());
-  }
-  return {grad_sigmas, grad_rgbs, grad_t_starts, grad_t_ends, grad_background};
+std::tuple<at::Tensor, at::Tensor, std::optional<at::Tensor>, std::optional<at::Tensor>, std::optional<at::Tensor>>
+composite_packed_bwd_cpu(const std::optional<at::Tensor>& grad_color, const std::optional<at::Tensor>& grad_depth,
+                         const std::optional<at::Tensor>& grad_opacity, const std::optional<at::Tensor>& grad_weights,
+                         const at::Tensor& sigmas, const at::Tensor& rgbs, const at::Tensor& t_starts,
+                         const at::Tensor& t_ends, const std::optional<at::Tensor>& background,
+                         const at::Tensor& offsets, bool interval_grads) {
+  const int64_t R = check_packed(sigmas, offsets, at::kCPU);
+  check_composite_inputs(sigmas, rgbs, t_starts, t_ends, background, R, at::kCPU);
+  return composite_backward(grad_color, grad_depth, grad_opacity, grad_weights, sigmas, rgbs, t_starts, t_ends,
+                            background, interval_grads, R, PackedRays{offsets.const_data_ptr<int64_t>(), sigmas.size(0)});
 }
 
 }  // namespace
@@ -258,6 +213,8 @@ composite_bwd_cpu(const std::optional<at::Tensor>& grad_color, const std::option
 TORCH_LIBRARY_IMPL(mixer_nerf, CPU, m) {
   m.impl("composite_fwd", &composite_fwd_cpu);
   m.impl("composite_bwd", &composite_bwd_cpu);
+  m.impl("composite_packed_fwd", &composite_packed_fwd_cpu);
+  m.impl("composite_packed_bwd", &composite_packed_bwd_cpu);
 }
 
 }  // namespace mixer_nerf

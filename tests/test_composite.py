@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from mixer_nerf import _extension
-from mixer_nerf.ops.composite import composite
+from mixer_nerf.ops.composite import composite, composite_packed
 from mixer_nerf.ops.composite_reference import composite_reference
 
 needs_kernels = pytest.mark.skipif(not _extension.available(), reason="mixer_nerf kernels not built")
@@ -47,37 +47,39 @@ def with_grad(inputs):
     return [None if t is None else t.detach().clone().requires_grad_() for t in inputs]
 
 
-def run(inputs, upstream, **kwargs):
-    """Outputs and gradients of sum(output * upstream) w.r.t. every input (None where absent)."""
+def run(inputs, upstream, fn=composite, **kwargs):
+    """Outputs and gradients of sum(output * upstream) w.r.t. every input (None where absent);
+    ``fn(sigmas, rgbs, t_starts, t_ends, background, **kwargs)`` is composite or a packed one."""
     inputs = with_grad(inputs)
-    out = composite(*inputs, **kwargs)
+    out = fn(*inputs, **kwargs)
     present = [t for t in inputs if t is not None]
-    loss = sum((o * u).sum() for o, u in zip(out, upstream) if u is not None)
+    loss = sum((o * u).sum() for o, u in zip(out, upstream, strict=False) if u is not None)
     grads = iter(torch.autograd.grad(loss, present, allow_unused=True, materialize_grads=True))
     return list(out), [None if t is None else next(grads) for t in inputs]
 
 
-def truth(inputs, upstream):
+def truth(inputs, upstream, fn=composite):
     """The float64 reference on CPU."""
     inputs64 = [None if t is None else t.detach().to("cpu", torch.float64) for t in inputs]
     upstream64 = [None if u is None else u.to("cpu", torch.float64) for u in upstream]
-    return run(inputs64, upstream64, backend="torch")
+    return run(inputs64, upstream64, fn, backend="torch")
 
 
-def random_upstream(inputs, gen, which=(True, True, True, True)):
+def random_upstream(inputs, gen, which=(True, True, True, True), num_rays=None):
+    """Upstream gradients of color, depth, opacity, weights; ``num_rays`` for packed inputs."""
     sigmas, rgbs = inputs[0], inputs[1]
-    R, S, C = rgbs.shape
-    shapes = [(R, C), (R,), (R,), (R, S)]
+    R = rgbs.shape[0] if num_rays is None else num_rays
+    shapes = [(R, rgbs.shape[-1]), (R,), (R,), tuple(sigmas.shape)]
     return [
         torch.randn(*s, generator=gen, dtype=torch.float64).to(sigmas.device, sigmas.dtype) if use else None
-        for s, use in zip(shapes, which)
+        for s, use in zip(shapes, which, strict=False)
     ]
 
 
 def assert_close(got, want, rel, what=""):
     """max |got - want| <= rel * max |want| (per tensor), and got finite; truths below the
     smallest normal number of got's dtype (e.g. a 1e-69 gradient in float32) count as 0."""
-    for i, (g, w) in enumerate(zip(got, want)):
+    for i, (g, w) in enumerate(zip(got, want, strict=False)):
         if w is None:
             assert g is None or not g.abs().any(), f"{what}[{i}]: expected no gradient"
             continue
@@ -90,7 +92,17 @@ def assert_close(got, want, rel, what=""):
             assert err <= rel * scale + tiny, f"{what}[{i}]: max err {err:.3e} vs scale {scale:.3e}"
 
 
-SHAPES = [(1, 1, 1), (1, 7, 3), (6, 1, 3), (0, 5, 3), (4, 0, 3), (13, 64, 3), (5, 33, 1), (3, 40, 4), (2, 9, 7)]
+SHAPES = [
+    (1, 1, 1),
+    (1, 7, 3),
+    (6, 1, 3),
+    (0, 5, 3),
+    (4, 0, 3),
+    (13, 64, 3),
+    (5, 33, 1),
+    (3, 40, 4),
+    (2, 9, 7),
+]
 BACKGROUNDS = ["none", "shared", "per_ray"]
 
 
@@ -128,8 +140,15 @@ def test_cpu_gradcheck(gen, background):
 
 
 @needs_kernels
-@pytest.mark.parametrize("which", [(True, False, False, False), (False, True, False, False),
-                                   (False, False, True, False), (False, False, False, True)])
+@pytest.mark.parametrize(
+    "which",
+    [
+        (True, False, False, False),
+        (False, True, False, False),
+        (False, False, True, False),
+        (False, False, False, True),
+    ],
+)
 def test_cpu_loss_on_one_output(gen, which):
     """Unused outputs reach the backward as None (no zero tensors); each alone must be right."""
     inputs = make_inputs(4, 11, 3, gen, "shared")
@@ -144,7 +163,8 @@ def test_cpu_interval_grads_skipped_when_not_needed(gen):
     upstream = random_upstream(inputs, gen)
     sigmas, rgbs, t_starts, t_ends, bg = with_grad(inputs)
     out = composite(sigmas, rgbs, t_starts.detach(), t_ends.detach(), bg, backend="kernel")
-    grads = torch.autograd.grad(sum((o * u).sum() for o, u in zip(out, upstream)), [sigmas, rgbs, bg])
+    loss = sum((o * u).sum() for o, u in zip(out, upstream, strict=True))
+    grads = torch.autograd.grad(loss, [sigmas, rgbs, bg])
     want = truth(inputs, upstream)[1]
     assert_close(list(grads), [want[0], want[1], want[4]], F64_REL, "grads")
 
@@ -192,6 +212,17 @@ def adversarial_inputs(gen, C, dtype=torch.float32, device="cpu"):
     return [t.to(dtype).contiguous().to(device) for t in tensors]
 
 
+def assert_each_element_close(grads, want_grads):
+    """Gradients span ~1e18 (1e10-long intervals): judge every element on its own scale, i.e.
+    relative to the float64 truth, not only the largest one."""
+    for got, want, name in zip(
+        grads, want_grads, ["sigmas", "rgbs", "t_starts", "t_ends", "background"], strict=True
+    ):
+        assert torch.isfinite(got).all(), name
+        err = (got.double().cpu() - want).abs()
+        assert (err <= 1e-3 * want.abs() + 1e-6).all(), f"{name}: worst {err.max().item():.3e}"
+
+
 @needs_kernels
 @pytest.mark.parametrize("C", [1, 3])
 def test_cpu_adversarial_values(gen, C):
@@ -200,12 +231,7 @@ def test_cpu_adversarial_values(gen, C):
     want_out, want_grads = truth(inputs, upstream)
     out, grads = run(inputs, upstream, backend="kernel")
     assert_close(out, want_out, F32_REL, "outputs")
-    # Gradients span ~1e18 (1e10-long intervals): judge every element on its own scale, i.e.
-    # relative to the float64 truth, not only the largest one.
-    for got, want, name in zip(grads, want_grads, ["sigmas", "rgbs", "t_starts", "t_ends", "background"]):
-        assert torch.isfinite(got).all(), name
-        err = (got.double() - want).abs()
-        assert (err <= 1e-3 * want.abs() + 1e-6).all(), f"{name}: worst {err.max().item():.3e}"
+    assert_each_element_close(grads, want_grads)
 
 
 @needs_kernels
@@ -294,8 +320,11 @@ def test_check_values_false_skips_value_checks():
 def op_samples(gen, device="cpu"):
     """(fwd args, bwd args) for opcheck: every optional present and absent at least once."""
     samples = []
-    for background, which, interval in [("none", (True,) * 4, True), ("shared", (True, False, True, False), False),
-                                        ("per_ray", (False, True, False, True), True)]:
+    for background, which, interval in [
+        ("none", (True,) * 4, True),
+        ("shared", (True, False, True, False), False),
+        ("per_ray", (False, True, False, True), True),
+    ]:
         inputs = make_inputs(3, 6, 3, gen, background, dtype=torch.float32, device=device)
         upstream = random_upstream(inputs, gen, which)
         samples.append((inputs, [*upstream, *inputs, interval]))
@@ -322,8 +351,12 @@ def poison_allocator(shapes_and_dtypes, copies=2):
     write stays NaN and fails the finiteness checks. The mechanism itself is asserted."""
     torch.cuda.synchronize()
     torch.cuda.empty_cache()
-    blocks = [torch.full(shape, float("nan"), dtype=dtype, device="cuda")
-              for shape, dtype in shapes_and_dtypes for _ in range(copies) if torch.Size(shape).numel()]
+    blocks = [
+        torch.full(shape, float("nan"), dtype=dtype, device="cuda")
+        for shape, dtype in shapes_and_dtypes
+        for _ in range(copies)
+        if torch.Size(shape).numel()
+    ]
     if not blocks:
         return
     probe_shape, probe_dtype = blocks[0].shape, blocks[0].dtype
@@ -332,17 +365,17 @@ def poison_allocator(shapes_and_dtypes, copies=2):
     assert torch.isnan(probe).all(), "poisoning did not reach the allocator"
 
 
-def check_cuda(gen, inputs, rel=F32_REL):
+def check_cuda(gen, inputs, rel=F32_REL, fn=composite, num_rays=None):
     """CUDA kernel vs CPU kernel vs float64 reference, forward and every gradient, outputs poisoned."""
-    upstream = random_upstream(inputs, gen)
-    cpu_out, cpu_grads = run(inputs, upstream, backend="kernel")
-    want_out, want_grads = truth(inputs, upstream)
+    upstream = random_upstream(inputs, gen, num_rays=num_rays)
+    cpu_out, cpu_grads = run(inputs, upstream, fn, backend="kernel")
+    want_out, want_grads = truth(inputs, upstream, fn)
 
     leaves = with_grad([None if t is None else t.cuda() for t in inputs])
     present = [t for t in leaves if t is not None]
     up_cuda = [u.cuda() for u in upstream]
     poison_allocator([(o.shape, o.dtype) for o in cpu_out] + [(t.shape, t.dtype) for t in present])
-    out = composite(*leaves, backend="kernel", check_values=False)  # no value-check temporaries
+    out = fn(*leaves, backend="kernel", check_values=False)  # no value-check temporaries
     grads = iter(torch.autograd.grad(out, present, up_cuda))
     grads = [None if t is None else next(grads) for t in leaves]
     for got, want, what in ((out, want_out, "outputs"), (grads, want_grads, "grads")):
@@ -356,8 +389,19 @@ def check_cuda(gen, inputs, rel=F32_REL):
 @needs_kernels
 @pytest.mark.parametrize(
     "R, S, C",
-    [(1, 1, 3), (1, 192, 3), (7, 31, 3), (5, 33, 1), (3, 64, 3), (9, 100, 4), (4, 45, 7), (2, 1000, 3),
-     (0, 8, 3), (5, 0, 3), (70_000, 37, 3)],
+    [
+        (1, 1, 3),
+        (1, 192, 3),
+        (7, 31, 3),
+        (5, 33, 1),
+        (3, 64, 3),
+        (9, 100, 4),
+        (4, 45, 7),
+        (2, 1000, 3),
+        (0, 8, 3),
+        (5, 0, 3),
+        (70_000, 37, 3),
+    ],
 )
 @pytest.mark.parametrize("background", BACKGROUNDS)
 def test_cuda_matches_cpu_and_reference(gen, R, S, C, background):
@@ -374,9 +418,7 @@ def test_cuda_adversarial_values(gen, C):
     want_grads = truth(inputs, upstream)[1]
     out, grads = run([t.cuda() for t in inputs], [u.cuda() for u in upstream], backend="kernel")
     assert all(torch.isfinite(o).all() for o in out)
-    for got, want, name in zip(grads, want_grads, ["sigmas", "rgbs", "t_starts", "t_ends", "background"]):
-        err = (got.double().cpu() - want).abs()
-        assert (err <= 1e-3 * want.abs() + 1e-6).all(), f"{name}: worst {err.max().item():.3e}"
+    assert_each_element_close(grads, want_grads)
 
 
 @pytest.mark.cuda
@@ -384,7 +426,9 @@ def test_cuda_adversarial_values(gen, C):
 @needs_kernels
 def test_cuda_float64_gradcheck(gen):
     inputs = with_grad(make_inputs(3, 40, 3, gen, "per_ray", device="cuda"))
-    assert torch.autograd.gradcheck(lambda *a: tuple(composite(*a, backend="kernel", check_values=False)), inputs)
+    assert torch.autograd.gradcheck(
+        lambda *a: tuple(composite(*a, backend="kernel", check_values=False)), inputs
+    )
 
 
 @pytest.mark.cuda
@@ -408,3 +452,334 @@ def test_opcheck_cuda(gen):
     for fwd_args, bwd_args in op_samples(gen, device="cuda"):
         torch.library.opcheck(torch.ops.mixer_nerf.composite_fwd.default, fwd_args)
         torch.library.opcheck(torch.ops.mixer_nerf.composite_bwd.default, bwd_args)
+
+
+# ---------------------------------------------------------------------------------------------
+# Packed (ragged) rays: composite_packed
+
+
+def pack(inputs, counts):
+    """Padded (R, S) inputs -> packed (N,) inputs keeping the first counts[r] samples of ray r,
+    and the offsets (R+1,)."""
+    sigmas = inputs[0]
+    keep = torch.arange(sigmas.shape[1], device=sigmas.device) < counts.to(sigmas.device)[:, None]
+    packed = [t[keep].contiguous() for t in inputs[:4]]
+    offsets = torch.nn.functional.pad(counts.cumsum(0), (1, 0)).to(sigmas.device)
+    return [*packed, inputs[4]], offsets
+
+
+def packed_fn(offsets):
+    """composite_packed with the signature of composite (offsets follow the inputs' device)."""
+
+    def fn(sigmas, rgbs, t_starts, t_ends, background, **kwargs):
+        return composite_packed(
+            sigmas, rgbs, t_starts, t_ends, offsets.to(sigmas.device), background, **kwargs
+        )
+
+    return fn
+
+
+def make_packed(counts, C, gen, background="none", dtype=torch.float64, device="cpu", **kwargs):
+    counts = torch.as_tensor(counts, dtype=torch.int64)
+    width = int(counts.max()) if counts.numel() else 0
+    return pack(make_inputs(counts.numel(), width, C, gen, background, dtype, device, **kwargs), counts)
+
+
+def random_counts(R, high, gen):
+    return torch.randint(0, high + 1, (R,), generator=gen)
+
+
+COUNTS = {
+    "one ray, one sample": [1],
+    "one ray": [9],
+    "one empty ray": [0],
+    "all empty": [0, 0, 0],
+    "no rays": [],
+    "ragged": [3, 0, 7, 1, 0, 12, 33],
+    "many": "random",
+}
+
+
+def counts_named(name, gen):
+    return (
+        random_counts(40, 40, gen)
+        if COUNTS[name] == "random"
+        else torch.tensor(COUNTS[name], dtype=torch.int64)
+    )
+
+
+@needs_kernels
+@pytest.mark.parametrize("counts", list(COUNTS))
+@pytest.mark.parametrize("background", BACKGROUNDS)
+def test_packed_cpu_kernel_matches_reference(gen, counts, background):
+    counts = counts_named(counts, gen)
+    inputs, offsets = make_packed(counts, 3, gen, background)
+    fn = packed_fn(offsets)
+    upstream = random_upstream(inputs, gen, num_rays=counts.numel())
+    want_out, want_grads = truth(inputs, upstream, fn)
+    for dtype, rel in ((torch.float64, F64_REL), (torch.float32, F32_REL)):
+        cast = [None if t is None else t.to(dtype) for t in inputs]
+        out, grads = run(cast, [u.to(dtype) for u in upstream], fn, backend="kernel")
+        assert all(o.dtype == dtype for o in out)
+        assert_close(out, want_out, rel, f"{dtype} outputs")
+        assert_close(grads, want_grads, rel, f"{dtype} grads")
+
+
+@needs_kernels
+@pytest.mark.parametrize("background", BACKGROUNDS)
+def test_packed_cpu_gradcheck(gen, background):
+    inputs, offsets = make_packed([2, 0, 5, 1], 3, gen, background)
+    inputs = with_grad(inputs)
+    present = [t for t in inputs if t is not None]
+
+    def fn(*args):
+        it = iter(args)
+        args = [None if t is None else next(it) for t in inputs]
+        return tuple(packed_fn(offsets)(*args, backend="kernel", check_values=False))  # sigmas +- eps < 0
+
+    assert torch.autograd.gradcheck(fn, present)
+
+
+@needs_kernels
+@pytest.mark.parametrize("backend", ["kernel", "torch"])
+@pytest.mark.parametrize("background", BACKGROUNDS)
+def test_packed_equals_dense_when_every_ray_has_S_samples(gen, backend, background):
+    """The same per-ray scans: the CPU kernel gives bit-identical results in both layouts."""
+    R, S = 6, 13
+    inputs = make_inputs(R, S, 3, gen, background)
+    packed, offsets = pack(inputs, torch.full((R,), S))
+    upstream = random_upstream(inputs, gen)
+    dense_out, dense_grads = run(inputs, upstream, backend=backend)
+    packed_up = [*upstream[:3], upstream[3].reshape(-1)]
+    packed_out, packed_grads = run(packed, packed_up, packed_fn(offsets), backend=backend)
+    packed_out[3] = packed_out[3].reshape(R, S)
+    packed_grads[:4] = [g.reshape(R, S, *g.shape[1:]) for g in packed_grads[:4]]
+    exact = backend == "kernel"
+    for got, want in zip(packed_out + packed_grads, dense_out + dense_grads, strict=False):
+        if want is None:
+            continue
+        assert torch.equal(got, want) if exact else torch.allclose(got, want, rtol=1e-13, atol=1e-15)
+
+
+@needs_kernels
+@pytest.mark.parametrize("backend", ["kernel", "torch"])
+@pytest.mark.parametrize("background", BACKGROUNDS)
+def test_packed_empty_rays_show_the_background(gen, backend, background):
+    counts = torch.tensor([0, 4, 0, 0, 2, 0])
+    inputs, offsets = make_packed(counts, 3, gen, background)
+    out = packed_fn(offsets)(*inputs, backend=backend)
+    empty = counts == 0
+    bg = inputs[4]
+    want_color = torch.zeros(6, 3, dtype=torch.float64) if bg is None else bg.expand(6, 3)
+    assert torch.equal(out.color[empty], want_color[empty])
+    assert not out.opacity[empty].any() and not out.depth[empty].any()
+
+
+@needs_kernels
+@pytest.mark.parametrize("backend", ["kernel", "torch"])
+def test_packed_no_rays_no_samples(backend):
+    empty = torch.zeros(0, dtype=torch.float64)
+    out = composite_packed(
+        empty,
+        torch.zeros(0, 3, dtype=torch.float64),
+        empty,
+        empty,
+        torch.zeros(1, dtype=torch.int64),
+        torch.ones(3, dtype=torch.float64),
+        backend=backend,
+    )
+    assert [tuple(o.shape) for o in out] == [(0, 3), (0,), (0,), (0,)]
+    out = composite_packed(
+        empty,
+        torch.zeros(0, 3, dtype=torch.float64),
+        empty,
+        empty,
+        torch.zeros(4, dtype=torch.int64),
+        torch.ones(3, dtype=torch.float64),
+        backend=backend,
+    )
+    assert torch.equal(out.color, torch.ones(3, 3, dtype=torch.float64)) and not out.opacity.any()
+
+
+@needs_kernels
+@pytest.mark.parametrize("C", [1, 3])
+def test_packed_cpu_adversarial_values(gen, C):
+    """The dense adversarial rays (tau from 0 to 1e18, transmittance underflowing mid-ray)
+    truncated to ragged lengths: a 1e18 tau in one ray must not leak into the next one."""
+    dense = adversarial_inputs(gen, C)
+    counts = random_counts(dense[0].shape[0], dense[0].shape[1], gen)
+    inputs, offsets = pack(dense, counts)
+    fn = packed_fn(offsets)
+    upstream = random_upstream(inputs, gen, num_rays=counts.numel())
+    want_out, want_grads = truth(inputs, upstream, fn)
+    out, grads = run(inputs, upstream, fn, backend="kernel")
+    assert_close(out, want_out, F32_REL, "outputs")
+    assert_each_element_close(grads, want_grads)
+
+
+@needs_kernels
+def test_packed_unchecked_bad_offsets_stay_in_bounds(gen):
+    """check_values=False skips the offsets' value checks; the kernels clamp them into [0, N]
+    instead of reading or writing outside the arrays (a ray past N is empty)."""
+    inputs, _ = make_packed([3, 2], 3, gen, "shared")
+    for bad in ([0, 100, 5], [-7, 2, 5], [0, 4, 2], [3, 1, 0]):
+        offsets = torch.tensor(bad)
+        out, grads = run(
+            inputs,
+            random_upstream(inputs, gen, num_rays=2),
+            packed_fn(offsets),
+            backend="kernel",
+            check_values=False,
+        )
+        assert all(torch.isfinite(t).all() for t in out + grads)
+
+
+def valid_packed():
+    """sigmas, rgbs, t_starts, t_ends, offsets, background for 3 rays of 0, 4 and 2 samples."""
+    return [
+        torch.rand(6),
+        torch.rand(6, 3),
+        torch.zeros(6),
+        torch.ones(6),
+        torch.tensor([0, 0, 4, 6]),
+        torch.rand(3),
+    ]
+
+
+@pytest.mark.parametrize(
+    "index, bad, error, name",
+    [
+        (0, torch.rand(6, 1), ValueError, "sigmas"),
+        (0, torch.rand(5), ValueError, "sigmas"),
+        (1, torch.rand(6), ValueError, "rgbs"),
+        (1, torch.rand(6, 0), ValueError, "rgbs"),
+        (2, torch.zeros(5), ValueError, "t_starts"),
+        (3, torch.ones(6, 1), ValueError, "t_ends"),
+        (5, torch.rand(4, 3), ValueError, "background"),
+        (5, torch.rand(2), ValueError, "background"),
+        (4, torch.tensor([0, 0, 4, 6], dtype=torch.int32), TypeError, "offsets"),
+        (4, torch.tensor([0.0, 0.0, 4.0, 6.0]), TypeError, "offsets"),
+        (4, [0, 0, 4, 6], TypeError, "offsets"),
+        (4, torch.tensor([[0, 0, 4, 6]]), ValueError, "offsets"),
+        (4, torch.zeros(0, dtype=torch.int64), ValueError, "offsets"),
+        (4, torch.tensor([0, 0, 4, 5]), ValueError, "offsets"),
+        (4, torch.tensor([1, 1, 4, 6]), ValueError, "offsets"),
+        (4, torch.tensor([0, 5, 4, 6]), ValueError, "offsets"),
+        (4, torch.tensor([0, 0, 4, 6], device="meta"), ValueError, "offsets"),
+        (0, torch.ones(6, dtype=torch.int64), TypeError, "sigmas"),
+        (1, torch.rand(6, 3, dtype=torch.float64), TypeError, "rgbs"),
+        (0, -torch.rand(6) - 0.1, ValueError, "sigmas"),
+        (3, -torch.ones(6), ValueError, "t_ends"),
+        (1, torch.rand(6, 3, device="meta"), ValueError, "rgbs"),
+    ],
+)
+@pytest.mark.parametrize("backend", ["kernel", "torch"])
+def test_packed_bad_inputs_raise(index, bad, error, name, backend):
+    args = valid_packed()
+    args[index] = bad
+    with pytest.raises(error, match=name):
+        composite_packed(*args, backend=backend)
+
+
+def packed_op_samples(gen, device="cpu"):
+    """(fwd args, bwd args) of the packed ops: every optional present and absent at least once."""
+    samples = []
+    for background, which, interval in [
+        ("none", (True,) * 4, True),
+        ("shared", (True, False, True, False), False),
+        ("per_ray", (False, True, False, True), True),
+    ]:
+        inputs, offsets = make_packed([3, 0, 5, 1], 3, gen, background, dtype=torch.float32, device=device)
+        upstream = random_upstream(inputs, gen, which, num_rays=4)
+        samples.append(([*inputs, offsets], [*upstream, *inputs, offsets, interval]))
+    return samples
+
+
+@needs_kernels
+def test_packed_opcheck_cpu(gen):
+    composite_packed(*valid_packed(), backend="kernel")  # registers the fake kernels
+    for fwd_args, bwd_args in packed_op_samples(gen):
+        torch.library.opcheck(torch.ops.mixer_nerf.composite_packed_fwd.default, fwd_args)
+        torch.library.opcheck(torch.ops.mixer_nerf.composite_packed_bwd.default, bwd_args)
+
+
+@pytest.mark.cuda
+@on_cuda
+@needs_kernels
+@pytest.mark.parametrize(
+    "R, max_count, C",
+    [
+        (1, 1, 3),
+        (1, 300, 3),
+        (7, 31, 3),
+        (50, 33, 1),
+        (30, 64, 4),
+        (9, 100, 7),
+        (5, 1000, 3),
+        (0, 8, 3),
+        (70_000, 64, 3),
+    ],
+)
+@pytest.mark.parametrize("background", BACKGROUNDS)
+def test_packed_cuda_matches_cpu_and_reference(gen, R, max_count, C, background):
+    counts = random_counts(R, max_count, gen)
+    if R:
+        counts[0] = max_count  # the longest ray is there
+    if R > 2:
+        counts[1] = 0  # and an empty one
+    inputs, offsets = make_packed(counts, C, gen, background, dtype=torch.float32)
+    check_cuda(gen, inputs, fn=packed_fn(offsets), num_rays=R)
+
+
+@pytest.mark.cuda
+@on_cuda
+@needs_kernels
+@pytest.mark.parametrize("C", [1, 3])
+def test_packed_cuda_adversarial_values(gen, C):
+    dense = adversarial_inputs(gen, C)
+    counts = random_counts(dense[0].shape[0], dense[0].shape[1], gen)
+    inputs, offsets = pack(dense, counts)
+    fn = packed_fn(offsets)
+    upstream = random_upstream(inputs, gen, num_rays=counts.numel())
+    want_grads = truth(inputs, upstream, fn)[1]
+    out, grads = run([t.cuda() for t in inputs], [u.cuda() for u in upstream], fn, backend="kernel")
+    assert all(torch.isfinite(o).all() for o in out)
+    assert_each_element_close(grads, want_grads)
+
+
+@pytest.mark.cuda
+@on_cuda
+@needs_kernels
+def test_packed_cuda_float64_gradcheck(gen):
+    inputs, offsets = make_packed([40, 0, 3, 70], 3, gen, "per_ray", device="cuda")
+    fn = packed_fn(offsets)
+    assert torch.autograd.gradcheck(
+        lambda *a: tuple(fn(*a, backend="kernel", check_values=False)), with_grad(inputs)
+    )
+
+
+@pytest.mark.cuda
+@on_cuda
+@needs_kernels
+def test_packed_cuda_unchecked_bad_offsets_stay_in_bounds(gen):
+    inputs, _ = make_packed([3, 2], 3, gen, "shared", device="cuda")
+    for bad in ([0, 100, 5], [-7, 2, 5], [0, 4, 2], [3, 1, 0]):
+        out, grads = run(
+            inputs,
+            random_upstream(inputs, gen, num_rays=2),
+            packed_fn(torch.tensor(bad)),
+            backend="kernel",
+            check_values=False,
+        )
+        torch.cuda.synchronize()
+        assert all(torch.isfinite(t).all() for t in out + grads)
+
+
+@pytest.mark.cuda
+@on_cuda
+@needs_kernels
+def test_packed_opcheck_cuda(gen):
+    composite_packed(*[t.cuda() for t in valid_packed()], backend="kernel")
+    for fwd_args, bwd_args in packed_op_samples(gen, device="cuda"):
+        torch.library.opcheck(torch.ops.mixer_nerf.composite_packed_fwd.default, fwd_args)
+        torch.library.opcheck(torch.ops.mixer_nerf.composite_packed_bwd.default, bwd_args)

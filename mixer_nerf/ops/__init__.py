@@ -5,7 +5,7 @@
 - ``"auto"``: the kernel where one is built for the tensors' device, else the reference path.
 """
 
-from .composite import composite
+from .composite import composite, composite_packed
 from .positional_encoding import positional_encoding
 from .ray_marching import PackedSamples, filter_by_transmittance, ray_marching
 from .sample_pdf import hierarchical_samples, sample_pdf
@@ -13,6 +13,7 @@ from .sample_pdf import hierarchical_samples, sample_pdf
 __all__ = [
     "PackedSamples",
     "composite",
+    "composite_packed",
     "filter_by_transmittance",
     "hierarchical_samples",
     "positional_encoding",

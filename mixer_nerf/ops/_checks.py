@@ -97,7 +97,9 @@ def check_offsets(name: str, offsets: torch.Tensor, num_items: int, check_values
     if check_values:
         first, last = offsets[[0, -1]].tolist()
         if first != 0 or last != num_items:
-            raise ValueError(f"{name} must start at 0 and end at {num_items} (the number of rows), got {first} .. {last}")
+            raise ValueError(
+                f"{name} must start at 0 and end at {num_items} (the number of rows), got {first} .. {last}"
+            )
         if bool((offsets[1:] < offsets[:-1]).any()):
             raise ValueError(f"{name} must be non-decreasing")
     return offsets.numel() - 1

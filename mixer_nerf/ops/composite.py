@@ -5,6 +5,10 @@ Definitions (transmittance as exp of an exclusive cumsum, weights via expm1) are
 stable closed forms (``opacity = -expm1(-sum tau)``, ``1 - opacity = exp(-sum tau)``) and a
 hand-written O(S)-per-ray backward that stays exact when transmittance underflows or the last
 interval is 1e10 long (see ``csrc/composite.cpp``).
+
+:func:`composite` takes S samples per ray, padded ``(R, S)``; :func:`composite_packed` takes
+rays with different numbers of samples, packed ``(N,)`` with CSR offsets ``(R+1,)`` as
+:func:`~mixer_nerf.ops.ray_marching` produces them. Both run the same per-ray scans.
 """
 
 from __future__ import annotations
@@ -19,19 +23,21 @@ from ._checks import (
     check_floating,
     check_ndim,
     check_nonnegative,
+    check_offsets,
     check_same_device,
     check_same_dtype,
     check_shape,
+    check_tensor,
 )
 from ._dispatch import use_kernel
-from .composite_reference import composite_reference
+from .composite_reference import composite_packed_reference, composite_reference
 
 
 class CompositeResult(NamedTuple):
     color: torch.Tensor  # (R, C)
     depth: torch.Tensor  # (R,) unnormalised expected depth: sum_i w_i (t_start_i + t_end_i) / 2
     opacity: torch.Tensor  # (R,) sum_i w_i
-    weights: torch.Tensor  # (R, S)
+    weights: torch.Tensor  # (R, S), or (N,) for packed samples
 
 
 def composite(
@@ -62,30 +68,87 @@ def composite(
     _validate(sigmas, rgbs, t_starts, t_ends, background, check_values)
     if not use_kernel(backend, sigmas.device):
         return CompositeResult(*composite_reference(sigmas, rgbs, t_starts, t_ends, background))
-    _register_fakes()
-    tensors = [None if x is None else x.contiguous() for x in (sigmas, rgbs, t_starts, t_ends, background)]
-    if torch.is_grad_enabled() and any(x is not None and x.requires_grad for x in tensors):
-        return CompositeResult(*_CompositeFunction.apply(*tensors))
-    return CompositeResult(*torch.ops.mixer_nerf.composite_fwd(*tensors))  # inference: no autograd bookkeeping
+    return _run_kernel(_DENSE_OPS, sigmas, rgbs, t_starts, t_ends, background)
+
+
+def composite_packed(
+    sigmas: torch.Tensor,
+    rgbs: torch.Tensor,
+    t_starts: torch.Tensor,
+    t_ends: torch.Tensor,
+    offsets: torch.Tensor,
+    background: torch.Tensor | None = None,
+    backend: str = "auto",
+    check_values: bool = True,
+) -> CompositeResult:
+    """Render rays from packed (ragged) samples: ray r owns rows ``offsets[r]:offsets[r+1]``.
+
+    Args:
+        sigmas: (N,) non-negative densities.
+        rgbs: (N, C) per-sample colours (any C >= 1).
+        t_starts, t_ends: (N,) interval bounds, ``t_ends >= t_starts``, in order along each ray.
+        offsets: (R+1,) int64, non-decreasing from 0 to N; a ray with no sample (equal offsets)
+            renders opacity 0, depth 0 and colour = background (0 without one).
+        background: optional (C,) or (R, C) colour seen through the unoccupied fraction.
+        backend: ``"auto"``, ``"kernel"`` or ``"torch"`` (see :mod:`mixer_nerf.ops`).
+        check_values: also check ``sigmas >= 0``, ``t_ends >= t_starts`` and the values of
+            ``offsets`` (each a host sync on a GPU; pass False where they hold by construction, as
+            after ray marching). The kernels clamp offsets into [0, N], so even unchecked offsets
+            never reach outside the arrays.
+
+    Returns:
+        :class:`CompositeResult` (color (R, C), depth (R,), opacity (R,), weights (N,)),
+        differentiable with respect to sigmas, rgbs, t_starts, t_ends and background.
+    """
+    _validate_packed(sigmas, rgbs, t_starts, t_ends, offsets, background, check_values)
+    if not use_kernel(backend, sigmas.device):
+        return CompositeResult(
+            *composite_packed_reference(sigmas, rgbs, t_starts, t_ends, offsets, background)
+        )
+    return _run_kernel(_PACKED_OPS, sigmas, rgbs, t_starts, t_ends, background, offsets.contiguous())
 
 
 def _validate(sigmas, rgbs, t_starts, t_ends, background, check_values: bool) -> None:
-    for name, t in (("sigmas", sigmas), ("rgbs", rgbs), ("t_starts", t_starts), ("t_ends", t_ends)):
-        check_floating(name, t)
-    if background is not None:
-        check_floating("background", background)
+    _check_dtypes(sigmas, rgbs, t_starts, t_ends, background)
     check_ndim("sigmas", sigmas, 2)
     check_ndim("rgbs", rgbs, 3)
     R, S, C = rgbs.shape
     if sigmas.shape != (R, S):
         raise ValueError(f"sigmas must have shape (R, S) = {(R, S)} to match rgbs, got {tuple(sigmas.shape)}")
+    _check_samples(sigmas, rgbs, t_starts, t_ends, background, R, check_values)
+
+
+def _validate_packed(sigmas, rgbs, t_starts, t_ends, offsets, background, check_values: bool) -> None:
+    _check_dtypes(sigmas, rgbs, t_starts, t_ends, background)
+    check_ndim("sigmas", sigmas, 1)
+    check_ndim("rgbs", rgbs, 2)
+    N = rgbs.shape[0]
+    if sigmas.shape != (N,):
+        raise ValueError(f"sigmas must have shape (N,) = {(N,)} to match rgbs, got {tuple(sigmas.shape)}")
+    check_same_device(sigmas=sigmas, offsets=check_tensor("offsets", offsets))
+    R = check_offsets("offsets", offsets, N, check_values)
+    _check_samples(sigmas, rgbs, t_starts, t_ends, background, R, check_values)
+
+
+def _check_dtypes(sigmas, rgbs, t_starts, t_ends, background) -> None:
+    for name, t in (("sigmas", sigmas), ("rgbs", rgbs), ("t_starts", t_starts), ("t_ends", t_ends)):
+        check_floating(name, t)
+    if background is not None:
+        check_floating("background", background)
+
+
+def _check_samples(sigmas, rgbs, t_starts, t_ends, background, num_rays: int, check_values: bool) -> None:
+    """Checks both layouts share once sigmas (samples) and rgbs (*samples, C) agree."""
+    C = rgbs.shape[-1]
     if C < 1:
         raise ValueError(f"rgbs must have at least one channel, got shape {tuple(rgbs.shape)}")
-    check_shape("t_starts", t_starts, (R, S), " (like sigmas)")
-    check_shape("t_ends", t_ends, (R, S), " (like sigmas)")
+    check_shape("t_starts", t_starts, tuple(sigmas.shape), " (like sigmas)")
+    check_shape("t_ends", t_ends, tuple(sigmas.shape), " (like sigmas)")
     if background is not None:
         check_ndim("background", background, (1, 2))
-        check_shape("background", background, (C,) if background.dim() == 1 else (R, C), " (C) or (R, C)")
+        check_shape(
+            "background", background, (C,) if background.dim() == 1 else (num_rays, C), " (C) or (R, C)"
+        )
     check_same_device(sigmas=sigmas, rgbs=rgbs, t_starts=t_starts, t_ends=t_ends, background=background)
     check_same_dtype(sigmas=sigmas, rgbs=rgbs, t_starts=t_starts, t_ends=t_ends, background=background)
     if check_values:
@@ -94,41 +157,82 @@ def _validate(sigmas, rgbs, t_starts, t_ends, background, check_values: bool) ->
             raise ValueError("t_ends must be >= t_starts everywhere (intervals of non-negative length)")
 
 
+class _Ops(NamedTuple):
+    """A layout's registered forward and backward; ``layout`` tensors (the packed offsets) follow
+    ``background`` in both schemas and get no gradient."""
+
+    forward: str
+    backward: str
+
+
+_DENSE_OPS = _Ops("composite_fwd", "composite_bwd")
+_PACKED_OPS = _Ops("composite_packed_fwd", "composite_packed_bwd")
+
+
+def _run_kernel(ops: _Ops, sigmas, rgbs, t_starts, t_ends, background, *layout) -> CompositeResult:
+    _register_fakes()
+    tensors = [None if x is None else x.contiguous() for x in (sigmas, rgbs, t_starts, t_ends, background)]
+    if torch.is_grad_enabled() and any(x is not None and x.requires_grad for x in tensors):
+        return CompositeResult(*_CompositeFunction.apply(ops, *tensors, *layout))
+    # Inference: no autograd bookkeeping.
+    return CompositeResult(*getattr(torch.ops.mixer_nerf, ops.forward)(*tensors, *layout))
+
+
 class _CompositeFunction(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, sigmas, rgbs, t_starts, t_ends, background):
-        outputs = torch.ops.mixer_nerf.composite_fwd(sigmas, rgbs, t_starts, t_ends, background)
-        ctx.save_for_backward(sigmas, rgbs, t_starts, t_ends, background)
+    def forward(ctx, ops, sigmas, rgbs, t_starts, t_ends, background, *layout):
+        outputs = getattr(torch.ops.mixer_nerf, ops.forward)(
+            sigmas, rgbs, t_starts, t_ends, background, *layout
+        )
+        ctx.save_for_backward(sigmas, rgbs, t_starts, t_ends, background, *layout)
+        ctx.ops = ops
         ctx.set_materialize_grads(False)  # unused outputs arrive as None: the kernel reads no zeros
         return outputs
 
     @staticmethod
     @once_differentiable
     def backward(ctx, grad_color, grad_depth, grad_opacity, grad_weights):
-        sigmas, rgbs, t_starts, t_ends, background = ctx.saved_tensors
-        upstream = [None if g is None else g.contiguous() for g in (grad_color, grad_depth, grad_opacity, grad_weights)]
-        interval_grads = ctx.needs_input_grad[2] or ctx.needs_input_grad[3]
-        grad_sigmas, grad_rgbs, grad_t_starts, grad_t_ends, grad_background = torch.ops.mixer_nerf.composite_bwd(
-            *upstream, sigmas, rgbs, t_starts, t_ends, background, interval_grads
-        )
-        return grad_sigmas, grad_rgbs, grad_t_starts, grad_t_ends, grad_background
+        saved = ctx.saved_tensors
+        upstream = [
+            None if g is None else g.contiguous()
+            for g in (grad_color, grad_depth, grad_opacity, grad_weights)
+        ]
+        interval_grads = ctx.needs_input_grad[3] or ctx.needs_input_grad[4]
+        grads = getattr(torch.ops.mixer_nerf, ctx.ops.backward)(*upstream, *saved, interval_grads)
+        return None, *grads, *[None] * (len(saved) - 5)
 
 
 @functools.cache
 def _register_fakes() -> None:
     """Shape functions for torch.compile and opcheck; the ops exist only once the extension loaded."""
-    torch.library.register_fake("mixer_nerf::composite_fwd", _composite_fwd_fake)
-    torch.library.register_fake("mixer_nerf::composite_bwd", _composite_bwd_fake)
+    for ops in (_DENSE_OPS, _PACKED_OPS):
+        torch.library.register_fake(f"mixer_nerf::{ops.forward}", _composite_fwd_fake)
+        torch.library.register_fake(f"mixer_nerf::{ops.backward}", _composite_bwd_fake)
 
 
-def _composite_fwd_fake(sigmas, rgbs, t_starts, t_ends, background):
-    R, S, C = rgbs.shape
-    return sigmas.new_empty(R, C), sigmas.new_empty(R), sigmas.new_empty(R), sigmas.new_empty(R, S)
+def _composite_fwd_fake(sigmas, rgbs, t_starts, t_ends, background, *layout):
+    num_rays = layout[0].shape[0] - 1 if layout else sigmas.shape[0]
+    return (
+        sigmas.new_empty(num_rays, rgbs.shape[-1]),
+        sigmas.new_empty(num_rays),
+        sigmas.new_empty(num_rays),
+        torch.empty_like(sigmas),
+    )
 
 
 def _composite_bwd_fake(
-    grad_color, grad_depth, grad_opacity, grad_weights, sigmas, rgbs, t_starts, t_ends, background, interval_grads
+    grad_color,
+    grad_depth,
+    grad_opacity,
+    grad_weights,
+    sigmas,
+    rgbs,
+    t_starts,
+    t_ends,
+    background,
+    *layout_and_flag,
 ):
+    interval_grads = layout_and_flag[-1]
     grad_t_starts = torch.empty_like(t_starts) if interval_grads else None
     grad_t_ends = torch.empty_like(t_ends) if interval_grads else None
     grad_background = None if background is None else torch.empty_like(background)

@@ -14,6 +14,10 @@ The definitions the kernels must match (per ray, samples i = 0..S-1):
 given a hit). ``w_i = T_i * alpha_i`` rather than ``T_i - T_{i+1}``: the difference cancels
 catastrophically when tau_i is small, the product keeps full relative accuracy for any tau_i
 (tiny, or 1e18 from the 1e10-long last interval). Half/bfloat16 inputs are computed in float32.
+
+Packed (ragged) rays, ``composite_packed(..., backend="torch")``, are padded to (R, max samples)
+with empty intervals (tau = 0: weight 0, transmittance unchanged) and go through the same
+definitions; a ray with no sample has opacity 0, depth 0 and the background as its colour.
 """
 
 from __future__ import annotations
@@ -45,7 +49,43 @@ def composite_reference(
     if background is not None:
         # 1 - opacity, as the transmittance past the last sample: the same number, but accurate
         # when opacity rounds to 1 (1 - sum w would keep no digit of a 1e-15 transmittance).
-        transmittance_end = torch.exp(-optical_depth[:, -1:]) if tau.shape[1] else torch.ones_like(color[:, :1])
+        transmittance_end = (
+            torch.exp(-optical_depth[:, -1:]) if tau.shape[1] else torch.ones_like(color[:, :1])
+        )
         color = color + transmittance_end * background.to(compute)
     depth = (weights * 0.5 * (t_starts + t_ends)).sum(dim=1)
     return tuple(x.to(dtype) for x in (color, depth, opacity, weights))
+
+
+def composite_packed_reference(
+    sigmas: torch.Tensor,
+    rgbs: torch.Tensor,
+    t_starts: torch.Tensor,
+    t_ends: torch.Tensor,
+    offsets: torch.Tensor,
+    background: torch.Tensor | None = None,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """sigmas, t_starts, t_ends (N); rgbs (N, C); offsets (R+1) int64 (ray r owns rows
+    offsets[r]:offsets[r+1]); background (C) or (R, C) or None
+    -> color (R, C), depth (R), opacity (R), weights (N).
+
+    A segmented cumsum over the flat samples would need each ray's start subtracted, which
+    cancels catastrophically after a huge tau in an earlier ray; padding keeps every ray's sums
+    its own. Costs a host sync (the longest ray) and R x max-samples memory: a reference, not a
+    fast path.
+    """
+    counts = offsets[1:] - offsets[:-1]
+    num_rays, num_samples = counts.numel(), sigmas.shape[0]
+    width = int(counts.max()) if num_rays and num_samples else 0
+    ray = torch.repeat_interleave(
+        torch.arange(num_rays, device=offsets.device), counts, output_size=num_samples
+    )
+    slot = torch.arange(num_samples, device=offsets.device) - offsets[ray]
+
+    def padded(x: torch.Tensor) -> torch.Tensor:
+        return x.new_zeros(num_rays, width, *x.shape[1:]).index_put((ray, slot), x)
+
+    color, depth, opacity, weights = composite_reference(
+        padded(sigmas), padded(rgbs), padded(t_starts), padded(t_ends), background
+    )
+    return color, depth, opacity, weights[ray, slot]

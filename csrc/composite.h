@@ -1,0 +1,209 @@
+// What the CPU and CUDA kernels of composite and composite_packed share: where each ray's samples
+// lie, and the kernels' arguments. The per-ray scans take a ray's (offset, count), so one scan
+// serves the padded (R, S) layout and the packed (ragged, CSR) one.
+#pragma once
+
+#include <ATen/ATen.h>
+#include <c10/macros/Macros.h>
+
+#include <cstdint>
+#include <optional>
+#include <tuple>
+#include <utility>
+#include <vector>
+
+#include "common.h"
+
+namespace mixer_nerf {
+namespace composite_layout {
+
+// A ray's samples: `count` consecutive rows from `offset`.
+struct RaySpan {
+  int64_t offset;
+  int64_t count;
+};
+
+// Padded (R, S): ray r holds rows r * S .. r * S + S - 1.
+struct DenseRays {
+  int64_t samples_per_ray;
+  C10_HOST_DEVICE RaySpan operator()(int64_t ray) const { return {ray * samples_per_ray, samples_per_ray}; }
+};
+
+// Packed (CSR): ray r owns rows offsets[r] .. offsets[r+1] - 1 of N. Offsets are validated in
+// Python unless the caller opts out; clamping them into [0, N] (an end never before its start)
+// keeps even unchecked offsets from reading or writing outside the arrays.
+struct PackedRays {
+  const int64_t* offsets;  // (R + 1)
+  int64_t total;           // N
+  C10_HOST_DEVICE RaySpan operator()(int64_t ray) const {
+    const int64_t begin = clamp(offsets[ray], 0, total);
+    const int64_t end = clamp(offsets[ray + 1], begin, total);
+    return {begin, end - begin};
+  }
+  C10_HOST_DEVICE static int64_t clamp(int64_t x, int64_t lo, int64_t hi) { return x < lo ? lo : (x > hi ? hi : x); }
+};
+
+}  // namespace composite_layout
+
+template <typename scalar_t>
+struct CompositeInputs {
+  const scalar_t* sigmas;      // (N)
+  const scalar_t* rgbs;        // (N, C)
+  const scalar_t* t_starts;    // (N)
+  const scalar_t* t_ends;      // (N)
+  const scalar_t* background;  // nullptr, or row r at background + r * background_stride
+  int64_t background_stride;   // 0 for one background (C), C for one per ray (R, C)
+  int64_t channels;
+};
+
+template <typename scalar_t>
+struct CompositeOutputs {
+  scalar_t* color;    // (R, C)
+  scalar_t* depth;    // (R)
+  scalar_t* opacity;  // (R)
+  scalar_t* weights;  // (N)
+};
+
+// Upstream gradients (nullptr: zeros) and the gradients to write (grad_t_*: nullptr to skip).
+template <typename scalar_t>
+struct CompositeGrads {
+  const scalar_t* color;    // (R, C)
+  const scalar_t* depth;    // (R)
+  const scalar_t* opacity;  // (R)
+  const scalar_t* weights;  // (N)
+  scalar_t* sigmas;         // (N)
+  scalar_t* rgbs;           // (N, C)
+  scalar_t* t_starts;       // (N) or nullptr
+  scalar_t* t_ends;         // (N) or nullptr
+  acc_t<scalar_t>* background_rows;  // (R, C) per-ray background gradient, or nullptr
+};
+
+// Host-side checks of both layouts (Python validates first, with clear messages; these only keep a
+// direct call of the op from reading out of bounds): sigmas (N) packed or (R, S) dense, rgbs
+// (*sigmas.shape, C), bounds like sigmas, background (C) or (R, C).
+inline void check_composite_inputs(const at::Tensor& sigmas, const at::Tensor& rgbs, const at::Tensor& t_starts,
+                                   const at::Tensor& t_ends, const std::optional<at::Tensor>& background,
+                                   int64_t rays, at::DeviceType device) {
+  MIXER_NERF_CHECK_INPUT(sigmas, device);
+  MIXER_NERF_CHECK_INPUT(rgbs, device);
+  MIXER_NERF_CHECK_INPUT(t_starts, device);
+  MIXER_NERF_CHECK_INPUT(t_ends, device);
+  TORCH_CHECK(rgbs.dim() == sigmas.dim() + 1 && rgbs.sizes().slice(0, sigmas.dim()) == sigmas.sizes(),
+              "composite: rgbs must be (*sigmas.shape, C)");
+  TORCH_CHECK(t_starts.sizes() == sigmas.sizes() && t_ends.sizes() == sigmas.sizes(),
+              "composite: t_starts/t_ends must match sigmas");
+  for (const at::Tensor* t : {&rgbs, &t_starts, &t_ends}) {
+    TORCH_CHECK(t->scalar_type() == sigmas.scalar_type(), "composite: inputs must share one dtype");
+  }
+  if (background) {
+    MIXER_NERF_CHECK_INPUT(*background, device);
+    TORCH_CHECK(background->scalar_type() == sigmas.scalar_type(), "composite: inputs must share one dtype");
+    const int64_t C = rgbs.size(-1);
+    const bool shared = background->dim() == 1 && background->size(0) == C;
+    const bool per_ray = background->dim() == 2 && background->size(0) == rays && background->size(1) == C;
+    TORCH_CHECK(shared || per_ray, "composite: background must be (C) or (R, C)");
+  }
+}
+
+inline void check_dense(const at::Tensor& sigmas) {
+  TORCH_CHECK(sigmas.dim() == 2, "composite: sigmas must be (R, S)");
+}
+
+// Packed samples: sigmas (N), offsets (R+1) int64. Returns R.
+inline int64_t check_packed(const at::Tensor& sigmas, const at::Tensor& offsets, at::DeviceType device) {
+  TORCH_CHECK(sigmas.dim() == 1, "composite_packed: sigmas must be (N)");
+  MIXER_NERF_CHECK_INPUT(offsets, device);
+  TORCH_CHECK(offsets.scalar_type() == at::kLong && offsets.dim() == 1 && offsets.size(0) >= 1,
+              "composite_packed: offsets must be (R+1) int64");
+  return offsets.size(0) - 1;
+}
+
+// Upstream gradients: each absent (zeros) or of its output's shape and dtype.
+inline void check_upstream(const std::optional<at::Tensor>& grad_color, const std::optional<at::Tensor>& grad_depth,
+                           const std::optional<at::Tensor>& grad_opacity,
+                           const std::optional<at::Tensor>& grad_weights, const at::Tensor& sigmas,
+                           const at::Tensor& rgbs, int64_t rays, at::DeviceType device) {
+  const std::vector<int64_t> color_shape{rays, rgbs.size(-1)}, ray_shape{rays};
+  const std::pair<const std::optional<at::Tensor>*, at::IntArrayRef> expected[] = {
+      {&grad_color, color_shape}, {&grad_depth, ray_shape}, {&grad_opacity, ray_shape}, {&grad_weights, sigmas.sizes()}};
+  for (const auto& [grad, shape] : expected) {
+    if (!*grad) continue;
+    const at::Tensor& upstream = **grad;
+    MIXER_NERF_CHECK_INPUT(upstream, device);
+    TORCH_CHECK(upstream.scalar_type() == sigmas.scalar_type(), "composite_bwd: gradient dtype mismatch");
+    TORCH_CHECK(upstream.sizes() == shape, "composite_bwd: gradient of shape ", upstream.sizes(), ", expected ", shape);
+  }
+}
+
+template <typename scalar_t>
+CompositeInputs<scalar_t> inputs_of(const at::Tensor& sigmas, const at::Tensor& rgbs, const at::Tensor& t_starts,
+                                    const at::Tensor& t_ends, const std::optional<at::Tensor>& background) {
+  const int64_t C = rgbs.size(-1);
+  const bool per_ray = background && background->dim() == 2;
+  return {sigmas.const_data_ptr<scalar_t>(),
+          rgbs.const_data_ptr<scalar_t>(),
+          t_starts.const_data_ptr<scalar_t>(),
+          t_ends.const_data_ptr<scalar_t>(),
+          background ? background->const_data_ptr<scalar_t>() : nullptr,
+          per_ray ? C : 0,
+          C};
+}
+
+template <typename scalar_t>
+const scalar_t* data_or_null(const std::optional<at::Tensor>& t) {
+  return t ? t->const_data_ptr<scalar_t>() : nullptr;
+}
+
+// The outputs of a forward: color (R, C), depth (R), opacity (R), weights like sigmas.
+inline std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> empty_outputs(const at::Tensor& sigmas,
+                                                                               const at::Tensor& rgbs, int64_t rays) {
+  return {at::empty({rays, rgbs.size(-1)}, sigmas.options()), at::empty({rays}, sigmas.options()),
+          at::empty({rays}, sigmas.options()), at::empty_like(sigmas)};
+}
+
+// The gradients a backward writes, and the per-ray background gradient in the accumulation type
+// (summed over rays afterwards for a shared background; undefined without a background).
+struct CompositeGradTensors {
+  at::Tensor sigmas, rgbs;
+  std::optional<at::Tensor> t_starts, t_ends;
+  at::Tensor background_rows;
+
+  CompositeGradTensors(const at::Tensor& sigmas_, const at::Tensor& rgbs_, const std::optional<at::Tensor>& background,
+                       int64_t rays, bool interval_grads)
+      : sigmas(at::empty_like(sigmas_)), rgbs(at::empty_like(rgbs_)) {
+    if (interval_grads) {
+      t_starts = at::empty_like(sigmas_);
+      t_ends = at::empty_like(sigmas_);
+    }
+    if (background) {
+      background_rows = at::empty({rays, rgbs_.size(-1)}, sigmas_.options().dtype(at::toOpMathType(sigmas_.scalar_type())));
+    }
+  }
+
+  template <typename scalar_t>
+  CompositeGrads<scalar_t> pointers(const std::optional<at::Tensor>& grad_color,
+                                    const std::optional<at::Tensor>& grad_depth,
+                                    const std::optional<at::Tensor>& grad_opacity,
+                                    const std::optional<at::Tensor>& grad_weights) {
+    return {data_or_null<scalar_t>(grad_color),
+            data_or_null<scalar_t>(grad_depth),
+            data_or_null<scalar_t>(grad_opacity),
+            data_or_null<scalar_t>(grad_weights),
+            sigmas.data_ptr<scalar_t>(),
+            rgbs.data_ptr<scalar_t>(),
+            t_starts ? t_starts->data_ptr<scalar_t>() : nullptr,
+            t_ends ? t_ends->data_ptr<scalar_t>() : nullptr,
+            background_rows.defined() ? background_rows.data_ptr<acc_t<scalar_t>>() : nullptr};
+  }
+
+  std::tuple<at::Tensor, at::Tensor, std::optional<at::Tensor>, std::optional<at::Tensor>, std::optional<at::Tensor>>
+  finish(const std::optional<at::Tensor>& background) const {
+    std::optional<at::Tensor> grad_background;
+    if (background) {
+      grad_background = (background->dim() == 1 ? background_rows.sum(0) : background_rows).to(sigmas.scalar_type());
+    }
+    return {sigmas, rgbs, t_starts, t_ends, grad_background};
+  }
+};
+
+}  // namespace mixer_nerf
