@@ -14,7 +14,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from .train.config import BACKENDS, DEMO_SETTINGS, FORMATS, PRECISIONS, PRESETS, TrainConfig
+from .train.config import BACKENDS, DEMO_SETTINGS, FORMATS, PRECISIONS, PRESETS, SAMPLERS, TrainConfig
 
 DEMO_OUT = "runs/demo"
 DEMO_VIDEO_FRAMES = 40
@@ -36,6 +36,11 @@ TRAIN_OPTIONS: dict[str, dict[str, Any]] = {
     "--ckpt-every": {"type": int, "help": "checkpoint every N steps (a killed run loses at most N)"},
     "--time-budget": {"type": float, "metavar": "SECONDS", "help": "stop after this much training time"},
     "--downscale": {"type": int, "help": "integer image downscale (Blender scenes)"},
+    "--sampler": {"choices": SAMPLERS, "help": "occupancy (skip empty space, occluded samples, missed rays), "
+                  "hierarchical (NeRF's dense coarse + fine), auto (occupancy when the scene has a box)"},
+    "--target-samples": {"type": int, "help": "occupancy sampler: MLP samples per step (the ray batch adapts)"},
+    "--early-stop-eps": {"type": float, "help": "stop rays whose transmittance falls below this (0: never)"},
+    "--grid-resolution": {"type": int, "help": "occupancy grid cells per axis"},
 }
 
 

@@ -10,6 +10,7 @@ PRESETS = ("A", "B", "C", "D")
 PRECISIONS = ("bf16", "tf32", "fp32")
 BACKENDS = ("auto", "kernel", "torch")
 FORMATS = ("auto", "blender", "llff")
+SAMPLERS = ("auto", "occupancy", "hierarchical")
 
 
 @dataclass
@@ -47,17 +48,38 @@ class TrainConfig:
     time_budget: float | None = None  # seconds of training (validation excluded); None: no limit
     chunk: int = 8192  # rays per chunk when rendering whole images
     check_grads: bool = True  # the non-finite guard also checks every gradient
+    # Sampling. "occupancy": one pass over packed samples marched through an occupancy grid of the
+    # scene box, with early ray termination (skips empty space, occluded samples and rays that miss
+    # the box; no fine network). "hierarchical": NeRF's dense coarse + fine passes. "auto":
+    # occupancy when the scene has a box (Blender scenes; LLFF in NDC), else hierarchical.
+    sampler: str = "auto"
+    grid_resolution: int = 128
+    grid_every: int = 16  # refresh the grid from the model's density every N steps
+    grid_warmup: int = 256  # steps during which every cell counts as occupied
+    grid_threshold: float = 0.01  # opacity of one marching step above which a cell is occupied
+    step_size: float | None = None  # marching step; None: the box diagonal / 1000
+    early_stop_eps: float = 1e-4  # stop a ray once its transmittance is below this (0: never)
+    alpha_threshold: float = 0.0  # drop samples with a smaller alpha (0: keep them)
+    target_samples: int | None = 65536  # occupancy: adapt the rays per step to this many samples
     progress: bool = True  # progress bar on stderr
 
     def __post_init__(self) -> None:
         _one_of("format", self.format, FORMATS)
         _one_of("preset", self.preset, PRESETS)
         _one_of("backend", self.backend, BACKENDS)
+        _one_of("sampler", self.sampler, SAMPLERS)
+        if self.target_samples is not None and self.target_samples < 1:
+            raise ValueError(f"target_samples must be positive, got {self.target_samples}")
+        if not 0 <= self.early_stop_eps < 1 or not 0 <= self.alpha_threshold < 1:
+            raise ValueError("early_stop_eps and alpha_threshold must be in [0, 1)")
+        if self.step_size is not None and not self.step_size > 0:
+            raise ValueError(f"step_size must be positive, got {self.step_size}")
         if self.precision is not None:
             _one_of("precision", self.precision, PRECISIONS)
         if self.device is not None and self.device.split(":")[0] not in ("cpu", "cuda"):
             raise ValueError(f"device must be 'cpu' or 'cuda', got {self.device!r}")
         for name in ("steps", "batch_rays", "num_coarse", "val_every", "val_images", "ckpt_every",
+                     "grid_resolution", "grid_every",
                      "log_every", "chunk", "downscale", "procedural_resolution", "procedural_views"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
@@ -101,6 +123,9 @@ DEMO_SETTINGS: dict[str, Any] = {
     "val_images": 2,
     "ckpt_every": 100,
     "log_every": 20,
+    "grid_resolution": 32,
+    "grid_warmup": 64,
+    "target_samples": 8192,
 }
 """Defaults for the built-in scene so that a run finishes in a few minutes on a 2-core CPU."""
 

@@ -10,7 +10,10 @@ import torch
 from torch import nn
 
 from ..model import MixerNeRF, ModelConfig, preset_config
-from ..render import render_image
+from ..occupancy_grid import OccupancyGrid
+from ..render import ImageResult, render_image
+from ..render.marching import render_rays_marched
+from .config import TrainConfig
 
 
 class MixedPrecisionField(nn.Module):
@@ -26,26 +29,32 @@ class MixedPrecisionField(nn.Module):
         self.device_type = device_type
         self.dtype = dtype
 
-    def forward(self, x: torch.Tensor, d: torch.Tensor, **kwargs: Any) -> tuple[torch.Tensor, torch.Tensor]:
-        if self.dtype is None:
-            return self.field(x, d, **kwargs)
-        with torch.autocast(self.device_type, dtype=self.dtype):
-            sigma, rgb = self.field(x, d, **kwargs)
+    def forward(
+        self, x: torch.Tensor, d: torch.Tensor, ray_indices: torch.Tensor | None = None, num_rays: int | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        with torch.autocast(self.device_type, dtype=self.dtype or torch.float32, enabled=self.dtype is not None):
+            sigma, rgb = self.field(x, d, ray_indices=ray_indices, num_rays=num_rays)
         return sigma.float(), rgb.float()
+
+    def density(self, x: torch.Tensor, ray_indices: torch.Tensor | None = None, num_rays: int | None = None) -> torch.Tensor:
+        with torch.autocast(self.device_type, dtype=self.dtype or torch.float32, enabled=self.dtype is not None):
+            return self.field.density(x, ray_indices=ray_indices, num_rays=num_rays).float()
 
 
 class RadianceFields(nn.Module):
     """Coarse and fine fields of one run. ``fine`` is None when the coarse field is reused.
+    ``grid`` is the occupancy grid of the occupancy sampler (None for hierarchical sampling).
 
-    ``state_dict`` holds only the MLPs' parameters (under ``coarse.`` and ``fine.``), independent of
-    the precision they run at.
+    ``state_dict`` holds the MLPs' parameters (under ``coarse.`` and ``fine.``) and the grid's
+    buffers, independent of the precision the MLPs run at.
     """
 
-    def __init__(self, model_cfg: ModelConfig, fine_network: bool) -> None:
+    def __init__(self, model_cfg: ModelConfig, fine_network: bool, grid: OccupancyGrid | None = None) -> None:
         super().__init__()
         self.model_cfg = model_cfg
         self.coarse = MixerNeRF(model_cfg)
         self.fine = MixerNeRF(model_cfg) if fine_network else None
+        self.grid = grid
 
     def runners(self, precision: str, device: torch.device) -> tuple[nn.Module, nn.Module | None]:
         """(coarse, fine) callables for ``render_rays`` at ``precision``."""
@@ -93,6 +102,8 @@ class ImageRenderer:
     num_fine: int
     chunk: int
     backend: str
+    early_stop_eps: float = 1e-4
+    alpha_threshold: float = 0.0
 
     @torch.no_grad()
     def __call__(self, rays_o: torch.Tensor, rays_d: torch.Tensor) -> Any:
@@ -102,9 +113,37 @@ class ImageRenderer:
         was_training = self.fields.training
         self.fields.eval()
         try:
+            if self.fields.grid is not None:
+                return self._marched(coarse, rays_o.to(device, torch.float32), rays_d.to(device, torch.float32))
             return render_image(
                 coarse, rays_o.to(device, torch.float32), rays_d.to(device, torch.float32), self.near,
                 self.far, chunk=self.chunk, fine_field=fine, num_coarse=self.num_coarse,
                 num_fine=self.num_fine, stratified=False, background=self.background, backend=self.backend)
         finally:
             self.fields.train(was_training)
+
+    def _marched(self, field: nn.Module, rays_o: torch.Tensor, rays_d: torch.Tensor) -> ImageResult:
+        parts = [
+            render_rays_marched(field, rays_o[i:i + self.chunk], rays_d[i:i + self.chunk], self.fields.grid,
+                                self.near, self.far, stratified=False, background=self.background,
+                                early_stop_eps=self.early_stop_eps, alpha_threshold=self.alpha_threshold,
+                                backend=self.backend)
+            for i in range(0, rays_o.shape[0], self.chunk)
+        ]
+        return ImageResult(*(torch.cat([getattr(p, k) for p in parts]) for k in ImageResult._fields))
+
+
+def resolve_sampler(cfg: TrainConfig, bbox: torch.Tensor | None) -> TrainConfig:
+    """``cfg`` with ``sampler="auto"`` decided by the scene: occupancy when it has a box. The
+    occupancy sampler renders one marched pass, so it trains no separate fine network."""
+    sampler = cfg.sampler if cfg.sampler != "auto" else ("occupancy" if bbox is not None else "hierarchical")
+    if sampler == "occupancy" and bbox is None:
+        raise ValueError("sampler 'occupancy' needs a scene box (bbox); this scene has none")
+    return dataclasses.replace(cfg, sampler=sampler, fine_network=cfg.fine_network and sampler != "occupancy")
+
+
+def make_grid(cfg: TrainConfig, bbox: torch.Tensor | None) -> OccupancyGrid | None:
+    """The occupancy grid of a resolved ``cfg`` (None for hierarchical sampling)."""
+    if cfg.sampler != "occupancy":
+        return None
+    return OccupancyGrid(bbox, cfg.grid_resolution, cfg.step_size)

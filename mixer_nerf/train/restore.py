@@ -11,7 +11,7 @@ import torch
 
 from .checkpoint import CheckpointError, load_checkpoint
 from .config import TrainConfig
-from .fields import ImageRenderer, RadianceFields, model_config_from_dict, set_matmul_precision
+from .fields import ImageRenderer, RadianceFields, make_grid, model_config_from_dict, set_matmul_precision
 
 
 @dataclass
@@ -46,7 +46,8 @@ def load_trained(path: str | Path, device: str | None = None, backend: str | Non
     cfg = dataclasses.replace(saved, device=device, precision=precision,
                               backend=backend or saved.backend).resolved(cuda)
     set_matmul_precision(cfg.precision)
-    fields = RadianceFields(model_cfg, cfg.fine_network)
+    bbox = state["scene"].get("bbox")
+    fields = RadianceFields(model_cfg, cfg.fine_network, make_grid(cfg, bbox))
     try:
         fields.load_state_dict(state["model"])
     except RuntimeError as e:
@@ -56,5 +57,5 @@ def load_trained(path: str | Path, device: str | None = None, backend: str | Non
     scene = state["scene"]
     renderer = ImageRenderer(fields, cfg.precision, scene["near"], scene["far"],
                              scene["background"].to(dev, torch.float32), cfg.num_coarse, cfg.num_fine,
-                             cfg.chunk, cfg.backend)
+                             cfg.chunk, cfg.backend, cfg.early_stop_eps, cfg.alpha_threshold)
     return TrainedRun(path, cfg, int(state["step"]), scene, renderer, dev)

@@ -14,9 +14,18 @@ import torch.nn.functional as F
 
 from ..metrics import psnr
 from ..render import render_rays
+from ..render.marching import render_rays_marched
 from .checkpoint import capture_rng_state, load_checkpoint, restore_rng_state, save_checkpoint
 from .config import TrainConfig
-from .fields import ImageRenderer, RadianceFields, model_config, model_config_to_dict, set_matmul_precision
+from .fields import (
+    ImageRenderer,
+    RadianceFields,
+    make_grid,
+    model_config,
+    model_config_to_dict,
+    resolve_sampler,
+    set_matmul_precision,
+)
 from .guard import NonFiniteError, NonFiniteGuard
 from .logbook import CsvLog, plot_curves
 from .output import RunFiles, prepare_run_folder
@@ -84,12 +93,14 @@ class Trainer:
         self.train_scene = load_split(folder, fmt, "train", cfg.downscale).to(self.device)
         val_scene, self.val_split = held_out_split(folder, fmt, "val", cfg.downscale)
         self.val_scene = val_scene.to(self.device)
+        self.cfg = cfg = resolve_sampler(cfg, self.train_scene.bbox)
         self.scene = scene_info(self.train_scene, folder, fmt, cfg)
         self.background = self.train_scene.background.to(self.device, torch.float32)
 
         torch.manual_seed(cfg.seed)  # model initialisation
         self.model_cfg = model_config(cfg.preset, cfg.model_overrides, self.train_scene.bbox, cfg.backend)
-        self.fields = RadianceFields(self.model_cfg, cfg.fine_network).to(self.device)
+        self.fields = RadianceFields(self.model_cfg, cfg.fine_network, make_grid(cfg, self.train_scene.bbox))
+        self.fields.to(self.device)
         self.coarse_field, self.fine_field = self.fields.runners(cfg.precision, self.device)
         self.params = [p for p in self.fields.parameters() if p.requires_grad]
         self.param_names = [n for n, p in self.fields.named_parameters() if p.requires_grad]
@@ -99,12 +110,16 @@ class Trainer:
             self.optimizer, lambda s: decay ** (min(s, cfg.steps) / cfg.steps))
         self.renderer = ImageRenderer(
             self.fields, cfg.precision, self.train_scene.near, self.train_scene.far, self.background,
-            cfg.num_coarse, cfg.num_fine, cfg.chunk, cfg.backend)
+            cfg.num_coarse, cfg.num_fine, cfg.chunk, cfg.backend, cfg.early_stop_eps, cfg.alpha_threshold)
         self.sampler = RaySampler(self.train_scene, cfg.batch_rays, cfg.seed)
+        if self.fields.grid is not None and cfg.target_samples is not None:
+            # The grid starts fully occupied: start small and let the batch grow to the target.
+            self.sampler.batch_rays = min(cfg.batch_rays, max(1, cfg.target_samples // 256))
         self.guard = NonFiniteGuard(self.param_names, self.device)
         self.check_every = 1 if self.device.type == "cpu" else min(cfg.log_every, 50)
         self.train_log, self.val_log = CsvLog(self.files.train_log), CsvLog(self.files.val_log)
         self.step, self.clock = 0, TrainingClock(self.device)
+        self.rays_seen = self.samples_seen = 0
         if state is not None:
             self._load_state(state)
         self.files.config.write_text(json.dumps(
@@ -114,17 +129,14 @@ class Trainer:
 
     def train_step(self) -> dict[str, torch.Tensor]:
         """One optimisation step on a fresh random batch. Returns device scalars (no sync):
-        ``loss`` (coarse + fine MSE) and ``mse`` (of the final, fine colours)."""
+        ``loss`` (coarse + fine MSE, or the marched pass's MSE) and ``mse`` (of the final colours)."""
         cfg = self.cfg
         rays_o, rays_d, target = self.sampler.sample()
-        out = render_rays(
-            self.coarse_field, rays_o, rays_d, self.train_scene.near, self.train_scene.far,
-            num_coarse=cfg.num_coarse, num_fine=cfg.num_fine, fine_field=self.fine_field,
-            stratified=True, background=self.background, backend=cfg.backend,
-            generator=self.sampler.generator)
-        losses = {"loss_coarse": F.mse_loss(out.coarse.color, target)}
-        if out.fine is not None:
-            losses["loss_fine"] = F.mse_loss(out.fine.color, target)
+        self.rays_seen += rays_o.shape[0]
+        if self.fields.grid is not None:
+            losses = self._marched_losses(rays_o, rays_d, target)
+        else:
+            losses = self._hierarchical_losses(rays_o, rays_d, target)
         loss = sum(losses.values())
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
@@ -136,6 +148,35 @@ class Trainer:
         self.scheduler.step()
         self.step = step
         return {"loss": loss.detach(), "mse": losses.get("loss_fine", losses["loss_coarse"]).detach()}
+
+    def _hierarchical_losses(self, rays_o, rays_d, target) -> dict[str, torch.Tensor]:
+        cfg = self.cfg
+        out = render_rays(
+            self.coarse_field, rays_o, rays_d, self.train_scene.near, self.train_scene.far,
+            num_coarse=cfg.num_coarse, num_fine=cfg.num_fine, fine_field=self.fine_field,
+            stratified=True, background=self.background, backend=cfg.backend,
+            generator=self.sampler.generator)
+        self.samples_seen += rays_o.shape[0] * (cfg.num_coarse + (cfg.num_coarse + cfg.num_fine) * (out.fine is not None))
+        losses = {"loss_coarse": F.mse_loss(out.coarse.color, target)}
+        if out.fine is not None:
+            losses["loss_fine"] = F.mse_loss(out.fine.color, target)
+        return losses
+
+    def _marched_losses(self, rays_o, rays_d, target) -> dict[str, torch.Tensor]:
+        cfg, grid = self.cfg, self.fields.grid
+        grid.update(self.step, lambda x: self.coarse_field.density(x), every=cfg.grid_every,
+                    threshold=cfg.grid_threshold, warmup_steps=cfg.grid_warmup, generator=self.sampler.generator)
+        out = render_rays_marched(
+            self.coarse_field, rays_o, rays_d, grid, self.train_scene.near, self.train_scene.far,
+            stratified=True, background=self.background, early_stop_eps=cfg.early_stop_eps,
+            alpha_threshold=cfg.alpha_threshold, backend=cfg.backend, generator=self.sampler.generator)
+        num_samples = out.samples.t_starts.shape[0]  # known on the host: marching synchronised
+        self.samples_seen += num_samples
+        if cfg.target_samples is not None:
+            # Keep the MLP's work per step near the target as the grid empties (nerfacc's recipe).
+            rays = rays_o.shape[0] * cfg.target_samples / max(num_samples, 1)
+            self.sampler.batch_rays = int(min(max(rays, 1), 1 << 18))
+        return {"loss_coarse": F.mse_loss(out.color, target)}
 
     def render_rgb(self, rays_o: torch.Tensor, rays_d: torch.Tensor) -> torch.Tensor:
         """Final colours (R, 3) of arbitrary rays with the current fields (deterministic samples)."""
@@ -168,7 +209,7 @@ class Trainer:
         bar = tqdm(total=cfg.steps, initial=self.step, disable=not cfg.progress, unit="step",
                    dynamic_ncols=True, leave=False)
         status = "finished"
-        mark_step, mark_time = self.step, self.clock.elapsed
+        mark_rays, mark_time = self.rays_seen, self.clock.elapsed
         self.clock.start()
         try:
             while self.step < cfg.steps:
@@ -181,9 +222,9 @@ class Trainer:
                     self.guard.raise_if_bad()
                 if self.step % cfg.log_every == 0:
                     now = self.clock.pause()
-                    self._log_train(stats, rays_per_s=(self.step - mark_step) * cfg.batch_rays
-                                    / max(now - mark_time, 1e-9), bar=bar)
-                    mark_step, mark_time = self.step, now
+                    self._log_train(stats, rays_per_s=(self.rays_seen - mark_rays) / max(now - mark_time, 1e-9),
+                                    bar=bar)
+                    mark_rays, mark_time = self.rays_seen, now
                     self.clock.start()
                 if self.step % cfg.val_every == 0:
                     self._paused(self._log_validation)
@@ -243,7 +284,8 @@ class Trainer:
         loss, mse = stats["loss"].item(), stats["mse"].item()
         row = {"step": self.step, "seconds": round(self.clock.elapsed, 3),
                "lr": self.scheduler.get_last_lr()[0], "loss": loss,
-               "psnr": -10.0 * math.log10(max(mse, 1e-30)), "rays_per_s": round(rays_per_s, 1)}
+               "psnr": -10.0 * math.log10(max(mse, 1e-30)), "rays_per_s": round(rays_per_s, 1),
+               "samples_per_ray": round(self.samples_seen / max(self.rays_seen, 1), 2)}
         self.train_log.append(row)
         bar.set_postfix(loss=f"{loss:.4f}", psnr=f"{row['psnr']:.2f}", rays_s=f"{rays_per_s:,.0f}")
 
@@ -266,3 +308,4 @@ class Trainer:
         }
         self.files.summary.write_text(json.dumps(summary, indent=1))
         return summary
+
