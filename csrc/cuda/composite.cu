@@ -1,4 +1,5 @@
-// composite (volume rendering) on CUDA: one warp per ray. A ray's samples go in chunks of
+// composite and composite_packed (volume rendering) on CUDA: one warp per ray, in either layout
+// (a ray is a span of samples, composite.h). A ray's samples go in chunks of
 // 32 runs, each lane holding a run of consecutive samples (the warp's loads cover
 // contiguous memory; per-lane sums over a run replace shuffles). The math and its numerics are
 // those of csrc/composite.cpp (read its file comment first):
@@ -8,7 +9,8 @@
 //             dL/dtau_j = T_{j+1} (g_j - G_{j+1}).
 // The backward needs the optical depth at the start of every chunk while walking chunks in
 // reverse; subtracting sums would cancel after a 1e10-long interval, so a first forward pass
-// keeps one value per chunk in shared memory. No atomics, no global scratch beyond outputs.
+// keeps one value per chunk but the last in global scratch (a ray of <= 32 samples skips that
+// pass; packed rays are mostly that short). No atomics.
 #include <torch/library.h>
 
 #include <ATen/ATen.h>
@@ -20,6 +22,7 @@
 #include <tuple>
 
 #include "common.h"
+#include "composite.h"
 
 namespace mixer_nerf {
 namespace {
@@ -35,40 +38,6 @@ constexpr int kForwardRun = 2;
 constexpr int kBackwardRun = 1;
 constexpr int kForwardChunk = kWarpSize * kForwardRun;
 constexpr int kBackwardChunk = kWarpSize * kBackwardRun;
-constexpr size_t kSharedBytes = 48 * 1024;
-
-template <typename scalar_t>
-struct CompositeInputs {
-  const scalar_t* sigmas;      // (N)
-  const scalar_t* rgbs;        // (N, C)
-  const scalar_t* t_starts;    // (N)
-  const scalar_t* t_ends;      // (N)
-  const scalar_t* background;  // nullptr, or row r at background + r * background_stride
-  int64_t background_stride;   // 0 for one background (C), C for one per ray (R, C)
-  int64_t channels;
-};
-
-template <typename scalar_t>
-struct CompositeOutputs {
-  scalar_t* color;    // (R, C)
-  scalar_t* depth;    // (R)
-  scalar_t* opacity;  // (R)
-  scalar_t* weights;  // (N)
-};
-
-// Upstream gradients (nullptr: zeros) and the gradients to write (grad_t_*: nullptr to skip).
-template <typename scalar_t>
-struct CompositeGrads {
-  const scalar_t* color;
-  const scalar_t* depth;
-  const scalar_t* opacity;
-  const scalar_t* weights;
-  scalar_t* sigmas;
-  scalar_t* rgbs;
-  scalar_t* t_starts;
-  scalar_t* t_ends;
-  acc_t<scalar_t>* background_rows;  // (R, C) or nullptr
-};
 
 __device__ __forceinline__ float exp_(float x) { return expf(x); }
 __device__ __forceinline__ double exp_(double x) { return exp(x); }
@@ -177,7 +146,7 @@ __device__ void composite_forward_ray(const CompositeInputs<scalar_t>& in, const
   }
 }
 
-// Backward of one ray by one warp; chunk_start is this warp's shared scratch, one entry per chunk.
+// Backward of one ray by one warp; chunk_start is this ray's scratch, one entry per chunk but the last.
 template <typename scalar_t>
 __device__ void composite_backward_ray(const CompositeInputs<scalar_t>& in, const CompositeGrads<scalar_t>& g,
                                        int64_t ray, int64_t offset, int64_t count, int lane,
@@ -186,13 +155,15 @@ __device__ void composite_backward_ray(const CompositeInputs<scalar_t>& in, cons
   const int64_t C = in.channels;
   const int64_t chunks = (count + kBackwardChunk - 1) / kBackwardChunk;
 
+  // Optical depth before every chunk but the last; the reverse pass below starts there and
+  // finds the total (hence T past the last sample) itself.
   acc optical_depth = 0;
-  for (int64_t q = 0; q < chunks; ++q) {
+  for (int64_t q = 0; q + 1 < chunks; ++q) {
     if (lane == 0) chunk_start[q] = optical_depth;
     optical_depth += warp_sum(LaneSamples<scalar_t, kBackwardRun>(in, offset, count, q * kBackwardChunk + lane * kBackwardRun).total);
   }
-  __syncwarp();
-  const acc transmittance_end = exp_(-optical_depth);
+  __syncwarp();  // orders lane 0's scratch writes before every lane's reads
+  acc total_optical_depth = optical_depth;  // final once the last chunk is added below
 
   const scalar_t* grad_color = g.color ? g.color + ray * C : nullptr;
   const acc grad_depth = g.depth ? acc(g.depth[ray]) : acc(0);
@@ -202,16 +173,13 @@ __device__ void composite_backward_ray(const CompositeInputs<scalar_t>& in, cons
     const scalar_t* bg = in.background + ray * in.background_stride;
     for (int64_t c = 0; c < C; ++c) G += acc(grad_color[c]) * acc(bg[c]);
   }
-  if (g.background_rows) {
-    for (int64_t c = lane; c < C; c += kWarpSize) {
-      g.background_rows[ray * C + c] = grad_color ? acc(grad_color[c]) * transmittance_end : acc(0);
-    }
-  }
 
   for (int64_t q = chunks - 1; q >= 0; --q) {
     const LaneSamples<scalar_t, kBackwardRun> s(in, offset, count, q * kBackwardChunk + lane * kBackwardRun);
-    acc carry = chunk_start[q];
+    const bool last = q == chunks - 1;
+    acc carry = last ? optical_depth : chunk_start[q];
     acc before = run_optical_depth(s.total, lane, carry);
+    if (last) total_optical_depth = carry;
     acc transmittance = exp_(-before);
     acc alpha[kBackwardRun], decay[kBackwardRun], g_in[kBackwardRun], t_after[kBackwardRun];
     acc w[kBackwardRun];
@@ -269,148 +237,132 @@ __device__ void composite_backward_ray(const CompositeInputs<scalar_t>& in, cons
       }
     }
   }
-}
-
-template <typename scalar_t>
-__global__ void __launch_bounds__(kMaxWarpsPerBlock* kWarpSize)
-    composite_fwd_kernel(CompositeInputs<scalar_t> in, CompositeOutputs<scalar_t> out, int64_t R, int64_t S) {
-  const int64_t ray = int64_t(blockIdx.x) * (blockDim.x / kWarpSize) + threadIdx.x / kWarpSize;
-  if (ray >= R) return;  // whole warps leave together: the shuffles below see full warps
-  composite_forward_ray(in, out, ray, ray * S, S, threadIdx.x % kWarpSize);
-}
-
-template <typename scalar_t>
-__global__ void __launch_bounds__(kMaxWarpsPerBlock* kWarpSize)
-    composite_bwd_kernel(CompositeInputs<scalar_t> in, CompositeGrads<scalar_t> g, int64_t R, int64_t S) {
-  extern __shared__ unsigned char shared_bytes[];
-  using acc = acc_t<scalar_t>;
-  const int warp = threadIdx.x / kWarpSize;
-  const int64_t ray = int64_t(blockIdx.x) * (blockDim.x / kWarpSize) + warp;
-  if (ray >= R) return;
-  acc* chunk_start = reinterpret_cast<acc*>(shared_bytes) + warp * ((S + kBackwardChunk - 1) / kBackwardChunk);
-  composite_backward_ray(in, g, ray, ray * S, S, threadIdx.x % kWarpSize, chunk_start);
-}
-
-void check_inputs(const at::Tensor& sigmas, const at::Tensor& rgbs, const at::Tensor& t_starts,
-                  const at::Tensor& t_ends, const std::optional<at::Tensor>& background) {
-  MIXER_NERF_CHECK_INPUT(sigmas, at::kCUDA);
-  MIXER_NERF_CHECK_INPUT(rgbs, at::kCUDA);
-  MIXER_NERF_CHECK_INPUT(t_starts, at::kCUDA);
-  MIXER_NERF_CHECK_INPUT(t_ends, at::kCUDA);
-  TORCH_CHECK(sigmas.dim() == 2 && rgbs.dim() == 3, "composite: sigmas (R, S) and rgbs (R, S, C) expected");
-  TORCH_CHECK(rgbs.size(0) == sigmas.size(0) && rgbs.size(1) == sigmas.size(1), "composite: rgbs/sigmas mismatch");
-  TORCH_CHECK(t_starts.sizes() == sigmas.sizes() && t_ends.sizes() == sigmas.sizes(),
-              "composite: t_starts/t_ends must match sigmas");
-  if (background) {
-    MIXER_NERF_CHECK_INPUT(*background, at::kCUDA);
-    const bool shared = background->dim() == 1 && background->size(0) == rgbs.size(2);
-    const bool per_ray = background->dim() == 2 && background->size(0) == rgbs.size(0) &&
-                         background->size(1) == rgbs.size(2);
-    TORCH_CHECK(shared || per_ray, "composite: background must be (C) or (R, C)");
+  if (g.background_rows) {
+    const acc transmittance_end = exp_(-total_optical_depth);
+    for (int64_t c = lane; c < C; c += kWarpSize) {
+      g.background_rows[ray * C + c] = grad_color ? acc(grad_color[c]) * transmittance_end : acc(0);
+    }
   }
 }
 
-template <typename scalar_t>
-CompositeInputs<scalar_t> inputs_of(const at::Tensor& sigmas, const at::Tensor& rgbs, const at::Tensor& t_starts,
-                                    const at::Tensor& t_ends, const std::optional<at::Tensor>& background) {
-  const bool per_ray = background && background->dim() == 2;
-  return {sigmas.const_data_ptr<scalar_t>(),
-          rgbs.const_data_ptr<scalar_t>(),
-          t_starts.const_data_ptr<scalar_t>(),
-          t_ends.const_data_ptr<scalar_t>(),
-          background ? background->const_data_ptr<scalar_t>() : nullptr,
-          per_ray ? rgbs.size(2) : 0,
-          rgbs.size(2)};
+template <typename scalar_t, typename Rays>
+__global__ void __launch_bounds__(kMaxWarpsPerBlock* kWarpSize)
+    composite_fwd_kernel(CompositeInputs<scalar_t> in, CompositeOutputs<scalar_t> out, int64_t R, Rays rays) {
+  const int64_t ray = int64_t(blockIdx.x) * (blockDim.x / kWarpSize) + threadIdx.x / kWarpSize;
+  if (ray >= R) return;  // whole warps leave together: the shuffles below see full warps
+  const composite_layout::RaySpan span = rays(ray);
+  composite_forward_ray(in, out, ray, span.offset, span.count, threadIdx.x % kWarpSize);
 }
 
-unsigned blocks_for(int64_t R, int warps_per_block) {
-  const int64_t blocks = (R + warps_per_block - 1) / warps_per_block;
+// Scratch of the backward: ray r's chunk starts from span.offset / kBackwardChunk + r. A ray of
+// `count` samples from `offset` needs at most ceil(count / kBackwardChunk) entries, and the next
+// ray's first entry is at least floor(count / kBackwardChunk) + 1 further on, so rays never
+// overlap and N / kBackwardChunk + R entries hold them all.
+int64_t scratch_entries(int64_t N, int64_t R) { return N / kBackwardChunk + R; }
+
+template <typename scalar_t, typename Rays>
+__global__ void __launch_bounds__(kMaxWarpsPerBlock* kWarpSize)
+    composite_bwd_kernel(CompositeInputs<scalar_t> in, CompositeGrads<scalar_t> g, int64_t R, Rays rays,
+                         acc_t<scalar_t>* scratch) {
+  const int64_t ray = int64_t(blockIdx.x) * (blockDim.x / kWarpSize) + threadIdx.x / kWarpSize;
+  if (ray >= R) return;
+  const composite_layout::RaySpan span = rays(ray);
+  composite_backward_ray(in, g, ray, span.offset, span.count, threadIdx.x % kWarpSize,
+                         scratch + span.offset / kBackwardChunk + ray);
+}
+
+unsigned blocks_for(int64_t R) {
+  const int64_t blocks = (R + kMaxWarpsPerBlock - 1) / kMaxWarpsPerBlock;
   TORCH_CHECK(blocks <= int64_t(INT32_MAX), "composite: too many rays for one launch");
   return static_cast<unsigned>(blocks);
 }
 
-std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> composite_fwd_cuda(
+template <typename Rays>
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> composite_forward(
     const at::Tensor& sigmas, const at::Tensor& rgbs, const at::Tensor& t_starts, const at::Tensor& t_ends,
-    const std::optional<at::Tensor>& background) {
-  check_inputs(sigmas, rgbs, t_starts, t_ends, background);
+    const std::optional<at::Tensor>& background, int64_t R, Rays rays) {
   const c10::cuda::CUDAGuard device_guard(sigmas.device());
-  const int64_t R = sigmas.size(0), S = sigmas.size(1), C = rgbs.size(2);
-  at::Tensor color = at::empty({R, C}, sigmas.options());
-  at::Tensor depth = at::empty({R}, sigmas.options());
-  at::Tensor opacity = at::empty({R}, sigmas.options());
-  at::Tensor weights = at::empty({R, S}, sigmas.options());
-  if (R == 0) return {color, depth, opacity, weights};
+  auto outputs = empty_outputs(sigmas, rgbs, R);
+  auto& [color, depth, opacity, weights] = outputs;
+  if (R == 0) return outputs;
   MIXER_NERF_DISPATCH_FLOATING(sigmas.scalar_type(), "composite_fwd_cuda", [&] {
     const CompositeOutputs<scalar_t> out{color.data_ptr<scalar_t>(), depth.data_ptr<scalar_t>(),
                                          opacity.data_ptr<scalar_t>(), weights.data_ptr<scalar_t>()};
-    composite_fwd_kernel<scalar_t>
-        <<<blocks_for(R, kMaxWarpsPerBlock), kMaxWarpsPerBlock * kWarpSize, 0, c10::cuda::getCurrentCUDAStream()>>>(
-            inputs_of<scalar_t>(sigmas, rgbs, t_starts, t_ends, background), out, R, S);
+    composite_fwd_kernel<scalar_t><<<blocks_for(R), kMaxWarpsPerBlock * kWarpSize, 0,
+                                     c10::cuda::getCurrentCUDAStream()>>>(
+        inputs_of<scalar_t>(sigmas, rgbs, t_starts, t_ends, background), out, R, rays);
     C10_CUDA_KERNEL_LAUNCH_CHECK();
   });
-  return {color, depth, opacity, weights};
+  return outputs;
 }
 
-const void* data_or_null(const std::optional<at::Tensor>& t) { return t ? t->const_data_ptr() : nullptr; }
+template <typename Rays>
+std::tuple<at::Tensor, at::Tensor, std::optional<at::Tensor>, std::optional<at::Tensor>, std::optional<at::Tensor>>
+composite_backward(const std::optional<at::Tensor>& grad_color, const std::optional<at::Tensor>& grad_depth,
+                   const std::optional<at::Tensor>& grad_opacity, const std::optional<at::Tensor>& grad_weights,
+                   const at::Tensor& sigmas, const at::Tensor& rgbs, const at::Tensor& t_starts,
+                   const at::Tensor& t_ends, const std::optional<at::Tensor>& background, bool interval_grads,
+                   int64_t R, Rays rays) {
+  const c10::cuda::CUDAGuard device_guard(sigmas.device());
+  check_upstream(grad_color, grad_depth, grad_opacity, grad_weights, sigmas, rgbs, R, at::kCUDA);
+  CompositeGradTensors grads(sigmas, rgbs, background, R, interval_grads);
+  if (R > 0) {
+    const at::Tensor scratch = at::empty({scratch_entries(sigmas.numel(), R)},
+                                         sigmas.options().dtype(at::toOpMathType(sigmas.scalar_type())));
+    MIXER_NERF_DISPATCH_FLOATING(sigmas.scalar_type(), "composite_bwd_cuda", [&] {
+      composite_bwd_kernel<scalar_t><<<blocks_for(R), kMaxWarpsPerBlock * kWarpSize, 0,
+                                       c10::cuda::getCurrentCUDAStream()>>>(
+          inputs_of<scalar_t>(sigmas, rgbs, t_starts, t_ends, background),
+          grads.pointers<scalar_t>(grad_color, grad_depth, grad_opacity, grad_weights), R, rays,
+          scratch.data_ptr<acc_t<scalar_t>>());
+      C10_CUDA_KERNEL_LAUNCH_CHECK();
+    });
+  }
+  return grads.finish(background);
+}
+
+using composite_layout::DenseRays;
+using composite_layout::PackedRays;
+
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> composite_fwd_cuda(
+    const at::Tensor& sigmas, const at::Tensor& rgbs, const at::Tensor& t_starts, const at::Tensor& t_ends,
+    const std::optional<at::Tensor>& background) {
+  check_dense(sigmas);
+  check_composite_inputs(sigmas, rgbs, t_starts, t_ends, background, sigmas.size(0), at::kCUDA);
+  return composite_forward(sigmas, rgbs, t_starts, t_ends, background, sigmas.size(0), DenseRays{sigmas.size(1)});
+}
 
 std::tuple<at::Tensor, at::Tensor, std::optional<at::Tensor>, std::optional<at::Tensor>, std::optional<at::Tensor>>
 composite_bwd_cuda(const std::optional<at::Tensor>& grad_color, const std::optional<at::Tensor>& grad_depth,
                    const std::optional<at::Tensor>& grad_opacity, const std::optional<at::Tensor>& grad_weights,
                    const at::Tensor& sigmas, const at::Tensor& rgbs, const at::Tensor& t_starts,
                    const at::Tensor& t_ends, const std::optional<at::Tensor>& background, bool interval_grads) {
-  check_inputs(sigmas, rgbs, t_starts, t_ends, background);
-  const c10::cuda::CUDAGuard device_guard(sigmas.device());
-  const int64_t R = sigmas.size(0), S = sigmas.size(1), C = rgbs.size(2);
-  for (const auto* grad : {&grad_color, &grad_depth, &grad_opacity, &grad_weights}) {
-    if (*grad) {
-      const at::Tensor& upstream = **grad;
-      MIXER_NERF_CHECK_INPUT(upstream, at::kCUDA);
-      TORCH_CHECK(upstream.scalar_type() == sigmas.scalar_type(), "composite_bwd: gradient dtype mismatch");
-    }
-  }
-  TORCH_CHECK(!grad_color || grad_color->sizes() == at::IntArrayRef({R, C}), "grad_color must be (R, C)");
-  TORCH_CHECK(!grad_depth || grad_depth->sizes() == at::IntArrayRef({R}), "grad_depth must be (R)");
-  TORCH_CHECK(!grad_opacity || grad_opacity->sizes() == at::IntArrayRef({R}), "grad_opacity must be (R)");
-  TORCH_CHECK(!grad_weights || grad_weights->sizes() == sigmas.sizes(), "grad_weights must be (R, S)");
+  check_dense(sigmas);
+  check_composite_inputs(sigmas, rgbs, t_starts, t_ends, background, sigmas.size(0), at::kCUDA);
+  return composite_backward(grad_color, grad_depth, grad_opacity, grad_weights, sigmas, rgbs, t_starts, t_ends,
+                            background, interval_grads, sigmas.size(0), DenseRays{sigmas.size(1)});
+}
 
-  at::Tensor grad_sigmas = at::empty_like(sigmas);
-  at::Tensor grad_rgbs = at::empty_like(rgbs);
-  std::optional<at::Tensor> grad_t_starts, grad_t_ends, grad_background;
-  if (interval_grads) {
-    grad_t_starts = at::empty_like(t_starts);
-    grad_t_ends = at::empty_like(t_ends);
-  }
-  const at::ScalarType acc_type = at::toOpMathType(sigmas.scalar_type());
-  at::Tensor background_rows;
-  if (background) background_rows = at::empty({R, C}, sigmas.options().dtype(acc_type));
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> composite_packed_fwd_cuda(
+    const at::Tensor& sigmas, const at::Tensor& rgbs, const at::Tensor& t_starts, const at::Tensor& t_ends,
+    const std::optional<at::Tensor>& background, const at::Tensor& offsets) {
+  const int64_t R = check_packed(sigmas, offsets, at::kCUDA);
+  check_composite_inputs(sigmas, rgbs, t_starts, t_ends, background, R, at::kCUDA);
+  return composite_forward(sigmas, rgbs, t_starts, t_ends, background, R,
+                           PackedRays{offsets.const_data_ptr<int64_t>(), sigmas.size(0)});
+}
 
-  if (R > 0) {
-    MIXER_NERF_DISPATCH_FLOATING(sigmas.scalar_type(), "composite_bwd_cuda", [&] {
-      using acc = acc_t<scalar_t>;
-          const size_t per_warp = size_t((S + kBackwardChunk - 1) / kBackwardChunk) * sizeof(acc);
-      const int warps = static_cast<int>(std::min<size_t>(kMaxWarpsPerBlock, kSharedBytes / std::max<size_t>(per_warp, 1)));
-      TORCH_CHECK(warps >= 1, "composite_bwd: S = ", S, " samples per ray exceeds the CUDA kernel's limit of ",
-                  kSharedBytes / sizeof(acc) * kBackwardChunk);
-      const CompositeGrads<scalar_t> g{
-          static_cast<const scalar_t*>(data_or_null(grad_color)),
-          static_cast<const scalar_t*>(data_or_null(grad_depth)),
-          static_cast<const scalar_t*>(data_or_null(grad_opacity)),
-          static_cast<const scalar_t*>(data_or_null(grad_weights)),
-          grad_sigmas.data_ptr<scalar_t>(),
-          grad_rgbs.data_ptr<scalar_t>(),
-          interval_grads ? grad_t_starts->data_ptr<scalar_t>() : nullptr,
-          interval_grads ? grad_t_ends->data_ptr<scalar_t>() : nullptr,
-          background ? background_rows.data_ptr<acc>() : nullptr};
-      composite_bwd_kernel<scalar_t>
-          <<<blocks_for(R, warps), warps * kWarpSize, warps * per_warp, c10::cuda::getCurrentCUDAStream()>>>(
-              inputs_of<scalar_t>(sigmas, rgbs, t_starts, t_ends, background), g, R, S);
-      C10_CUDA_KERNEL_LAUNCH_CHECK();
-    });
-  }
-  if (background) {
-    grad_background = (background->dim() == 1 ? background_rows.sum(0) : background_rows).to(sigmas.scalar_type());
-  }
-  return {grad_sigmas, grad_rgbs, grad_t_starts, grad_t_ends, grad_background};
+std::tuple<at::Tensor, at::Tensor, std::optional<at::Tensor>, std::optional<at::Tensor>, std::optional<at::Tensor>>
+composite_packed_bwd_cuda(const std::optional<at::Tensor>& grad_color, const std::optional<at::Tensor>& grad_depth,
+                          const std::optional<at::Tensor>& grad_opacity,
+                          const std::optional<at::Tensor>& grad_weights, const at::Tensor& sigmas,
+                          const at::Tensor& rgbs, const at::Tensor& t_starts, const at::Tensor& t_ends,
+                          const std::optional<at::Tensor>& background, const at::Tensor& offsets,
+                          bool interval_grads) {
+  const int64_t R = check_packed(sigmas, offsets, at::kCUDA);
+  check_composite_inputs(sigmas, rgbs, t_starts, t_ends, background, R, at::kCUDA);
+  return composite_backward(grad_color, grad_depth, grad_opacity, grad_weights, sigmas, rgbs, t_starts, t_ends,
+                            background, interval_grads, R, PackedRays{offsets.const_data_ptr<int64_t>(), sigmas.size(0)});
 }
 
 }  // namespace
@@ -418,6 +370,8 @@ composite_bwd_cuda(const std::optional<at::Tensor>& grad_color, const std::optio
 TORCH_LIBRARY_IMPL(mixer_nerf, CUDA, m) {
   m.impl("composite_fwd", &composite_fwd_cuda);
   m.impl("composite_bwd", &composite_bwd_cuda);
+  m.impl("composite_packed_fwd", &composite_packed_fwd_cuda);
+  m.impl("composite_packed_bwd", &composite_packed_bwd_cuda);
 }
 
 }  // namespace mixer_nerf
