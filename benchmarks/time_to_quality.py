@@ -61,8 +61,10 @@ def validate(render: Callable, val, chunk: int = 1 << 15) -> float:
 
 
 def run_curve(step_fn: Callable[[int], dict], render: Callable, val, checkpoints: list[float], log: Callable) -> list[dict]:
-    """Train with ``step_fn(step)`` until the last checkpoint, validating at each one."""
-    clock, curve, step, stats = TrainingClock(), [], 0, {}
+    """Train with ``step_fn(step)`` until the last checkpoint, validating at each one. Step 0 runs
+    before the clock starts: it builds any JIT kernels (nerfacc's, ours) and warms up caches."""
+    step_fn(0)
+    clock, curve, step, stats = TrainingClock(), [], 1, {}
     pending = sorted(checkpoints)
     clock.start()
     while pending:
@@ -88,6 +90,10 @@ def nerfacc_method(args, train, val, device) -> tuple[Callable, Callable]:
     step_size = (aabb[3:] - aabb[:3]).max().item() * math.sqrt(3) / 1024
     estimator = nerfacc.OccGridEstimator(roi_aabb=aabb, resolution=128, levels=1).to(device)
     field = MixerNeRF(preset_config("A")).to(device)
+    # Our MLP starts from one uniform density everywhere; nerfacc's grid keeps cells whose opacity
+    # exceeds the grid mean, so a uniform field would leave every cell empty and never train. Give
+    # the peer a random density row, as nerfacc's own MLP has.
+    torch.nn.init.xavier_uniform_(field.head.weight[:1])
     optimizer = torch.optim.Adam(field.parameters(), lr=5e-4, eps=1e-15)
     steps = args.nominal_steps
     scheduler = torch.optim.lr_scheduler.MultiStepLR(
@@ -120,7 +126,7 @@ def nerfacc_method(args, train, val, device) -> tuple[Callable, Callable]:
         field.train()
         estimator.train()
         estimator.update_every_n_steps(
-            step=step, occ_eval_fn=lambda x: field(x, torch.zeros_like(x))[0][:, None] * step_size, occ_thre=1e-2)
+            step=step, occ_eval_fn=lambda x: field.density(x)[:, None] * step_size, occ_thre=1e-2)
         idx = torch.randint(0, len(rays_o_all), (state["num_rays"],), device=device)
         # Our loader composites on white (no alpha kept), so both methods train on white.
         target = rgb_all[idx]
@@ -141,9 +147,28 @@ def nerfacc_method(args, train, val, device) -> tuple[Callable, Callable]:
         estimator.eval()
         return render(rays_o, rays_d)[0]
 
-    # Build nerfacc's CUDA extension before the clock starts.
-    render_val(rays_o_all[:8], rays_d_all[:8])
     return step_fn, render_val
+
+
+def ours_method(args, train, val, device) -> tuple[Callable, Callable]:
+    import tempfile
+
+    from mixer_nerf.train import TrainConfig, Trainer
+
+    cfg = TrainConfig(
+        data=args.data, preset=args.preset, sampler=args.sampler, steps=args.nominal_steps,
+        target_samples=args.target_samples, precision=args.precision, device="cuda", seed=args.seed,
+        val_every=10**9, ckpt_every=10**9, log_every=10**9, progress=False,
+        out=tempfile.mkdtemp(prefix="ttq_"), lr=args.lr)
+    trainer = Trainer(cfg, log=lambda _: None)
+
+    def step_fn(step: int) -> dict:
+        trainer.fields.train()
+        trainer.train_step()
+        return {"samples_per_ray": trainer.samples_seen / max(trainer.rays_seen, 1),
+                "rays": trainer.sampler.batch_rays}
+
+    return step_fn, trainer.render_rgb
 
 
 def main() -> None:
@@ -155,6 +180,11 @@ def main() -> None:
     parser.add_argument("--nominal-steps", type=int, default=50000, help="schedule length (nerfacc recipe)")
     parser.add_argument("--out", default="benchmarks/results/ttq")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--preset", default="D", help="ours: model preset")
+    parser.add_argument("--sampler", default="occupancy", help="ours: occupancy | hierarchical")
+    parser.add_argument("--target-samples", type=int, default=65536, help="ours: MLP samples per step")
+    parser.add_argument("--precision", default="bf16", help="ours: bf16 | tf32 | fp32")
+    parser.add_argument("--lr", type=float, default=5e-4, help="ours: initial learning rate")
     args = parser.parse_args()
 
     torch.manual_seed(args.seed)
@@ -169,7 +199,7 @@ def main() -> None:
     if args.method == "nerfacc":
         step_fn, render = nerfacc_method(args, train, val, device)
     else:
-        raise SystemExit("method 'ours' is wired in by mixer_nerf.train")
+        step_fn, render = ours_method(args, train, val, device)
 
     curve = run_curve(step_fn, render, val, checkpoints, log=lambda p: print(label, json.dumps(p), flush=True))
     out = Path(args.out)

@@ -1,0 +1,106 @@
+"""Renderer that skips what a scene does not need: occupancy-grid marching, early ray
+termination and packed (ragged) samples.
+
+    rays -> ray_marching (box clip + empty-space skip) -> [no-grad density pass ->
+    filter_by_transmittance (early termination, optional alpha threshold)] -> field on the
+    surviving samples -> composite_packed
+
+A ray that misses the box or crosses only empty cells has no samples: it costs nothing but its
+background. Every skip is a switch: ``early_stop_eps=0`` and ``alpha_threshold=0`` keep every
+marched sample; an :class:`~mixer_nerf.occupancy_grid.OccupancyGrid` that is fully occupied (as
+during warm-up) marches densely through the box.
+"""
+
+from __future__ import annotations
+
+import inspect
+from typing import NamedTuple
+
+import torch
+from torch import nn
+
+from ..occupancy_grid import OccupancyGrid
+from ..ops import composite_packed
+from ..ops.ray_marching import PackedSamples, filter_by_transmittance, ray_marching
+
+
+class MarchedResult(NamedTuple):
+    color: torch.Tensor  # (R, 3)
+    depth: torch.Tensor  # (R,) unnormalised expected depth
+    opacity: torch.Tensor  # (R,)
+    samples: PackedSamples  # the samples the field was evaluated at (N,)
+    weights: torch.Tensor  # (N,)
+
+
+def _takes_ray_indices(field: nn.Module) -> bool:
+    return "ray_indices" in inspect.signature(field.forward).parameters
+
+
+def _sample_points(rays_o, rays_d, samples: PackedSamples) -> torch.Tensor:
+    mid = 0.5 * (samples.t_starts + samples.t_ends)
+    return rays_o[samples.ray_indices] + rays_d[samples.ray_indices] * mid[:, None]
+
+
+def render_rays_marched(
+    field: nn.Module,
+    rays_o: torch.Tensor,
+    rays_d: torch.Tensor,
+    grid: OccupancyGrid,
+    near: float | torch.Tensor = 0.0,
+    far: float | torch.Tensor = float("inf"),
+    step_size: float | None = None,
+    stratified: bool = True,
+    background: torch.Tensor | None = None,
+    early_stop_eps: float = 1e-4,
+    alpha_threshold: float = 0.0,
+    cone_angle: float = 0.0,
+    backend: str = "auto",
+    generator: torch.Generator | None = None,
+) -> MarchedResult:
+    """Render rays through ``field`` evaluating it only where ``grid`` says there is something.
+
+    Args:
+        field: ``field(x (N, 3), d (N, 3) unit) -> (sigma (N,), rgb (N, 3))``; a field whose forward
+            takes ``ray_indices`` (e.g. :class:`~mixer_nerf.model.MixerNeRF`, for its per-ray SE
+            squeeze) gets them with ``num_rays``. ``field.density(x)`` is used for the no-grad
+            pre-pass when it exists (skips the colour branch).
+        rays_o, rays_d: ``(R, 3)``; depths are in units of ``|rays_d|``.
+        grid: the occupancy grid (its box clips the rays).
+        near, far: floats or ``(R,)`` tensors, further clipped to the box.
+        step_size: marching step in t (default: the grid's).
+        stratified: jitter each ray's first sample (training).
+        background: ``(3,)`` or ``(R, 3)``; None renders on black.
+        early_stop_eps: drop samples once transmittance is below this (0: keep them all).
+        alpha_threshold: drop samples whose alpha is below this (0: keep them all).
+        cone_angle: > 0 grows the step with distance (unbounded scenes).
+
+    Returns:
+        :class:`MarchedResult`; color, depth and opacity are differentiable through the field.
+    """
+    step = grid.step_size if step_size is None else step_size
+    samples = ray_marching(rays_o, rays_d, near, far, grid, step, stratified=stratified,
+                           generator=generator, cone_angle=cone_angle, backend=backend)
+    norm = torch.linalg.vector_norm(rays_d, dim=-1)
+    viewdirs = rays_d / norm.clamp_min(torch.finfo(rays_d.dtype).tiny)[:, None]
+    num_rays = rays_o.shape[0]
+    extra = (lambda s: {"ray_indices": s.ray_indices, "num_rays": num_rays}) if _takes_ray_indices(field) else (lambda s: {})
+
+    if (early_stop_eps > 0 or alpha_threshold > 0) and samples.t_starts.numel():
+        with torch.no_grad():
+            x = _sample_points(rays_o, rays_d, samples)
+            if hasattr(field, "density"):
+                sigma = field.density(x, **extra(samples))
+            else:
+                sigma = field(x, viewdirs[samples.ray_indices])[0]
+            keep = filter_by_transmittance(sigma.float() * norm[samples.ray_indices], samples,
+                                           early_stop_eps, alpha_threshold)
+        samples = samples.select(keep)
+
+    x = _sample_points(rays_o, rays_d, samples)
+    sigma, rgb = field(x, viewdirs[samples.ray_indices], **extra(samples))
+    sigma = sigma.to(rays_o.dtype) * norm[samples.ray_indices]
+    bg = None if background is None else background.to(rays_o.dtype)
+    color, depth, opacity, weights = composite_packed(
+        sigma, rgb.to(rays_o.dtype), samples.t_starts, samples.t_ends, samples.offsets, bg,
+        backend=backend, check_values=False)
+    return MarchedResult(color, depth, opacity, samples, weights)
