@@ -25,6 +25,7 @@ PATHS = ("auto", "turntable", "spiral")
 SPIRAL_ROTATIONS = 2
 SPIRAL_Z_RATE = 0.5  # the spiral's in-and-out motion runs at half its angular speed
 DEPTH_COLORMAP = "turbo"
+AXIS_SNAP_DEGREES = 30.0
 
 
 # -- camera paths ---------------------------------------------------------------------------------
@@ -42,13 +43,15 @@ def look_at(eye: torch.Tensor, target: torch.Tensor, up: torch.Tensor) -> torch.
 def turntable_poses(train_poses: torch.Tensor, n_frames: int, center: torch.Tensor | None = None) -> torch.Tensor:
     """(n_frames, 4, 4) cameras circling ``center`` (default: the origin) once.
 
-    The rotation axis is the training cameras' mean up vector; radius and elevation are the
-    training cameras' mean distance from ``center`` and mean elevation above the plane normal
-    to that axis (an object-centred capture such as a Blender scene).
+    The rotation axis is the training cameras' mean up vector, snapped to the nearest world axis
+    when within ``AXIS_SNAP_DEGREES`` of it (captures are usually made z-up or y-up, and a few
+    random views average to a tilted axis); radius and elevation are the training cameras' mean
+    distance from ``center`` and mean elevation above the plane normal to that axis (an
+    object-centred capture such as a Blender scene).
     """
     poses = train_poses.double()
     center = torch.zeros(3, dtype=torch.float64) if center is None else center.double()
-    up = _normalize(poses[:, :3, 1].mean(0))
+    up = _snap_to_axis(_normalize(poses[:, :3, 1].mean(0)))
     offsets = poses[:, :3, 3] - center
     radius = offsets.norm(dim=-1).mean()
     elevation = torch.asin((_normalize(offsets) @ up).clamp(-1, 1)).mean()
@@ -227,6 +230,16 @@ def render_video(
 
 def _normalize(v: torch.Tensor) -> torch.Tensor:
     return v / v.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+
+
+def _snap_to_axis(v: torch.Tensor) -> torch.Tensor:
+    """The signed world axis nearest the unit vector ``v`` if within AXIS_SNAP_DEGREES, else ``v``."""
+    k = int(v.abs().argmax())
+    if v[k].abs() < math.cos(math.radians(AXIS_SNAP_DEGREES)):
+        return v
+    axis = torch.zeros_like(v)
+    axis[k] = torch.sign(v[k])
+    return axis
 
 
 def _any_perpendicular(v: torch.Tensor) -> torch.Tensor:

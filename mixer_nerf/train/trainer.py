@@ -258,6 +258,9 @@ class Trainer:
             "optimizer": self.optimizer.state_dict(),
             "scheduler": self.scheduler.state_dict(),
             "rng": capture_rng_state(self.sampler.generator),
+            # The occupancy sampler adapts the batch size; the counters feed samples_per_ray.
+            "progress": {"batch_rays": self.sampler.batch_rays, "rays_seen": self.rays_seen,
+                         "samples_seen": self.samples_seen},
         })
 
     # -- internals --------------------------------------------------------------------------
@@ -268,6 +271,10 @@ class Trainer:
         self.scheduler.load_state_dict(state["scheduler"])
         restore_rng_state(state["rng"], self.sampler.generator)
         self.step = int(state["step"])
+        progress = state.get("progress", {})
+        self.sampler.batch_rays = int(progress.get("batch_rays", self.sampler.batch_rays))
+        self.rays_seen = int(progress.get("rays_seen", 0))
+        self.samples_seen = int(progress.get("samples_seen", 0))
         self.clock = TrainingClock(self.device, float(state["elapsed"]))
         # Rows a killed run logged after its last checkpoint describe steps that will be redone.
         self.train_log.truncate_after(self.step)
@@ -308,4 +315,3 @@ class Trainer:
         }
         self.files.summary.write_text(json.dumps(summary, indent=1))
         return summary
-

@@ -1,0 +1,329 @@
+"""Trainer, checkpoints, resume, non-finite guard, logs and camera paths, at tiny sizes on CPU.
+
+Everything runs with ``backend="torch"`` (the reference ops) so these tests do not depend on the
+kernels building, on a 16x16 procedural scene rendered into a per-session cache.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+
+import numpy as np
+import pytest
+import torch
+
+from mixer_nerf.train import (
+    CheckpointError,
+    NonFiniteError,
+    OutputError,
+    TrainConfig,
+    Trainer,
+    load_checkpoint,
+    load_trained,
+    save_checkpoint,
+)
+from mixer_nerf.train.checkpoint import capture_rng_state, restore_rng_state
+from mixer_nerf.train.guard import NonFiniteGuard
+from mixer_nerf.train.logbook import CsvLog, plot_curves
+
+TINY_MODEL = {"depth": 2, "width": 16, "skips": (), "view_width": 8, "pos_freqs": 2, "dir_freqs": 1,
+              "mlca_channels": 3, "se_reduction": 4}
+
+
+@pytest.fixture(scope="session", autouse=True)
+def scene_cache(tmp_path_factory):
+    """The procedural scene is rendered once per session into a private cache."""
+    old = os.environ.get("MIXER_NERF_CACHE")
+    os.environ["MIXER_NERF_CACHE"] = str(tmp_path_factory.mktemp("cache"))
+    yield
+    if old is None:
+        del os.environ["MIXER_NERF_CACHE"]
+    else:
+        os.environ["MIXER_NERF_CACHE"] = old
+
+
+def tiny_config(out, **overrides) -> TrainConfig:
+    values = dict(procedural_resolution=16, procedural_views=4, model_overrides=TINY_MODEL, steps=6,
+                  batch_rays=32, num_coarse=6, num_fine=6, val_every=3, val_images=1, ckpt_every=3,
+                  log_every=1, backend="torch", device="cpu", progress=False, out=str(out),
+                  sampler="hierarchical", grid_resolution=8, grid_warmup=2, grid_every=2,
+                  target_samples=256)
+    values.update(overrides)
+    return TrainConfig(**values)
+
+
+def quiet(_: str) -> None:
+    pass
+
+
+def params_of(trainer: Trainer) -> dict[str, torch.Tensor]:
+    return {k: v.detach().clone() for k, v in trainer.fields.state_dict().items()}
+
+
+# -- configuration ----------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("field, value", [("steps", 0), ("batch_rays", -1), ("preset", "E"),
+                                          ("precision", "fp8"), ("backend", "cuda"), ("lr", 0.0),
+                                          ("time_budget", -1.0), ("device", "tpu"), ("num_fine", -1)])
+def test_config_rejects_bad_values_naming_them(field, value):
+    with pytest.raises(ValueError, match=field):
+        TrainConfig(**{field: value})
+
+
+def test_config_round_trips_and_resolves_for_the_machine():
+    cfg = TrainConfig(steps=7, model_overrides={"width": 32})
+    assert TrainConfig.from_dict(cfg.to_dict()) == cfg
+    with pytest.raises(ValueError, match="unknown training settings"):
+        TrainConfig.from_dict({**cfg.to_dict(), "bogus": 1})
+    cpu = cfg.resolved(cuda_available=False)
+    assert (cpu.device, cpu.precision) == ("cpu", "fp32")
+    gpu = cfg.resolved(cuda_available=True)
+    assert (gpu.device, gpu.precision) == ("cuda", "bf16")
+    with pytest.raises(ValueError, match="cuda"):
+        TrainConfig(device="cuda").resolved(cuda_available=False)
+
+
+# -- checkpoints ------------------------------------------------------------------------------------
+
+def minimal_state(step=1):
+    return {"step": step, "train_config": {}, "model_config": {}, "scene": {}, "model": {"w": torch.randn(3)}}
+
+
+def test_checkpoint_round_trip(tmp_path):
+    path = tmp_path / "c.pt"
+    state = minimal_state(5)
+    save_checkpoint(path, state)
+    loaded = load_checkpoint(path)
+    assert loaded["step"] == 5 and torch.equal(loaded["model"]["w"], state["model"]["w"])
+    assert [p.name for p in tmp_path.iterdir()] == ["c.pt"]  # no temporary file left behind
+
+
+def test_failed_checkpoint_write_keeps_the_previous_one(tmp_path, monkeypatch):
+    path = tmp_path / "c.pt"
+    save_checkpoint(path, minimal_state(1))
+    before = path.read_bytes()
+
+    def dies_mid_write(obj, f, *args, **kwargs):
+        f.write(b"partial")
+        raise OSError("disk full")
+
+    monkeypatch.setattr(torch, "save", dies_mid_write)
+    with pytest.raises(OSError, match="disk full"):
+        save_checkpoint(path, minimal_state(2))
+    assert path.read_bytes() == before
+    assert [p.name for p in tmp_path.iterdir()] == ["c.pt"]
+
+
+@pytest.mark.parametrize("damage", ["truncate", "garbage", "empty", "foreign", "missing"])
+def test_bad_checkpoint_error_names_the_file(tmp_path, damage):
+    path = tmp_path / "c.pt"
+    save_checkpoint(path, minimal_state())
+    data = path.read_bytes()
+    if damage == "truncate":
+        path.write_bytes(data[: len(data) // 2])
+    elif damage == "garbage":
+        path.write_bytes(os.urandom(len(data)))
+    elif damage == "empty":
+        path.write_bytes(b"")
+    elif damage == "foreign":
+        torch.save({"weights": torch.ones(2)}, path)
+    else:
+        path.unlink()
+    with pytest.raises(CheckpointError, match=str(path)):
+        load_checkpoint(path)
+
+
+def test_rng_state_round_trip():
+    import random
+
+    g = torch.Generator().manual_seed(1)
+    state = capture_rng_state(g)
+    first = (torch.rand(3), np.random.rand(3), random.random(), torch.rand(3, generator=g))
+    restore_rng_state(state, g)
+    again = (torch.rand(3), np.random.rand(3), random.random(), torch.rand(3, generator=g))
+    assert torch.equal(first[0], again[0]) and np.array_equal(first[1], again[1])
+    assert first[2] == again[2] and torch.equal(first[3], again[3])
+
+
+# -- training, resume, output folder --------------------------------------------------------------
+
+@pytest.mark.parametrize("sampler", ["hierarchical", "occupancy"])
+def test_resume_after_a_kill_is_bit_exact(tmp_path, monkeypatch, sampler):
+    """2N steps straight == N steps, a kill at step N+2 (losing at most ckpt_every steps), resume."""
+    straight = Trainer(tiny_config(tmp_path / "a", sampler=sampler), log=quiet)
+    straight.fit()
+
+    cfg = tiny_config(tmp_path / "b", sampler=sampler)
+    killed = Trainer(cfg, log=quiet)
+    real_step = Trainer.train_step
+
+    def killed_at_step_5(self):
+        if self.step == 4:
+            raise KeyboardInterrupt
+        return real_step(self)
+
+    monkeypatch.setattr(Trainer, "train_step", killed_at_step_5)
+    with pytest.raises(KeyboardInterrupt):
+        killed.fit()
+    monkeypatch.setattr(Trainer, "train_step", real_step)
+    assert load_checkpoint(cfg.out + "/checkpoint.pt")["step"] == 3  # lost only the steps since
+    assert max(int(r["step"]) for r in CsvLog(tmp_path / "b" / "train_log.csv").rows()) == 4
+
+    resumed = Trainer(dataclasses.replace(cfg, steps=1), resume=True, log=quiet)  # settings come from the checkpoint
+    assert resumed.step == 3 and resumed.cfg.steps == cfg.steps
+    assert [int(r["step"]) for r in resumed.train_log.rows()] == [1, 2, 3]  # rows after the checkpoint dropped
+    resumed.fit()
+    a, b = params_of(straight), params_of(resumed)
+    assert a.keys() == b.keys()
+    for name in a:
+        assert torch.equal(a[name], b[name]), name
+    sa, sb = straight.optimizer.state_dict()["state"], resumed.optimizer.state_dict()["state"]
+    for k in sa:
+        assert all(torch.equal(sa[k][n], sb[k][n]) for n in sa[k])
+    assert resumed.train_log.rows()[-1]["loss"] == straight.train_log.rows()[-1]["loss"]
+
+
+def test_run_writes_logs_plot_summary_and_a_loadable_checkpoint(tmp_path):
+    trainer = Trainer(tiny_config(tmp_path, sampler="auto"), log=quiet)
+    assert trainer.cfg.sampler == "occupancy" and trainer.fields.fine is None  # procedural scene has a box
+    summary = trainer.fit()
+    assert summary["status"] == "finished" and summary["step"] == 6
+    for name in ("checkpoint.pt", "config.json", "train_log.csv", "val_log.csv", "curves.png", "summary.json"):
+        assert (tmp_path / name).is_file(), name
+    rows = trainer.train_log.rows()
+    assert [int(r["step"]) for r in rows] == list(range(1, 7))
+    assert all(math.isfinite(float(r["loss"])) and float(r["rays_per_s"]) > 0 for r in rows)
+    assert [int(r["step"]) for r in trainer.val_log.rows()] == [3, 6]
+    run = load_trained(tmp_path / "checkpoint.pt")
+    assert run.step == 6
+    rays_o, rays_d = trainer.val_scene.rays_for_image(0)
+    torch.testing.assert_close(run.render(rays_o, rays_d).color, trainer.render_rgb(rays_o, rays_d))
+
+
+def test_time_budget_stops_training(tmp_path):
+    summary = Trainer(tiny_config(tmp_path, steps=10_000, time_budget=0.5), log=quiet).fit()
+    assert summary["status"] == "time budget reached"
+    assert 0 < summary["step"] < 10_000
+    assert load_checkpoint(tmp_path / "checkpoint.pt")["step"] == summary["step"]
+
+
+def test_existing_run_is_not_overwritten(tmp_path):
+    Trainer(tiny_config(tmp_path, steps=1), log=quiet).fit()
+    before = (tmp_path / "checkpoint.pt").read_bytes()
+    with pytest.raises(OutputError, match="--resume"):
+        Trainer(tiny_config(tmp_path, steps=1), log=quiet)
+    assert (tmp_path / "checkpoint.pt").read_bytes() == before
+
+
+def test_resume_from_a_corrupt_checkpoint_names_it_and_touches_nothing(tmp_path):
+    Trainer(tiny_config(tmp_path, steps=1), log=quiet).fit()
+    ckpt = tmp_path / "checkpoint.pt"
+    ckpt.write_bytes(ckpt.read_bytes()[:200])
+    snapshot = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    with pytest.raises(CheckpointError, match=str(ckpt)):
+        Trainer(tiny_config(tmp_path), resume=True, log=quiet)
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == snapshot
+
+
+def test_unwritable_output_is_reported(tmp_path):
+    blocker = tmp_path / "file"
+    blocker.write_text("not a folder")
+    with pytest.raises(OutputError, match="not writable"):
+        Trainer(tiny_config(blocker / "run"), log=quiet)
+
+
+# -- non-finite guard -------------------------------------------------------------------------------
+
+def test_guard_reports_first_bad_step_and_tensor():
+    guard = NonFiniteGuard(["a.weight", "b.bias"], torch.device("cpu"))
+    for step in (1, 2):
+        guard.observe_losses(step, loss_coarse=torch.tensor(1.0), loss_fine=torch.tensor(1.0))
+        guard.observe_grads(step, [torch.ones(2), torch.ones(1)])
+    guard.raise_if_bad()
+    guard.observe_losses(3, loss_coarse=torch.tensor(1.0), loss_fine=torch.tensor(math.inf))
+    guard.observe_grads(3, [torch.ones(2), torch.tensor([math.nan])])
+    guard.observe_losses(4, loss_coarse=torch.tensor(math.nan), loss_fine=torch.tensor(math.nan))
+    with pytest.raises(NonFiniteError, match=r"step 3: loss_fine; gradient of b\.bias") as info:
+        guard.raise_if_bad()
+    assert info.value.step == 3
+
+
+def test_nan_stops_training_and_keeps_the_last_good_checkpoint(tmp_path, monkeypatch):
+    trainer = Trainer(tiny_config(tmp_path, steps=10), log=quiet)
+    real_step = Trainer.train_step
+
+    def poisoned(self):
+        if self.step == 4:  # the 5th step runs with a NaN weight
+            with torch.no_grad():
+                next(self.fields.coarse.parameters()).view(-1)[0] = math.nan
+        return real_step(self)
+
+    monkeypatch.setattr(Trainer, "train_step", poisoned)
+    with pytest.raises(NonFiniteError, match="step 5: loss_coarse") as info:
+        trainer.fit()
+    assert info.value.step == 5
+    state = load_checkpoint(tmp_path / "checkpoint.pt")
+    assert state["step"] == 3
+    assert all(torch.isfinite(v).all() for v in state["model"].values() if v.is_floating_point())
+    import json
+
+    assert json.loads((tmp_path / "summary.json").read_text())["status"].startswith("non-finite")
+
+
+# -- logs -------------------------------------------------------------------------------------------
+
+def test_csv_log_truncation_and_plot(tmp_path):
+    log, val = CsvLog(tmp_path / "t.csv"), CsvLog(tmp_path / "v.csv")
+    for step in range(1, 6):
+        log.append({"step": step, "loss": 1.0 / step, "psnr": 10.0 + step})
+    val.append({"step": 3, "psnr": 12.0})
+    log.truncate_after(3)
+    assert [r["step"] for r in log.rows()] == ["1", "2", "3"]
+    assert plot_curves(log, val, tmp_path / "p.png").stat().st_size > 0
+    assert plot_curves(CsvLog(tmp_path / "none.csv"), val, tmp_path / "q.png") is None
+
+
+# -- camera paths and videos ------------------------------------------------------------------------
+
+def test_turntable_orbits_the_centre_looking_at_it():
+    from mixer_nerf.data.procedural import orbit_poses
+    from mixer_nerf.video import turntable_poses
+
+    train = torch.from_numpy(orbit_poses(20, seed=0)).float()
+    poses = turntable_poses(train, 12)
+    eye = poses[:, :3, 3]
+    radius = train[:, :3, 3].norm(dim=-1).mean()
+    torch.testing.assert_close(eye.norm(dim=-1), radius.expand(12), rtol=1e-5, atol=1e-5)
+    looking = -poses[:, :3, 2]  # cameras look down -z
+    torch.testing.assert_close(looking, -eye / eye.norm(dim=-1, keepdim=True), rtol=1e-5, atol=1e-5)
+    assert torch.allclose(eye[:, 2], eye[0, 2])  # constant elevation about world z (the mean up)
+    rot = poses[:, :3, :3]
+    torch.testing.assert_close(rot.transpose(1, 2) @ rot, torch.eye(3).expand(12, 3, 3), rtol=1e-5, atol=1e-5)
+
+
+def test_spiral_looks_at_the_focus_point():
+    from mixer_nerf.video import spiral_poses
+
+    train = torch.eye(4).repeat(5, 1, 1)
+    train[:, 0, 3] = torch.linspace(-0.2, 0.2, 5)
+    train[:, 1, 3] = torch.linspace(0.1, -0.1, 5)
+    poses = spiral_poses(train, 10, focus_depth=4.0)
+    assert torch.isfinite(poses).all() and poses.shape == (10, 4, 4)
+    to_focus = torch.tensor([0.0, 0.0, -4.0]) - poses[:, :3, 3]
+    torch.testing.assert_close(-poses[:, :3, 2], to_focus / to_focus.norm(dim=-1, keepdim=True))
+
+
+def test_write_video_reads_back():
+    import tempfile
+
+    import imageio.v3 as iio
+
+    from mixer_nerf.video import write_video
+
+    frames = [np.full((9, 13, 3), 40 * i, dtype=np.uint8) for i in range(4)]  # odd sizes on purpose
+    with tempfile.TemporaryDirectory() as folder:
+        path = write_video(f"{folder}/clip", frames, fps=5)
+        assert path.suffix in (".mp4", ".gif") and path.stat().st_size > 0
+        assert len(list(iio.imiter(path))) == 4
