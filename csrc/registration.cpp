@@ -10,6 +10,10 @@ TORCH_LIBRARY(mixer_nerf, m) {
   // sample_pdf: bins (R, B+1), weights (R, B), u (R, N) -> samples (R, N)
   m.def("sample_pdf_fwd(Tensor bins, Tensor weights, Tensor u, float weight_padding) -> Tensor");
   m.def("sample_pdf_bwd(Tensor grad_samples, Tensor bins, Tensor weights, Tensor u, float weight_padding) -> (Tensor, Tensor)");
+  // sample_pdf_packed: ray r has B_r = offsets[r+1] - offsets[r] bins: weights (N), edges (N + R) (ray r's
+  //   B_r + 1 edges from offsets[r] + r), u (S) or (R, S) -> samples (R, S)
+  m.def("sample_pdf_packed_fwd(Tensor bins, Tensor weights, Tensor offsets, Tensor u, float weight_padding) -> Tensor");
+  m.def("sample_pdf_packed_bwd(Tensor grad_samples, Tensor bins, Tensor weights, Tensor offsets, Tensor u, float weight_padding) -> (Tensor, Tensor)");
   // hierarchical_samples: z_coarse (R, S), weights (R, S), u (R, N) -> merged depths (R, S+N)
   m.def("hierarchical_samples_fwd(Tensor z_coarse, Tensor weights, Tensor u, float weight_padding) -> Tensor");
   // composite: sigmas (R, S), rgbs (R, S, C), t_starts/t_ends (R, S), background (C) or (R, C)

@@ -21,6 +21,37 @@
 namespace mixer_nerf {
 namespace sample_pdf_math {
 
+// Where a ray's bins lie: its weights from `weights`, its num_bins + 1 edges from `edges` (element
+// offsets into the weights and edges arrays).
+struct RayBins {
+  int64_t weights;
+  int64_t edges;
+  int num_bins;
+};
+
+// Dense: weights (R, B), edges (R, B+1).
+struct DenseBins {
+  int num_bins;
+  C10_HOST_DEVICE RayBins operator()(int64_t ray) const {
+    return {ray * num_bins, ray * (num_bins + 1), num_bins};
+  }
+};
+
+// Packed: ray r has B_r = offsets[r+1] - offsets[r] >= 0 bins, weights offsets[r] .. offsets[r+1]-1
+// of (N), edges offsets[r] + r .. offsets[r+1] + r of (N + R). Offsets are validated in Python
+// unless the caller opts out; clamped into [0, N] (an end never before its start) even unchecked
+// ones stay inside the arrays. N < 2^30 (checked), so B_r fits an int.
+struct PackedBins {
+  const int64_t* offsets;  // (R + 1)
+  int64_t total;           // N
+  C10_HOST_DEVICE RayBins operator()(int64_t ray) const {
+    const int64_t begin = clamp(offsets[ray], 0, total);
+    const int64_t end = clamp(offsets[ray + 1], begin, total);
+    return {begin, begin + ray, static_cast<int>(end - begin)};
+  }
+  C10_HOST_DEVICE static int64_t clamp(int64_t x, int64_t lo, int64_t hi) { return x < lo ? lo : (x > hi ? hi : x); }
+};
+
 // Shapes of a call, after the defensive checks every op shares: rows of `edges_or_z` and
 // `weights` are rays; u is (N) shared by every ray or (R, N), in the accumulation dtype.
 struct RayBatch {
@@ -43,6 +74,27 @@ inline RayBatch check_batch(const at::Tensor& edges_or_z, const at::Tensor& weig
   TORCH_CHECK(edges_or_z.size(1) < (int64_t{1} << 30) && u.size(-1) < (int64_t{1} << 30), "too many bins or samples");
   const int64_t samples = u.size(-1);
   return {edges_or_z.size(0), samples, u.dim() == 2 ? samples : 0};
+}
+
+// Packed: bins (N + R), weights (N), offsets (R + 1) int64, u (S) or (R, S).
+inline RayBatch check_packed_batch(const at::Tensor& bins, const at::Tensor& weights, const at::Tensor& offsets,
+                                   const at::Tensor& u, at::DeviceType device) {
+  MIXER_NERF_CHECK_INPUT(bins, device);
+  MIXER_NERF_CHECK_INPUT(weights, device);
+  MIXER_NERF_CHECK_INPUT(offsets, device);
+  MIXER_NERF_CHECK_INPUT(u, device);
+  TORCH_CHECK(offsets.scalar_type() == at::kLong && offsets.dim() == 1 && offsets.size(0) >= 1,
+              "offsets must be (R+1) int64");
+  const int64_t rays = offsets.size(0) - 1;
+  TORCH_CHECK(bins.dim() == 1 && weights.dim() == 1 && bins.size(0) == weights.size(0) + rays,
+              "packed bins must be (N + R) for weights (N)");
+  TORCH_CHECK(weights.scalar_type() == bins.scalar_type(), "weights must have the dtype of bins");
+  TORCH_CHECK(u.scalar_type() == at::toOpMathType(bins.scalar_type()),
+              "u must be in the accumulation dtype of bins (float32, or float64 for float64)");
+  TORCH_CHECK(u.dim() == 1 || (u.dim() == 2 && u.size(0) == rays), "u must be (S) or (R, S)");
+  TORCH_CHECK(weights.size(0) < (int64_t{1} << 30) && u.size(-1) < (int64_t{1} << 30), "too many bins or samples");
+  const int64_t samples = u.size(-1);
+  return {rays, samples, u.dim() == 2 ? samples : 0};
 }
 
 inline void check_bins(const at::Tensor& bins, const at::Tensor& weights) {
@@ -180,7 +232,7 @@ C10_HOST_DEVICE inline acc_t sample_uniform(acc_t u, int num_bins, Edges edges) 
   return lerp_in_bin(edges(0), edges(num_bins), u);
 }
 
-// Gradients of one ray's samples (B >= 1) with respect to its edges and weights, O(B + N), in one
+// Gradients of one ray's samples (B >= 0) with respect to its edges and weights, O(B + N), in one
 // reverse pass over the sorted samples. ds/de_k = 1 - t, ds/de_{k+1} = t; with
 // a_n = dL/ds_n (e_{k+1} - e_k) / w_{k_n} for weighted samples,
 // dt_n/dw_i = (u_n - [i < k_n] - [i == k_n] t_n) / w_{k_n}, so
@@ -205,8 +257,9 @@ C10_HOST_DEVICE inline void sample_pdf_ray_backward(
     }
     for (int k = 0; k < num_bins; ++k) grad_weights[k] = scalar_t(0);
     for (int k = 1; k < num_bins; ++k) grad_bins[k] = scalar_t(0);
-    grad_bins[0] = static_cast<scalar_t>(first);
-    grad_bins[num_bins] = static_cast<scalar_t>(last);
+    // A ray without bins (packed) has one edge, both ends of its degenerate range.
+    grad_bins[0] = static_cast<scalar_t>(num_bins > 0 ? first : first + last);
+    if (num_bins > 0) grad_bins[num_bins] = static_cast<scalar_t>(last);
     return;
   }
 

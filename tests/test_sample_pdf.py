@@ -10,10 +10,11 @@ import torch
 from torch.library import opcheck
 
 from mixer_nerf.ops._dispatch import use_kernel
-from mixer_nerf.ops.sample_pdf import _register_fakes, hierarchical_samples, sample_pdf
+from mixer_nerf.ops.sample_pdf import _register_fakes, hierarchical_samples, sample_pdf, sample_pdf_packed
 from mixer_nerf.ops.sample_pdf_reference import (
     accumulation_dtype,
     hierarchical_samples_reference,
+    sample_pdf_packed_reference,
     sample_pdf_reference,
 )
 
@@ -186,7 +187,7 @@ def _grads(backend, bins, weights, u, weight_padding=0.0, upstream=None):
     weights = weights.detach().clone().requires_grad_()
     out = sample_pdf(bins, weights, u.shape[-1], u=u, weight_padding=weight_padding, backend=backend)
     if upstream is None:
-        upstream = torch.linspace(-1, 1, out.numel(), dtype=out.dtype).reshape(out.shape)
+        upstream = torch.linspace(-1, 1, out.numel(), dtype=out.dtype, device=out.device).reshape(out.shape)
     return torch.autograd.grad(out, (bins, weights), upstream, allow_unused=True)
 
 
@@ -603,3 +604,260 @@ def test_cuda_opcheck():
     )
     z, coarse_weights = random_coarse(5, 8, device=dev)
     opcheck(torch.ops.mixer_nerf.hierarchical_samples_fwd.default, (z, coarse_weights, u, 0.0))
+
+
+# ---------------------------------------------------------------------------------------------
+# Packed bins: sample_pdf_packed
+
+
+def pack_pdf(bins, weights, counts):
+    """Dense (R, B+1) edges and (R, B) weights -> packed: ray r keeps its first counts[r] bins and
+    counts[r] + 1 edges. Returns bins (N + R,), weights (N,), offsets (R+1,)."""
+    slots = torch.arange(bins.shape[1], device=bins.device)
+    counts = counts.to(bins.device)
+    packed_bins = bins[slots <= counts[:, None]]
+    packed_weights = weights[slots[:-1] < counts[:, None]]
+    offsets = torch.nn.functional.pad(counts.cumsum(0), (1, 0))
+    return packed_bins.contiguous(), packed_weights.contiguous(), offsets
+
+
+def random_packed_pdf(counts, dtype=torch.float32, device=CPU, **kwargs):
+    counts = torch.as_tensor(counts, dtype=torch.int64)
+    width = max(int(counts.max()) if counts.numel() else 0, 1)
+    return pack_pdf(*random_pdf(counts.numel(), width, dtype, device, **kwargs), counts)
+
+
+def packed_reference_samples(bins, weights, offsets, u, weight_padding=0.0):
+    return sample_pdf_packed_reference(
+        bins.double(), weights.double(), offsets, u.double(), weight_padding
+    ).to(bins.dtype)
+
+
+def _packed_grads(backend, bins, weights, offsets, u, upstream):
+    bins = bins.detach().clone().requires_grad_()
+    weights = weights.detach().clone().requires_grad_()
+    out = sample_pdf_packed(bins, weights, offsets, u.shape[-1], u=u, backend=backend)
+    return torch.autograd.grad(out, (bins, weights), upstream, allow_unused=True)
+
+
+PACKED_COUNTS = {
+    "one ray": [5],
+    "one bin": [1],
+    "no bins": [0],
+    "ragged": [3, 0, 7, 1, 0, 12, 40],
+    "no rays": [],
+    "many": list(range(0, 70, 3)),
+}
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("counts", list(PACKED_COUNTS))
+@pytest.mark.parametrize("shared_u", [False, True])
+def test_packed_matches_reference(dtype, counts, shared_u):
+    counts = torch.tensor(PACKED_COUNTS[counts], dtype=torch.int64)
+    R, N = counts.numel(), 17
+    bins, weights, offsets = random_packed_pdf(counts, dtype)
+    u = sorted_u(1, N, dtype)[0] if shared_u else sorted_u(R, N, dtype)
+    ours = sample_pdf_packed(bins, weights, offsets, N, u=u, backend="kernel")
+    assert ours.shape == (R, N) and ours.dtype == dtype
+    width = int(counts.max()) if R else 1
+    want = packed_reference_samples(bins, weights, offsets, u)
+    torch.testing.assert_close(ours, want, atol=tolerance(dtype, width), rtol=0)
+    upstream = torch.randn(R, N, dtype=dtype)
+    got = _packed_grads("kernel", bins, weights, offsets, u, upstream)
+    want = _packed_grads("torch", bins.double(), weights.double(), offsets, u.double(), upstream.double())
+    for g, w in zip(got, want, strict=True):
+        scale = max(w.abs().max().item(), 1.0) if w.numel() else 1.0
+        torch.testing.assert_close(g.double(), w, atol=grad_tolerance(dtype) * scale, rtol=0)
+
+
+@pytest.mark.parametrize("backend", ["kernel", "torch"])
+def test_packed_equals_dense_when_rays_have_B_bins(backend):
+    """The same per-ray sampling: the CPU kernel is bit-identical in both layouts."""
+    R, B, N = 6, 9, 13
+    bins, weights = random_pdf(R, B, torch.float64)
+    u = sorted_u(R, N, torch.float64)
+    packed = pack_pdf(bins, weights, torch.full((R,), B))
+    upstream = torch.randn(R, N, dtype=torch.float64)
+    dense_out = sample_pdf(bins, weights, N, u=u, backend=backend)
+    packed_out = sample_pdf_packed(*packed, N, u=u, backend=backend)
+    dense_grads = _grads(backend, bins, weights, u, upstream=upstream)
+    packed_grads = _packed_grads(backend, *packed, u, upstream)
+    pairs = [
+        (packed_out, dense_out),
+        (packed_grads[0].reshape(R, B + 1), dense_grads[0]),
+        (packed_grads[1].reshape(R, B), dense_grads[1]),
+    ]
+    for got, want in pairs:
+        assert (
+            torch.equal(got, want)
+            if backend == "kernel"
+            else torch.allclose(got, want, rtol=1e-13, atol=1e-15)
+        )
+
+
+@pytest.mark.parametrize("backend", ["kernel", "torch"])
+def test_packed_ray_without_bins_samples_its_edge(backend):
+    bins = torch.tensor([0.0, 1.0, 2.0, 5.0, 7.0, 9.0], dtype=torch.float64)  # rays: [0,1,2] [5] [7,9]
+    weights = torch.tensor([1.0, 3.0, 0.0], dtype=torch.float64)
+    offsets = torch.tensor([0, 2, 2, 3])
+    samples = sample_pdf_packed(bins, weights, offsets, 4, deterministic=True, backend=backend)
+    assert torch.equal(samples[1], torch.full((4,), 5.0, dtype=torch.float64))
+    torch.testing.assert_close(
+        samples[2], 7 + 2 * (torch.arange(4, dtype=torch.float64) + 0.5) / 4
+    )  # uniform
+    upstream = torch.randn(3, 4, dtype=torch.float64)
+    u = ((torch.arange(4) + 0.5) / 4).double()
+    grad_bins, grad_weights = _packed_grads(backend, bins, weights, offsets, u, upstream)
+    torch.testing.assert_close(grad_bins[3], upstream[1].sum())
+    assert grad_weights[2] == 0
+
+
+@pytest.mark.parametrize("counts", [[2, 0, 3, 1], [5]])
+def test_packed_gradcheck_cpu_kernel(counts):
+    bins, weights, offsets = random_packed_pdf(counts, torch.float64, zero_fraction=0.0)
+    u = sorted_u(len(counts), 4, torch.float64)
+    torch.autograd.gradcheck(
+        lambda b, w: sample_pdf_packed(b, w, offsets, 4, u=u, weight_padding=0.01, backend="kernel"),
+        (bins.requires_grad_(), weights.requires_grad_()),
+    )
+
+
+def test_packed_adversarial():
+    """The dense adversarial PDFs (all-zero, one-hot, zero-width bins, overflowing and subnormal
+    weights) side by side with other rays in one packed batch."""
+    cases = [
+        ([0.0, 1.0, 2.0, 6.0], [0.0, 0.0, 0.0]),
+        ([0.0, 1.0, 2.0, 3.0, 4.0, 5.0], [0.0, 0.0, 1.0, 0.0, 0.0]),
+        ([0.0, 0.0, 1.0, 1.0, 1.0, 2.0], [1.0, 1.0, 3.0, 0.0, 1.0]),
+        ([2.0, 4.0], [0.7]),
+        ([0.0, 1.0, 2.0, 3.0], [3e38] * 3),
+        ([0.0, 1.0, 2.0, 3.0], [1e-39] * 3),
+        ([3.0], []),
+    ]
+    bins = torch.tensor([e for edges, _ in cases for e in edges])
+    weights = torch.tensor([w for _, ws in cases for w in ws])
+    offsets = torch.nn.functional.pad(torch.tensor([len(ws) for _, ws in cases]).cumsum(0), (1, 0))
+    for u in (U_WITH_ENDS, torch.tensor([1.0]), torch.tensor([0.0])):
+        ours = sample_pdf_packed(bins, weights, offsets, u.numel(), u=u, backend="kernel")
+        assert torch.isfinite(ours).all()
+        torch.testing.assert_close(
+            ours, packed_reference_samples(bins, weights, offsets, u), atol=1e-6, rtol=0
+        )
+        upstream = torch.randn(len(cases), u.numel())
+        for g in _packed_grads("kernel", bins, weights, offsets, u, upstream):
+            assert torch.isfinite(g).all()
+
+
+def test_packed_unchecked_bad_offsets_stay_in_bounds():
+    bins, weights, _ = random_packed_pdf([3, 2])
+    for bad in ([0, 100, 5], [-7, 2, 5], [0, 4, 2], [3, 1, 0]):
+        out = sample_pdf_packed(
+            bins, weights, torch.tensor(bad), 4, deterministic=True, backend="kernel", check_values=False
+        )
+        assert torch.isfinite(out).all()
+
+
+def _valid_packed():
+    """bins, weights, offsets for rays of 2, 0 and 3 bins."""
+    return [torch.tensor([0.0, 0.5, 1.0, 2.0, 0.0, 1.0, 2.0, 3.0]), torch.rand(5), torch.tensor([0, 2, 2, 5])]
+
+
+@pytest.mark.parametrize(
+    "index, bad, error, name",
+    [
+        (0, torch.rand(8, 1), ValueError, "bins"),
+        (0, torch.arange(9.0), ValueError, "bins"),
+        (0, torch.tensor([0.0, 0.5, 0.2, 2.0, 0.0, 1.0, 2.0, 3.0]), ValueError, "bins"),
+        (1, torch.rand(5, 1), ValueError, "weights"),
+        (1, -torch.rand(5), ValueError, "weights"),
+        (1, torch.rand(5, dtype=torch.float64), TypeError, "weights"),
+        (0, torch.arange(8), TypeError, "bins"),
+        (2, torch.tensor([0, 2, 2, 5], dtype=torch.int32), TypeError, "offsets"),
+        (2, [0, 2, 2, 5], TypeError, "offsets"),
+        (2, torch.tensor([[0, 2, 2, 5]]), ValueError, "offsets"),
+        (2, torch.tensor([0, 2, 2, 4]), ValueError, "offsets"),
+        (2, torch.tensor([0, 3, 2, 5]), ValueError, "offsets"),
+        (2, torch.tensor([0, 2, 2, 5], device="meta"), ValueError, "offsets"),
+    ],
+)
+@pytest.mark.parametrize("backend", ["kernel", "torch"])
+def test_packed_bad_input(index, bad, error, name, backend):
+    args = _valid_packed()
+    args[index] = bad
+    with pytest.raises(error, match=name):
+        sample_pdf_packed(*args, 3, deterministic=True, backend=backend)
+
+
+def test_packed_bad_u():
+    with pytest.raises(ValueError, match="u"):
+        sample_pdf_packed(*_valid_packed(), 3, u=torch.rand(2, 3))
+
+
+def test_packed_opcheck():
+    bins, weights, offsets = random_packed_pdf([3, 0, 5, 1])
+    for u in (sorted_u(4, 6), sorted_u(1, 6)[0]):
+        opcheck(torch.ops.mixer_nerf.sample_pdf_packed_fwd.default, (bins, weights, offsets, u, 0.0))
+        grad = torch.randn(4, 6)
+        opcheck(torch.ops.mixer_nerf.sample_pdf_packed_bwd.default, (grad, bins, weights, offsets, u, 0.0))
+
+
+@cuda
+@needs_cuda
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize(
+    "R, max_bins, N", [(1, 1, 1), (7, 40, 33), (50, 70, 5), (3, 300, 64), (0, 4, 3), (65536, 64, 128)]
+)
+def test_packed_cuda_forward_and_grads(dtype, R, max_bins, N):
+    dev = torch.device("cuda")
+    counts = torch.randint(0, max_bins + 1, (R,))
+    if R > 2:
+        counts[0], counts[1] = max_bins, 0
+    bins, weights, offsets = random_packed_pdf(counts, dtype, device=dev)
+    u = sorted_u(R, N, dtype, device=dev)
+    # Poisoned outputs (see _poisoned): the op allocates them before any temporary.
+    addresses = _poisoned(((R, N), dtype))
+    samples = torch.ops.mixer_nerf.sample_pdf_packed_fwd(bins, weights, offsets, u, 0.0)
+    assert R * N == 0 or samples.data_ptr() in addresses
+    assert torch.isfinite(samples).all()
+    cpu = torch.ops.mixer_nerf.sample_pdf_packed_fwd(bins.cpu(), weights.cpu(), offsets.cpu(), u.cpu(), 0.0)
+    torch.testing.assert_close(samples.cpu(), cpu, atol=1e-6 if dtype == torch.float32 else 1e-14, rtol=0)
+
+    grad = torch.randn(R, N, dtype=dtype, device=dev)
+    addresses = _poisoned((bins.shape, dtype), (weights.shape, dtype))
+    grad_bins, grad_weights = torch.ops.mixer_nerf.sample_pdf_packed_bwd(grad, bins, weights, offsets, u, 0.0)
+    assert R == 0 or {grad_bins.data_ptr(), grad_weights.data_ptr()} <= addresses
+    assert torch.isfinite(grad_bins).all() and torch.isfinite(grad_weights).all()
+    cpu_grads = torch.ops.mixer_nerf.sample_pdf_packed_bwd(
+        grad.cpu(), bins.cpu(), weights.cpu(), offsets.cpu(), u.cpu(), 0.0
+    )
+    for got, want in zip((grad_bins, grad_weights), cpu_grads, strict=True):
+        scale = max(want.abs().max().item(), 1.0) if want.numel() else 1.0
+        torch.testing.assert_close(got.cpu(), want, atol=grad_tolerance(dtype) * scale, rtol=0)
+
+
+@cuda
+@needs_cuda
+def test_packed_cuda_adversarial_and_opcheck():
+    dev = torch.device("cuda")
+    bins, weights, offsets = random_packed_pdf([0, 3, 0, 40, 1], device=dev)
+    weights[3:6] = 0.0
+    weights[10:12] = 3e38
+    u = U_WITH_ENDS.to(dev)
+    for layout in ((bins, weights, offsets), (bins.cpu(), weights.cpu(), offsets.cpu())):
+        assert torch.isfinite(
+            sample_pdf_packed(*layout, u.numel(), u=u.to(layout[0].device), backend="kernel")
+        ).all()
+    gpu = _packed_grads("kernel", bins, weights, offsets, u, torch.ones(5, u.numel(), device=dev))
+    cpu = _packed_grads("kernel", bins.cpu(), weights.cpu(), offsets.cpu(), u.cpu(), torch.ones(5, u.numel()))
+    for g, c in zip(gpu, cpu, strict=True):
+        torch.testing.assert_close(g.cpu(), c, atol=1e-4 * max(c.abs().max().item(), 1.0), rtol=0)
+    opcheck(
+        torch.ops.mixer_nerf.sample_pdf_packed_fwd.default,
+        (bins, weights, offsets, sorted_u(5, 6, device=dev), 0.0),
+    )
+    grad = torch.randn(5, 6, device=dev)
+    opcheck(
+        torch.ops.mixer_nerf.sample_pdf_packed_bwd.default,
+        (grad, bins, weights, offsets, sorted_u(5, 6, device=dev), 0.0),
+    )

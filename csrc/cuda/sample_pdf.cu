@@ -1,5 +1,5 @@
-// sample_pdf and hierarchical_samples on CUDA: one warp per ray, its data staged in shared memory
-// by coalesced loads. The math is sample_pdf_math.h, shared with the CPU kernels: both build the
+// sample_pdf (dense or packed bins) and hierarchical_samples on CUDA: one warp per ray, its data
+// staged in shared memory by coalesced loads; packed rays size that memory by the longest ray. The math is sample_pdf_math.h, shared with the CPU kernels: both build the
 // same CDF bit for bit (lane 0 sums it sequentially; a tree scan would be neither exactly flat
 // over zero-weight bins nor even monotone, and the chain is short) and pick the same bins.
 //
@@ -21,7 +21,9 @@
 #include <c10/cuda/CUDAGuard.h>
 #include <c10/cuda/CUDAStream.h>  // = at::cuda::getCurrentCUDAStream, without the cuSPARSE/cuBLAS headers
 
+#include <algorithm>
 #include <climits>
+#include <optional>
 #include <tuple>
 
 #include "common.h"
@@ -78,27 +80,30 @@ struct WarpShared {
 };
 
 // Forward. Tail: sample_pdf: u then samples (N); hierarchical_samples: the coarse depths (S), then
-// u then the fine samples (N).
-template <typename scalar_t, bool kMerge>
-__global__ void sample_forward_kernel(int64_t rays, WarpLayout layout, const scalar_t* __restrict__ edges_or_z,
-                                      const scalar_t* __restrict__ weights, const acc_t<scalar_t>* __restrict__ u,
-                                      int64_t u_row_stride, int num_samples, acc_t<scalar_t> pad,
-                                      scalar_t* __restrict__ out) {
+// u then the fine samples (N). `rows` places sample_pdf's bins (layout.num_bins is the most any
+// ray has); hierarchical_samples' rows are (R, S) coarse depths and weights.
+template <typename scalar_t, bool kMerge, typename Rows>
+__global__ void sample_forward_kernel(int64_t rays, WarpLayout layout, Rows rows,
+                                      const scalar_t* __restrict__ edges_or_z, const scalar_t* __restrict__ weights,
+                                      const acc_t<scalar_t>* __restrict__ u, int64_t u_row_stride, int num_samples,
+                                      acc_t<scalar_t> pad, scalar_t* __restrict__ out) {
   using acc = acc_t<scalar_t>;
   extern __shared__ __align__(16) unsigned char shared_raw[];
   const int warp = threadIdx.x / kWarpSize, lane = threadIdx.x % kWarpSize;
   const int64_t ray = int64_t(blockIdx.x) * (blockDim.x / kWarpSize) + warp;
   if (ray >= rays) return;  // whole warps only: blockDim is a multiple of 32
 
-  const int B = layout.num_bins, N = num_samples, S = kMerge ? B + 2 : 0;
+  const int S = kMerge ? layout.num_bins + 2 : 0;
+  // Coarse weights keep S per row and the bins use weights[:, 1:-1].
+  const RayBins ray_bins = kMerge ? RayBins{ray * S + 1, ray * S, layout.num_bins} : rows(ray);
+  const int B = ray_bins.num_bins, N = num_samples;
   const WarpShared<acc> sh(shared_raw, layout, warp);
   acc* z = sh.tail;         // (S), merging only
   acc* fine = sh.tail + S;  // (N): u, then the samples in place
 
-  // Every load of the ray in one loop, so they are all in flight together. Coarse weights keep
-  // S per row and the bins use weights[:, 1:-1].
-  const scalar_t* weights_row = kMerge ? weights + ray * S + 1 : weights + ray * B;
-  const scalar_t* edges_row = edges_or_z + ray * (kMerge ? S : B + 1);
+  // Every load of the ray in one loop, so they are all in flight together.
+  const scalar_t* weights_row = weights + ray_bins.weights;
+  const scalar_t* edges_row = edges_or_z + ray_bins.edges;
   const acc* u_row = u + ray * u_row_stride;
   const int longest = max(max(B + 2, N), 1);
   for (int i = lane; i < longest; i += kWarpSize) {
@@ -157,8 +162,8 @@ __device__ acc_t warp_sum(acc_t x) {
 }
 
 // Backward. Tail: per bin, sum a, sum a t, gradient reaching its lower and its upper edge (4 B).
-template <typename scalar_t>
-__global__ void sample_pdf_backward_kernel(int64_t rays, WarpLayout layout, const scalar_t* __restrict__ grad,
+template <typename scalar_t, typename Rows>
+__global__ void sample_pdf_backward_kernel(int64_t rays, WarpLayout layout, Rows rows, const scalar_t* __restrict__ grad,
                                            const scalar_t* __restrict__ bins, const scalar_t* __restrict__ weights,
                                            const acc_t<scalar_t>* __restrict__ u, int64_t u_row_stride,
                                            int num_samples, acc_t<scalar_t> pad, scalar_t* __restrict__ grad_bins,
@@ -169,7 +174,8 @@ __global__ void sample_pdf_backward_kernel(int64_t rays, WarpLayout layout, cons
   const int64_t ray = int64_t(blockIdx.x) * (blockDim.x / kWarpSize) + warp;
   if (ray >= rays) return;
 
-  const int B = layout.num_bins, N = num_samples;
+  const RayBins ray_bins = rows(ray);
+  const int B = ray_bins.num_bins, N = num_samples;
   const WarpShared<acc> sh(shared_raw, layout, warp);
   acc* bin_a = sh.tail;
   acc* bin_a_t = bin_a + B;
@@ -177,15 +183,15 @@ __global__ void sample_pdf_backward_kernel(int64_t rays, WarpLayout layout, cons
   acc* bin_hi = bin_lo + B;
   const scalar_t* grad_row = grad + ray * N;
   const acc* u_row = u + ray * u_row_stride;
-  scalar_t* grad_bins_row = grad_bins + ray * (B + 1);
-  scalar_t* grad_weights_row = grad_weights + ray * B;
+  scalar_t* grad_bins_row = grad_bins + ray_bins.edges;
+  scalar_t* grad_weights_row = grad_weights + ray_bins.weights;
 
   for (int i = lane; i <= B; i += kWarpSize) {
     if (i < B) {
-      sh.w[i] = PaddedWeights<acc, scalar_t>{weights + ray * B, pad}(i);
+      sh.w[i] = PaddedWeights<acc, scalar_t>{weights + ray_bins.weights, pad}(i);
       bin_a[i] = bin_a_t[i] = bin_lo[i] = bin_hi[i] = acc(0);
     }
-    sh.edges[i] = static_cast<acc>(bins[ray * (B + 1) + i]);
+    sh.edges[i] = static_cast<acc>(bins[ray_bins.edges + i]);
   }
   __syncwarp();
   const PaddedWeights<acc, acc> padded{sh.w, acc(0)};
@@ -202,9 +208,9 @@ __global__ void sample_pdf_backward_kernel(int64_t rays, WarpLayout layout, cons
     }
     first = warp_sum(first);
     last = warp_sum(last);
-    for (int i = lane; i <= B; i += kWarpSize) {
+    for (int i = lane; i <= B; i += kWarpSize) {  // a ray without bins: one edge gets both
       if (i < B) grad_weights_row[i] = scalar_t(0);
-      grad_bins_row[i] = static_cast<scalar_t>(i == 0 ? first : (i == B ? last : acc(0)));
+      grad_bins_row[i] = static_cast<scalar_t>((i == 0 ? first : acc(0)) + (i == B ? last : acc(0)));
     }
     return;
   }
@@ -267,6 +273,7 @@ __global__ void sample_pdf_backward_kernel(int64_t rays, WarpLayout layout, cons
 // (at least one, opting in to more shared memory for very long rays).
 template <typename acc, typename Kernel, typename... Args>
 void launch_warp_per_ray(Kernel kernel, const WarpLayout& layout, int64_t rays, Args... args) {
+  if (rays == 0) return;
   const size_t warp_bytes = layout.bytes<acc>();
   const int warps = int(std::max<size_t>(1, std::min<size_t>(kMaxWarpsPerBlock, kDefaultSharedBytes / warp_bytes)));
   const size_t shared = warps * warp_bytes;
@@ -283,22 +290,90 @@ void launch_warp_per_ray(Kernel kernel, const WarpLayout& layout, int64_t rays, 
   C10_CUDA_KERNEL_LAUNCH_CHECK();
 }
 
+// The most bins of any ray: dense, weights' width; packed, the longest ray (a host sync, after
+// the outputs are allocated so that they are the first allocations of the op).
+int max_bins_of(const at::Tensor& weights, const std::optional<at::Tensor>& offsets) {
+  if (!offsets) return static_cast<int>(weights.size(1));
+  if (offsets->size(0) < 2) return 0;
+  const int64_t most = (offsets->slice(0, 1) - offsets->slice(0, 0, -1)).max().item<int64_t>();
+  // No clamped ray (see PackedBins) spans more than this, nor more than N < 2^30.
+  return static_cast<int>(std::clamp<int64_t>(most, 0, weights.size(0)));
+}
+
+template <typename Rows>
+at::Tensor sample_forward(const at::Tensor& bins, const at::Tensor& weights, const at::Tensor& u,
+                          double weight_padding, const RayBatch& batch, Rows rows,
+                          const std::optional<at::Tensor>& offsets) {
+  const c10::cuda::CUDAGuard guard(bins.device());
+  at::Tensor samples = at::empty({batch.rays, batch.samples}, bins.options());
+  if (samples.numel() == 0) return samples;
+  const int max_bins = max_bins_of(weights, offsets);
+  const int num_samples = int(batch.samples);
+  MIXER_NERF_DISPATCH_FLOATING(bins.scalar_type(), "sample_pdf_fwd_cuda", [&] {
+    using acc = acc_t<scalar_t>;
+    launch_warp_per_ray<acc>(sample_forward_kernel<scalar_t, false, Rows>, WarpLayout{max_bins, num_samples},
+                             batch.rays, rows, bins.data_ptr<scalar_t>(), weights.data_ptr<scalar_t>(),
+                             u.data_ptr<acc>(), batch.u_row_stride, num_samples, static_cast<acc>(weight_padding),
+                             samples.data_ptr<scalar_t>());
+  });
+  return samples;
+}
+
+template <typename Rows>
+std::tuple<at::Tensor, at::Tensor> sample_backward(const at::Tensor& grad_samples, const at::Tensor& bins,
+                                                   const at::Tensor& weights, const at::Tensor& u,
+                                                   double weight_padding, const RayBatch& batch, Rows rows,
+                                                   const std::optional<at::Tensor>& offsets) {
+  check_grad(grad_samples, bins, batch);
+  const c10::cuda::CUDAGuard guard(bins.device());
+  at::Tensor grad_bins = at::empty_like(bins);
+  at::Tensor grad_weights = at::empty_like(weights);
+  if (batch.rays == 0) return {grad_bins, grad_weights};
+  const int max_bins = max_bins_of(weights, offsets);
+  const int num_samples = int(batch.samples);
+  MIXER_NERF_DISPATCH_FLOATING(bins.scalar_type(), "sample_pdf_bwd_cuda", [&] {
+    using acc = acc_t<scalar_t>;
+    launch_warp_per_ray<acc>(sample_pdf_backward_kernel<scalar_t, Rows>, WarpLayout{max_bins, 4 * max_bins},
+                             batch.rays, rows, grad_samples.data_ptr<scalar_t>(), bins.data_ptr<scalar_t>(),
+                             weights.data_ptr<scalar_t>(), u.data_ptr<acc>(), batch.u_row_stride, num_samples,
+                             static_cast<acc>(weight_padding), grad_bins.data_ptr<scalar_t>(),
+                             grad_weights.data_ptr<scalar_t>());
+  });
+  return {grad_bins, grad_weights};
+}
+
 at::Tensor sample_pdf_fwd_cuda(const at::Tensor& bins, const at::Tensor& weights, const at::Tensor& u,
                                double weight_padding) {
   const RayBatch batch = check_batch(bins, weights, u, at::kCUDA);
   check_bins(bins, weights);
+  const int num_bins = int(weights.size(1));
+  return sample_forward(bins, weights, u, weight_padding, batch, DenseBins{num_bins}, std::nullopt);
+}
+
+std::tuple<at::Tensor, at::Tensor> sample_pdf_bwd_cuda(const at::Tensor& grad_samples, const at::Tensor& bins,
+                                                       const at::Tensor& weights, const at::Tensor& u,
+                                                       double weight_padding) {
+  const RayBatch batch = check_batch(bins, weights, u, at::kCUDA);
+  check_bins(bins, weights);
+  const int num_bins = int(weights.size(1));
+  return sample_backward(grad_samples, bins, weights, u, weight_padding, batch, DenseBins{num_bins}, std::nullopt);
+}
+
+at::Tensor sample_pdf_packed_fwd_cuda(const at::Tensor& bins, const at::Tensor& weights, const at::Tensor& offsets,
+                                      const at::Tensor& u, double weight_padding) {
+  const RayBatch batch = check_packed_batch(bins, weights, offsets, u, at::kCUDA);
   const c10::cuda::CUDAGuard guard(bins.device());
-  at::Tensor samples = at::empty({batch.rays, batch.samples}, bins.options());
-  if (samples.numel() == 0) return samples;
-  const int num_bins = int(weights.size(1)), num_samples = int(batch.samples);
-  MIXER_NERF_DISPATCH_FLOATING(bins.scalar_type(), "sample_pdf_fwd_cuda", [&] {
-    using acc = acc_t<scalar_t>;
-    launch_warp_per_ray<acc>(sample_forward_kernel<scalar_t, false>, WarpLayout{num_bins, num_samples}, batch.rays,
-                             bins.data_ptr<scalar_t>(), weights.data_ptr<scalar_t>(), u.data_ptr<acc>(),
-                             batch.u_row_stride, num_samples, static_cast<acc>(weight_padding),
-                             samples.data_ptr<scalar_t>());
-  });
-  return samples;
+  return sample_forward(bins, weights, u, weight_padding, batch,
+                        PackedBins{offsets.const_data_ptr<int64_t>(), weights.size(0)}, offsets);
+}
+
+std::tuple<at::Tensor, at::Tensor> sample_pdf_packed_bwd_cuda(const at::Tensor& grad_samples, const at::Tensor& bins,
+                                                              const at::Tensor& weights, const at::Tensor& offsets,
+                                                              const at::Tensor& u, double weight_padding) {
+  const RayBatch batch = check_packed_batch(bins, weights, offsets, u, at::kCUDA);
+  const c10::cuda::CUDAGuard guard(bins.device());
+  return sample_backward(grad_samples, bins, weights, u, weight_padding, batch,
+                         PackedBins{offsets.const_data_ptr<int64_t>(), weights.size(0)}, offsets);
 }
 
 at::Tensor hierarchical_samples_fwd_cuda(const at::Tensor& z_coarse, const at::Tensor& weights, const at::Tensor& u,
@@ -308,37 +383,15 @@ at::Tensor hierarchical_samples_fwd_cuda(const at::Tensor& z_coarse, const at::T
   const c10::cuda::CUDAGuard guard(z_coarse.device());
   const int coarse = int(z_coarse.size(1)), num_samples = int(batch.samples);
   at::Tensor merged = at::empty({batch.rays, coarse + batch.samples}, z_coarse.options());
-  if (batch.rays == 0) return merged;
   MIXER_NERF_DISPATCH_FLOATING(z_coarse.scalar_type(), "hierarchical_samples_fwd_cuda", [&] {
     using acc = acc_t<scalar_t>;
-    launch_warp_per_ray<acc>(sample_forward_kernel<scalar_t, true>, WarpLayout{coarse - 2, coarse + num_samples},
-                             batch.rays, z_coarse.data_ptr<scalar_t>(), weights.data_ptr<scalar_t>(),
-                             u.data_ptr<acc>(), batch.u_row_stride, num_samples, static_cast<acc>(weight_padding),
+    launch_warp_per_ray<acc>(sample_forward_kernel<scalar_t, true, DenseBins>,
+                             WarpLayout{coarse - 2, coarse + num_samples}, batch.rays, DenseBins{coarse - 2},
+                             z_coarse.data_ptr<scalar_t>(), weights.data_ptr<scalar_t>(), u.data_ptr<acc>(),
+                             batch.u_row_stride, num_samples, static_cast<acc>(weight_padding),
                              merged.data_ptr<scalar_t>());
   });
   return merged;
-}
-
-std::tuple<at::Tensor, at::Tensor> sample_pdf_bwd_cuda(const at::Tensor& grad_samples, const at::Tensor& bins,
-                                                       const at::Tensor& weights, const at::Tensor& u,
-                                                       double weight_padding) {
-  const RayBatch batch = check_batch(bins, weights, u, at::kCUDA);
-  check_bins(bins, weights);
-  check_grad(grad_samples, bins, batch);
-  const c10::cuda::CUDAGuard guard(bins.device());
-  at::Tensor grad_bins = at::empty_like(bins);
-  at::Tensor grad_weights = at::empty_like(weights);
-  if (batch.rays == 0) return {grad_bins, grad_weights};
-  const int num_bins = int(weights.size(1)), num_samples = int(batch.samples);
-  MIXER_NERF_DISPATCH_FLOATING(bins.scalar_type(), "sample_pdf_bwd_cuda", [&] {
-    using acc = acc_t<scalar_t>;
-    launch_warp_per_ray<acc>(sample_pdf_backward_kernel<scalar_t>, WarpLayout{num_bins, 4 * num_bins}, batch.rays,
-                             grad_samples.data_ptr<scalar_t>(), bins.data_ptr<scalar_t>(),
-                             weights.data_ptr<scalar_t>(), u.data_ptr<acc>(), batch.u_row_stride, num_samples,
-                             static_cast<acc>(weight_padding), grad_bins.data_ptr<scalar_t>(),
-                             grad_weights.data_ptr<scalar_t>());
-  });
-  return {grad_bins, grad_weights};
 }
 
 }  // namespace
@@ -347,6 +400,8 @@ TORCH_LIBRARY_IMPL(mixer_nerf, CUDA, m) {
   m.impl("sample_pdf_fwd", &sample_pdf_fwd_cuda);
   m.impl("sample_pdf_bwd", &sample_pdf_bwd_cuda);
   m.impl("hierarchical_samples_fwd", &hierarchical_samples_fwd_cuda);
+  m.impl("sample_pdf_packed_fwd", &sample_pdf_packed_fwd_cuda);
+  m.impl("sample_pdf_packed_bwd", &sample_pdf_packed_bwd_cuda);
 }
 
 }  // namespace mixer_nerf

@@ -8,7 +8,7 @@
 from .composite import composite, composite_packed
 from .positional_encoding import positional_encoding
 from .ray_marching import PackedSamples, filter_by_transmittance, ray_marching
-from .sample_pdf import hierarchical_samples, sample_pdf
+from .sample_pdf import hierarchical_samples, sample_pdf, sample_pdf_packed
 
 __all__ = [
     "PackedSamples",
@@ -19,4 +19,5 @@ __all__ = [
     "positional_encoding",
     "ray_marching",
     "sample_pdf",
+    "sample_pdf_packed",
 ]

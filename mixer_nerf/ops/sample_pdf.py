@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import functools
 import math
+from typing import NamedTuple
 
 import torch
 from torch.autograd.function import once_differentiable
@@ -35,13 +36,20 @@ from ._checks import (
     check_int,
     check_ndim,
     check_nonnegative,
+    check_offsets,
     check_same_device,
     check_same_dtype,
     check_shape,
     check_sorted,
+    check_tensor,
 )
 from ._dispatch import use_kernel
-from .sample_pdf_reference import accumulation_dtype, hierarchical_samples_reference, sample_pdf_reference
+from .sample_pdf_reference import (
+    accumulation_dtype,
+    hierarchical_samples_reference,
+    sample_pdf_packed_reference,
+    sample_pdf_reference,
+)
 
 
 def sample_pdf(
@@ -81,8 +89,54 @@ def sample_pdf(
     positions = _positions("bins", bins, num_samples, deterministic, u, generator, check_values)
     if not use_kernel(backend, bins.device):
         return sample_pdf_reference(bins, weights, positions, pad)
-    _register_fakes()
-    return _SamplePdfFunction.apply(bins.contiguous(), weights.contiguous(), positions, pad)
+    return _run_kernel(_DENSE_OPS, bins, weights, positions, pad)
+
+
+def sample_pdf_packed(
+    bins: torch.Tensor,
+    weights: torch.Tensor,
+    offsets: torch.Tensor,
+    num_samples: int,
+    deterministic: bool = False,
+    u: torch.Tensor | None = None,
+    weight_padding: float = 0.0,
+    generator: torch.Generator | None = None,
+    backend: str = "auto",
+    check_values: bool = True,
+) -> torch.Tensor:
+    """:func:`sample_pdf` for rays with different numbers of bins, packed (CSR).
+
+    Ray r has ``B_r = offsets[r+1] - offsets[r]`` bins: weights ``weights[offsets[r]:offsets[r+1]]``
+    and the ``B_r + 1`` edges ``bins[offsets[r] + r : offsets[r+1] + r + 1]`` (each ray's edges
+    follow the previous ray's, one more edge than bins per ray, so ``bins`` has ``N + R``
+    entries). The samples are the same as :func:`sample_pdf` on each ray alone. A ray with no bin
+    has one edge: all its samples are that edge (as for a ray whose weights are all zero, which
+    samples its edges' range uniformly). From packed samples with contiguous intervals (the
+    ``t_starts``/``t_ends`` of each ray abutting), a ray's edges are its ``t_starts`` and its last
+    ``t_end``; samples that skipped empty space leave gaps, which are bins of weight 0.
+
+    Args:
+        bins: (N + R,) edges, sorted within each ray.
+        weights: (N,) non-negative bin weights.
+        offsets: (R+1,) int64, non-decreasing from 0 to N.
+        num_samples, deterministic, u, weight_padding, generator, backend: as in
+            :func:`sample_pdf` (``u`` is (R, S) or (S,)).
+        check_values: also check the offsets' values and that each ray's edges are sorted (host
+            syncs on a GPU). The kernels clamp offsets into [0, N], so unchecked ones never reach
+            outside the arrays. On CUDA the kernels size shared memory by the longest ray, which
+            costs one host sync per call whatever ``check_values``.
+
+    Returns:
+        (R, num_samples) samples in the dtype of ``bins``, sorted along each ray, differentiable
+        with respect to ``bins`` and ``weights``.
+    """
+    num_rays = _validate_packed(bins, weights, offsets, check_values)
+    check_int("num_samples", num_samples)
+    pad = _check_padding(weight_padding)
+    positions = _positions("bins", bins, num_samples, deterministic, u, generator, check_values, num_rays)
+    if not use_kernel(backend, bins.device):
+        return sample_pdf_packed_reference(bins, weights, offsets, positions, pad)
+    return _run_kernel(_PACKED_OPS, bins, weights, positions, pad, offsets.contiguous())
 
 
 def hierarchical_samples(
@@ -142,6 +196,30 @@ def _validate_pdf(bins: torch.Tensor, weights: torch.Tensor, check_values: bool)
         check_nonnegative("weights", weights)
 
 
+def _validate_packed(
+    bins: torch.Tensor, weights: torch.Tensor, offsets: torch.Tensor, check_values: bool
+) -> int:
+    """Checks of sample_pdf_packed's inputs; returns the number of rays."""
+    check_floating("bins", bins)
+    check_floating("weights", weights)
+    check_ndim("bins", bins, 1)
+    check_ndim("weights", weights, 1)
+    check_same_device(bins=bins, weights=weights, offsets=check_tensor("offsets", offsets))
+    check_same_dtype(bins=bins, weights=weights)
+    num_bins = weights.shape[0]
+    num_rays = check_offsets("offsets", offsets, num_bins, check_values)
+    check_shape("bins", bins, (num_bins + num_rays,), " (N + R: one more edge than bins per ray)")
+    if check_values:
+        check_nonnegative("weights", weights)
+        # Sorted within rays: the steps from one ray's last edge to the next ray's first are free.
+        descending = bins[1:] < bins[:-1]
+        first_edges = offsets[1:-1] + torch.arange(1, max(num_rays, 1), device=offsets.device)
+        descending[first_edges - 1] = False
+        if bool(descending.any()):
+            raise ValueError("bins must be sorted (non-decreasing) within each ray")
+    return num_rays
+
+
 def _validate_coarse(z_coarse: torch.Tensor, weights_coarse: torch.Tensor, check_values: bool) -> None:
     check_floating("z_coarse", z_coarse)
     check_floating("weights_coarse", weights_coarse)
@@ -172,10 +250,11 @@ def _positions(
     u: torch.Tensor | None,
     generator: torch.Generator | None,
     check_values: bool,
+    num_rays: int | None = None,
 ) -> torch.Tensor:
     """The sorted positions in [0, 1] as the kernels take them: (N,) or (R, N), contiguous, in
-    the accumulation dtype of ``like`` (R, ...)."""
-    num_rays = like.shape[0]
+    the accumulation dtype of ``like`` ((R, ...) unless ``num_rays`` says otherwise)."""
+    num_rays = like.shape[0] if num_rays is None else num_rays
     acc = accumulation_dtype(like.dtype)
     if u is not None:
         if deterministic:
@@ -197,21 +276,38 @@ def _positions(
     return (strata + jitter) / num_samples
 
 
+class _Ops(NamedTuple):
+    """A layout's registered forward and backward; ``layout`` tensors (the packed offsets) follow
+    ``weights`` in both schemas and get no gradient."""
+
+    forward: str
+    backward: str
+
+
+_DENSE_OPS = _Ops("sample_pdf_fwd", "sample_pdf_bwd")
+_PACKED_OPS = _Ops("sample_pdf_packed_fwd", "sample_pdf_packed_bwd")
+
+
+def _run_kernel(ops: _Ops, bins, weights, positions, pad, *layout) -> torch.Tensor:
+    _register_fakes()
+    return _SamplePdfFunction.apply(ops, bins.contiguous(), weights.contiguous(), positions, pad, *layout)
+
+
 class _SamplePdfFunction(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, bins, weights, u, weight_padding):
-        ctx.save_for_backward(bins, weights, u)
-        ctx.weight_padding = weight_padding
-        return torch.ops.mixer_nerf.sample_pdf_fwd(bins, weights, u, weight_padding)
+    def forward(ctx, ops, bins, weights, u, weight_padding, *layout):
+        ctx.save_for_backward(bins, weights, u, *layout)
+        ctx.ops, ctx.weight_padding = ops, weight_padding
+        return getattr(torch.ops.mixer_nerf, ops.forward)(bins, weights, *layout, u, weight_padding)
 
     @staticmethod
     @once_differentiable
     def backward(ctx, grad_samples):
-        bins, weights, u = ctx.saved_tensors
-        grad_bins, grad_weights = torch.ops.mixer_nerf.sample_pdf_bwd(
-            grad_samples.contiguous(), bins, weights, u, ctx.weight_padding
+        bins, weights, u, *layout = ctx.saved_tensors
+        grad_bins, grad_weights = getattr(torch.ops.mixer_nerf, ctx.ops.backward)(
+            grad_samples.contiguous(), bins, weights, *layout, u, ctx.weight_padding
         )
-        return grad_bins, grad_weights, None, None
+        return None, grad_bins, grad_weights, None, None, *[None] * len(layout)
 
 
 @functools.cache
@@ -220,6 +316,8 @@ def _register_fakes() -> None:
     torch.library.register_fake("mixer_nerf::sample_pdf_fwd", _sample_pdf_fwd_fake)
     torch.library.register_fake("mixer_nerf::sample_pdf_bwd", _sample_pdf_bwd_fake)
     torch.library.register_fake("mixer_nerf::hierarchical_samples_fwd", _hierarchical_samples_fwd_fake)
+    torch.library.register_fake("mixer_nerf::sample_pdf_packed_fwd", _sample_pdf_packed_fwd_fake)
+    torch.library.register_fake("mixer_nerf::sample_pdf_packed_bwd", _sample_pdf_packed_bwd_fake)
 
 
 def _sample_pdf_fwd_fake(bins, weights, u, weight_padding):
@@ -232,3 +330,11 @@ def _sample_pdf_bwd_fake(grad_samples, bins, weights, u, weight_padding):
 
 def _hierarchical_samples_fwd_fake(z_coarse, weights, u, weight_padding):
     return z_coarse.new_empty(z_coarse.shape[0], z_coarse.shape[1] + u.shape[-1])
+
+
+def _sample_pdf_packed_fwd_fake(bins, weights, offsets, u, weight_padding):
+    return bins.new_empty(offsets.shape[0] - 1, u.shape[-1])
+
+
+def _sample_pdf_packed_bwd_fake(grad_samples, bins, weights, offsets, u, weight_padding):
+    return torch.empty_like(bins), torch.empty_like(weights)

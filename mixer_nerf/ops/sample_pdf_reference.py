@@ -74,6 +74,37 @@ def sample_pdf_reference(
     return samples.to(bins.dtype)
 
 
+def sample_pdf_packed_reference(
+    bins: torch.Tensor,
+    weights: torch.Tensor,
+    offsets: torch.Tensor,
+    u: torch.Tensor,
+    weight_padding: float = 0.0,
+) -> torch.Tensor:
+    """Packed bins (``sample_pdf_packed``): ray r has B_r = offsets[r+1] - offsets[r] bins with
+    weights (N,) from offsets[r] and B_r + 1 edges (N + R,) from offsets[r] + r; u (R, S) or (S,)
+    -> (R, S).
+
+    Pads every ray to the longest one (at least one bin) and runs :func:`sample_pdf_reference`:
+    the padding bins repeat the ray's last edge and weigh exactly 0 (``weight_padding`` is added
+    to the real bins only, here), so they are never sampled and do not change the CDF; a ray
+    without bins gets weights all 0 and samples its single edge. Costs a host sync (the longest
+    ray): a reference, not a fast path.
+    """
+    acc = accumulation_dtype(bins.dtype)
+    counts = offsets[1:] - offsets[:-1]
+    num_rays = counts.numel()
+    width = max(int(counts.max()) if num_rays else 0, 1)
+    slots = torch.arange(width + 1, device=bins.device)
+    first_edge = offsets[:-1] + torch.arange(num_rays, device=bins.device)
+    edges = bins[first_edge[:, None] + torch.minimum(slots, counts[:, None])]  # (R, width + 1)
+    real = slots[:width] < counts[:, None]
+    slot_weight = torch.cat([weights.to(acc) + weight_padding, weights.new_zeros(1, dtype=acc)])
+    w_index = torch.where(real, offsets[:-1, None] + slots[:width], weights.shape[0])  # the 0 past the end
+    padded_weights = torch.where(real, slot_weight[w_index], torch.zeros((), dtype=acc, device=bins.device))
+    return sample_pdf_reference(edges, padded_weights, u, 0.0)
+
+
 def _straight_through(value: torch.Tensor, carrier: torch.Tensor) -> torch.Tensor:
     """Exactly ``value``, with the gradient of ``carrier`` (adding carrier - carrier is exactly 0)."""
     return value.detach() + (carrier - carrier.detach())
