@@ -1,7 +1,9 @@
 // sample_pdf (dense or packed bins) and hierarchical_samples on CUDA: one warp per ray, its data
-// staged in shared memory by coalesced loads; packed rays size that memory by the longest ray. The math is sample_pdf_math.h, shared with the CPU kernels: both build the
-// same CDF bit for bit (lane 0 sums it sequentially; a tree scan would be neither exactly flat
-// over zero-weight bins nor even monotone, and the chain is short) and pick the same bins.
+// staged in shared memory by coalesced loads (packed rays size it by the longest ray, so the
+// per-ray limits on bins are the dense ones). The math is sample_pdf_math.h, shared with the CPU
+// kernels: both build the same CDF bit for bit (lane 0 sums it sequentially; a tree scan would be
+// neither exactly flat over zero-weight bins nor even monotone, and the chain is short) and pick
+// the same bins.
 //
 // Forward: each lane takes samples n = lane, lane + 32, ...: binary search of its bin, one
 // division. hierarchical_samples merges without sorting: fine sample n lands at
