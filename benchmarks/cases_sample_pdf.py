@@ -11,6 +11,9 @@ Cases:
     0.5.3's importance_sampling uses, so its error column is comparable (nerfacc samples, then
     torch.sort merges, as its users do).
   * sample_pdf fwd and fwd+bwd (gradients to bins and weights), deterministic positions.
+  * sample_pdf_packed fwd and fwd+bwd: the same PDFs cut to ragged bin counts floor(63 x^2),
+    x ~ U[0, 1) (0..62 bins, mean ~21, some rays without bins), deterministic positions. No
+    nerfacc variant: its packed importance sampling takes another layout (per-edge flags).
 Our kernel runs with check_values=False (the inputs are valid by construction); the reference
 variants take the same u tensor the kernel sees.
 """
@@ -20,8 +23,12 @@ from __future__ import annotations
 import torch
 
 from benchmarks.harness import Case, Variant
-from mixer_nerf.ops.sample_pdf import hierarchical_samples, sample_pdf
-from mixer_nerf.ops.sample_pdf_reference import hierarchical_samples_reference, sample_pdf_reference
+from mixer_nerf.ops.sample_pdf import hierarchical_samples, sample_pdf, sample_pdf_packed
+from mixer_nerf.ops.sample_pdf_reference import (
+    hierarchical_samples_reference,
+    sample_pdf_packed_reference,
+    sample_pdf_reference,
+)
 
 COARSE, FINE = 64, 128
 
@@ -105,27 +112,35 @@ def pdf_of(inputs: dict) -> tuple[torch.Tensor, torch.Tensor]:
     return (0.5 * (z[:, 1:] + z[:, :-1])).contiguous(), inputs["weights"][:, 1:-1].contiguous()
 
 
-def sample_pdf_cases(size: str, inputs: dict, device: torch.device) -> list[Case]:
+def packed_pdf_of(inputs: dict, device: torch.device, seed: int = 2):
+    """pdf_of's rays keeping their first floor(63 x^2) bins: bins (N + R,), weights (N,), offsets."""
     bins, weights = pdf_of(inputs)
+    R, B = weights.shape
+    gen = torch.Generator(device=device).manual_seed(seed)
+    counts = (B + 1) * torch.rand(R, generator=gen, device=device) ** 2
+    counts = counts.long().clamp_max(B)
+    slots = torch.arange(B + 1, device=device)
+    packed_bins = bins[slots <= counts[:, None]].contiguous()
+    packed_weights = weights[slots[:-1] < counts[:, None]].contiguous()
+    return packed_bins, packed_weights, torch.nn.functional.pad(counts.cumsum(0), (1, 0))
+
+
+def pdf_cases(op: str, size: str, bins, weights, impls: dict, reference, device, nerfacc=None) -> list[Case]:
+    """fwd and fwd+bwd cases of ``impls[name](bins, weights, u)`` at the deterministic positions;
+    ``reference`` gives the float64 truth, ``nerfacc`` an optional forward-only peer."""
     u = deterministic_u(device)
-    impls = {
-        "kernel": lambda b, w, uu: sample_pdf(b, w, FINE, u=uu, backend="kernel", check_values=False),
-        "torch": sample_pdf_reference,
-    }
-    if device.type == "cuda":
-        impls["torch.compile"] = torch.compile(sample_pdf_reference)
+    R = impls["torch"](bins, weights, u).shape[0]
+    item = bins.element_size()
 
     def forward(fn, dtype=None):
         with torch.no_grad():
             cast = [x if dtype is None else x.to(dtype) for x in (bins, weights, u)]
             return fn(*cast)
 
-    R, B = weights.shape
-    item = bins.element_size()
-    fwd_bytes = (R * (B + 1) + R * B + R * FINE) * item
+    fwd_bytes = (bins.numel() + weights.numel() + R * FINE) * item
     fwd_variants = [Variant(name, lambda fn=fn: forward(fn)) for name, fn in impls.items()]
-    if has_nerfacc(device):
-        fwd_variants.append(Variant("nerfacc", lambda: nerfacc_importance_samples(bins, weights)))
+    if nerfacc is not None:
+        fwd_variants.append(Variant("nerfacc", nerfacc))
     gen = torch.Generator(device=device).manual_seed(1)
     upstream = torch.randn(R, FINE, generator=gen, device=device)
 
@@ -136,25 +151,48 @@ def sample_pdf_cases(size: str, inputs: dict, device: torch.device) -> list[Case
         return (out.detach(), *grads)
 
     # backward: read grad_samples, bins, weights; write grad_bins, grad_weights
-    bwd_bytes = (R * FINE + 2 * (R * (B + 1) + R * B)) * item
+    bwd_bytes = (R * FINE + 2 * (bins.numel() + weights.numel())) * item
     return [
+        Case(op, "fwd", size, fwd_variants, lambda: forward(reference, torch.float64), fwd_bytes),
         Case(
-            "sample_pdf",
-            "fwd",
-            size,
-            fwd_variants,
-            lambda: forward(sample_pdf_reference, torch.float64),
-            fwd_bytes,
-        ),
-        Case(
-            "sample_pdf",
+            op,
             "fwd+bwd",
             size,
             [Variant(name, lambda fn=fn: step(fn)) for name, fn in impls.items()],
-            lambda: step(sample_pdf_reference, torch.float64),
+            lambda: step(reference, torch.float64),
             fwd_bytes + bwd_bytes,
         ),
     ]
+
+
+def sample_pdf_cases(size: str, inputs: dict, device: torch.device) -> list[Case]:
+    bins, weights = pdf_of(inputs)
+    impls = {
+        "kernel": lambda b, w, uu: sample_pdf(b, w, FINE, u=uu, backend="kernel", check_values=False),
+        "torch": sample_pdf_reference,
+    }
+    if device.type == "cuda":
+        impls["torch.compile"] = torch.compile(sample_pdf_reference)
+    nerfacc = (lambda: nerfacc_importance_samples(bins, weights)) if has_nerfacc(device) else None
+    return pdf_cases("sample_pdf", size, bins, weights, impls, sample_pdf_reference, device, nerfacc)
+
+
+def sample_pdf_packed_cases(inputs: dict, device: torch.device) -> list[Case]:
+    bins, weights, offsets = packed_pdf_of(inputs, device)
+
+    def reference(b, w, uu):
+        return sample_pdf_packed_reference(b, w, offsets, uu)
+
+    impls = {
+        "kernel": lambda b, w, uu: sample_pdf_packed(
+            b, w, offsets, FINE, u=uu, backend="kernel", check_values=False
+        ),
+        "torch": reference,
+    }
+    if device.type == "cuda":
+        impls["torch.compile"] = torch.compile(reference)
+    size = f"R={offsets.numel() - 1} bins={weights.numel()} (0..{COARSE - 2} per ray) N={FINE}"
+    return pdf_cases("sample_pdf_packed", size, bins, weights, impls, reference, device)
 
 
 def cases(device: torch.device) -> list[Case]:
@@ -165,4 +203,5 @@ def cases(device: torch.device) -> list[Case]:
         hierarchical_case(size, inputs, device, deterministic=False),
         hierarchical_case(size, inputs, device, deterministic=True),
         *sample_pdf_cases(size, inputs, device),
+        *sample_pdf_packed_cases(inputs, device),
     ]
