@@ -8,7 +8,7 @@
 from .composite import composite, composite_packed
 from .positional_encoding import positional_encoding
 from .ray_marching import PackedSamples, filter_by_transmittance, ray_marching
-from .sample_pdf import hierarchical_samples, sample_pdf, sample_pdf_packed
+from .sample_pdf import hierarchical_samples, hierarchical_samples_packed, sample_pdf, sample_pdf_packed
 
 __all__ = [
     "PackedSamples",
@@ -16,6 +16,7 @@ __all__ = [
     "composite_packed",
     "filter_by_transmittance",
     "hierarchical_samples",
+    "hierarchical_samples_packed",
     "positional_encoding",
     "ray_marching",
     "sample_pdf",
