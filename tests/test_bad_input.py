@@ -25,7 +25,16 @@ from mixer_nerf.data import DatasetError, MissingFileError, load_scene
 from mixer_nerf.data.blender import write_blender_split
 from mixer_nerf.data.procedural import orbit_poses
 from mixer_nerf.model import MixerNeRF, preset_config
-from mixer_nerf.ops import composite, hierarchical_samples, positional_encoding, ray_marching, sample_pdf
+from mixer_nerf.ops import (
+    composite,
+    composite_packed,
+    hierarchical_samples,
+    hierarchical_samples_packed,
+    positional_encoding,
+    ray_marching,
+    sample_pdf,
+    sample_pdf_packed,
+)
 from mixer_nerf.render import render_image, render_rays
 from mixer_nerf.train import CheckpointError, OutputError, TrainConfig, Trainer, load_checkpoint, load_trained
 
@@ -70,6 +79,40 @@ def marching_args(**changes):
         "far": 10.0,
         "grid": grid,
         "step_size": 0.1,
+        **changes,
+    }
+
+
+OFFSETS = torch.tensor([0, 2, 2, 5])  # 3 rays of 2, 0 and 3 rows
+
+
+def packed_args(**changes):
+    """composite_packed's inputs for OFFSETS."""
+    args = {
+        "sigmas": torch.rand(5),
+        "rgbs": torch.rand(5, 3),
+        "t_starts": torch.tensor([0.0, 1, 0, 1, 2]),
+        "t_ends": torch.tensor([1.0, 2, 1, 2, 3]),
+        "offsets": OFFSETS,
+    }
+    return {**args, **changes}
+
+
+def packed_pdf_args(**changes):
+    """sample_pdf_packed's inputs for OFFSETS: each ray has one more edge than bins."""
+    return {
+        "bins": torch.tensor([0.0, 1, 2, 5, 0, 1, 2, 3]),
+        "weights": torch.rand(5),
+        "offsets": OFFSETS,
+        **changes,
+    }
+
+
+def packed_coarse_args(**changes):
+    return {
+        "z_coarse": torch.tensor([0.0, 1, 0, 1, 2]),
+        "weights_coarse": torch.rand(5),
+        "offsets": OFFSETS,
         **changes,
     }
 
@@ -133,6 +176,88 @@ OP_CASES = {
         "background on meta",
     ),
     "composite bad backend": (lambda b: composite(**composite_args(), backend="cuda"), ValueError, "backend"),
+    # composite_packed
+    "composite_packed int32 offsets": (
+        lambda b: composite_packed(**packed_args(offsets=OFFSETS.int()), backend=b),
+        TypeError,
+        "offsets must be an int64",
+    ),
+    "composite_packed offsets short of N": (
+        lambda b: composite_packed(**packed_args(offsets=torch.tensor([0, 2, 4])), backend=b),
+        ValueError,
+        "offsets must start at 0 and end at 5",
+    ),
+    "composite_packed decreasing offsets": (
+        lambda b: composite_packed(**packed_args(offsets=torch.tensor([0, 3, 2, 5])), backend=b),
+        ValueError,
+        "offsets must be non-decreasing",
+    ),
+    "composite_packed (N, 1) sigmas": (
+        lambda b: composite_packed(**packed_args(sigmas=torch.rand(5, 1)), backend=b),
+        ValueError,
+        "sigmas",
+    ),
+    "composite_packed negative density": (
+        lambda b: composite_packed(**packed_args(sigmas=-torch.rand(5)), backend=b),
+        ValueError,
+        "sigmas must be non-negative",
+    ),
+    "composite_packed offsets on meta": (
+        lambda b: composite_packed(**packed_args(offsets=OFFSETS.to(META)), backend=b),
+        ValueError,
+        "offsets on meta",
+    ),
+    "composite_packed background (R+1, C)": (
+        lambda b: composite_packed(**packed_args(background=torch.rand(4, 3)), backend=b),
+        ValueError,
+        "background",
+    ),
+    # sample_pdf_packed and hierarchical_samples_packed
+    "sample_pdf_packed unsorted ray": (
+        lambda b: sample_pdf_packed(
+            **packed_pdf_args(bins=torch.tensor([0.0, 2, 1, 5, 0, 1, 2, 3])), num_samples=4, backend=b
+        ),
+        ValueError,
+        "bins must be sorted",
+    ),
+    "sample_pdf_packed one edge short": (
+        lambda b: sample_pdf_packed(
+            **packed_pdf_args(bins=torch.tensor([0.0, 1, 2, 5, 0, 1, 2])), num_samples=4, backend=b
+        ),
+        ValueError,
+        "bins must have shape",
+    ),
+    "sample_pdf_packed float offsets": (
+        lambda b: sample_pdf_packed(**packed_pdf_args(offsets=OFFSETS.float()), num_samples=4, backend=b),
+        TypeError,
+        "offsets",
+    ),
+    "sample_pdf_packed negative weights": (
+        lambda b: sample_pdf_packed(**packed_pdf_args(weights=-torch.rand(5)), num_samples=4, backend=b),
+        ValueError,
+        "weights must be non-negative",
+    ),
+    "hierarchical_packed unsorted ray": (
+        lambda b: hierarchical_samples_packed(
+            **packed_coarse_args(z_coarse=torch.tensor([0.0, 1, 0, 2, 1])), num_fine=4, backend=b
+        ),
+        ValueError,
+        "z_coarse must be sorted",
+    ),
+    "hierarchical_packed offsets past N": (
+        lambda b: hierarchical_samples_packed(
+            **packed_coarse_args(offsets=torch.tensor([0, 2, 6])), num_fine=4, backend=b
+        ),
+        ValueError,
+        "offsets must start at 0 and end at 5",
+    ),
+    "hierarchical_packed weights on meta": (
+        lambda b: hierarchical_samples_packed(
+            **packed_coarse_args(weights_coarse=torch.rand(5, device=META)), num_fine=4, backend=b
+        ),
+        ValueError,
+        "weights_coarse on meta",
+    ),
     # sample_pdf
     "sample_pdf unsorted bins": (
         lambda b: sample_pdf(
