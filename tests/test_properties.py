@@ -14,6 +14,7 @@ minutes) or ``dev`` (500 examples a test, for a thorough local search).
 
 from __future__ import annotations
 
+import itertools
 import math
 import os
 
@@ -23,7 +24,15 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from mixer_nerf import _extension
-from mixer_nerf.ops import composite, hierarchical_samples, positional_encoding, sample_pdf
+from mixer_nerf.ops import (
+    composite,
+    composite_packed,
+    hierarchical_samples,
+    hierarchical_samples_packed,
+    positional_encoding,
+    sample_pdf,
+    sample_pdf_packed,
+)
 from mixer_nerf.ops.composite import CompositeResult
 from mixer_nerf.ops.sample_pdf_reference import hierarchical_samples_reference, sample_pdf_reference
 
@@ -446,6 +455,120 @@ def test_sample_pdf_nan_weight_propagates():
     weights = torch.tensor([[NAN, 1.0]])
     samples = sample_pdf(bins, weights, 3, deterministic=True, backend="kernel", check_values=False)
     assert torch.isnan(samples).all()
+
+
+# ---------------------------------------------------------------------------------------------
+# Packed (ragged) layouts: each ray of a packed batch gives what the dense op gives on it alone
+
+
+def ray_counts(draw, num_rays: int, most: int) -> list[int]:
+    """Rows kept per ray (0 included), for packing the first rows of each dense ray."""
+    return draw(st.lists(st.integers(0, most), min_size=num_rays, max_size=num_rays))
+
+
+def offsets_of(counts: list[int]) -> torch.Tensor:
+    return torch.tensor([0, *itertools.accumulate(counts)], dtype=torch.int64)
+
+
+def pack_rows(dense: torch.Tensor, counts: list[int]) -> torch.Tensor:
+    """Rows ``dense[r, :counts[r]]`` of every ray, concatenated."""
+    return (
+        torch.cat([dense[r, :c] for r, c in enumerate(counts)])
+        if counts
+        else dense.reshape(0, *dense.shape[2:])
+    )
+
+
+@PROFILE
+@given(case=composite_cases(), data=st.data())
+def test_composite_packed_matches_composite_ray_by_ray(case, data):
+    """Forward and gradients of every ray of the packed batch are those of the dense op on that ray
+    alone (a ray with no sample: background colour, zero opacity and depth). Both share the per-ray
+    scans, so up to float32 reassociation only."""
+    sigmas, rgbs, t_starts, t_ends, background = case
+    R, S = sigmas.shape
+    counts = ray_counts(data.draw, R, S)
+    leaves = [pack_rows(x, counts).requires_grad_() for x in (sigmas, rgbs, t_starts, t_ends)]
+    color, depth, opacity, weights = composite_packed(
+        *leaves, offsets_of(counts), background, backend="kernel"
+    )
+    assert all(torch.isfinite(x).all() for x in (color, depth, opacity, weights))
+    (color.sum() + depth.sum() + opacity.sum() + weights.sum()).backward()
+    start = 0
+    for r, c in enumerate(counts):
+        rows = slice(start, start + c)
+        start += c
+        ray_background = (
+            None if background is None else (background if background.dim() == 1 else background[r])
+        )
+        if c == 0:
+            expected = torch.zeros(rgbs.shape[-1]) if ray_background is None else ray_background
+            assert torch.equal(color[r], expected) and depth[r] == 0 and opacity[r] == 0
+            continue
+        alone = [x[r : r + 1, :c].clone().requires_grad_() for x in (sigmas, rgbs, t_starts, t_ends)]
+        dense = composite(*alone, None if ray_background is None else ray_background, backend="kernel")
+        for packed_value, dense_value in zip(
+            (color[r], depth[r], opacity[r], weights[rows]), dense, strict=True
+        ):
+            torch.testing.assert_close(
+                packed_value, dense_value.reshape(packed_value.shape), rtol=1e-5, atol=1e-7
+            )
+        sum(x.sum() for x in dense).backward()
+        for leaf, single in zip(leaves, alone, strict=True):
+            scale = float(single.grad.abs().max())
+            torch.testing.assert_close(leaf.grad[rows], single.grad[0], rtol=1e-5, atol=1e-6 * scale + 1e-30)
+
+
+@PROFILE
+@given(case=pdf_cases(), data=st.data())
+def test_sample_pdf_packed_matches_sample_pdf_ray_by_ray(case, data):
+    """A ray with no bin has one edge, and all its samples are that edge."""
+    bins, weights, N, _, gen = case
+    R, B = weights.shape
+    counts = ray_counts(data.draw, R, B)
+    packed_bins = torch.cat([bins[r, : c + 1] for r, c in enumerate(counts)]) if counts else bins.reshape(0)
+    u = torch.sort(torch.rand(R, N, generator=gen), dim=-1).values
+    samples = sample_pdf_packed(
+        packed_bins, pack_rows(weights, counts), offsets_of(counts), N, u=u, backend="kernel"
+    )
+    assert samples.shape == (R, N) and torch.isfinite(samples).all()
+    for r, c in enumerate(counts):
+        if c == 0:
+            assert (samples[r] == bins[r, 0]).all()
+            continue
+        alone = sample_pdf(
+            bins[r : r + 1, : c + 1], weights[r : r + 1, :c], N, u=u[r : r + 1], backend="kernel"
+        )
+        torch.testing.assert_close(samples[r], alone[0], rtol=0, atol=0)
+
+
+@PROFILE
+@given(case=pdf_cases(), data=st.data())
+def test_hierarchical_samples_packed_matches_dense_and_short_rays(case, data):
+    """Rays of >= 3 coarse depths match hierarchical_samples on the ray alone; shorter ones follow
+    the documented fallbacks (2 depths: their midpoint, 1: repeated, none: no depth)."""
+    z, weights, N, _, gen = case
+    R, S = z.shape
+    weights_coarse = torch.cat([weights, weights[:, :1]], dim=1)  # (R, S)
+    counts = ray_counts(data.draw, R, S)
+    u = torch.sort(torch.rand(R, N, generator=gen), dim=-1).values
+    depths, merged_offsets = hierarchical_samples_packed(
+        pack_rows(z, counts), pack_rows(weights_coarse, counts), offsets_of(counts), N, u=u, backend="kernel"
+    )
+    assert torch.isfinite(depths).all()
+    for r, c in enumerate(counts):
+        ray = depths[merged_offsets[r] : merged_offsets[r + 1]]
+        assert ray.numel() == (c + N if c else 0)
+        assert (ray[1:] >= ray[:-1]).all()
+        if c >= 3:
+            alone = hierarchical_samples(
+                z[r : r + 1, :c], weights_coarse[r : r + 1, :c], N, u=u[r : r + 1], backend="kernel"
+            )
+            torch.testing.assert_close(ray, alone[0], rtol=0, atol=0)
+        elif c:
+            fine = 0.5 * (z[r, 0] + z[r, c - 1])  # the midpoint of 2 depths, or the single one
+            expected = torch.sort(torch.cat([z[r, :c], fine.expand(N)])).values
+            torch.testing.assert_close(ray, expected, rtol=0, atol=0)
 
 
 # ---------------------------------------------------------------------------------------------
