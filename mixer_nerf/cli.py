@@ -36,9 +36,15 @@ TRAIN_OPTIONS: dict[str, dict[str, Any]] = {
     "--ckpt-every": {"type": int, "help": "checkpoint every N steps (a killed run loses at most N)"},
     "--time-budget": {"type": float, "metavar": "SECONDS", "help": "stop after this much training time"},
     "--downscale": {"type": int, "help": "integer image downscale (Blender scenes)"},
-    "--sampler": {"choices": SAMPLERS, "help": "occupancy (skip empty space, occluded samples, missed rays), "
-                  "hierarchical (NeRF's dense coarse + fine), auto (occupancy when the scene has a box)"},
-    "--target-samples": {"type": int, "help": "occupancy sampler: MLP samples per step (the ray batch adapts)"},
+    "--sampler": {
+        "choices": SAMPLERS,
+        "help": "occupancy (skip empty space, occluded samples, missed rays), "
+        "hierarchical (NeRF's dense coarse + fine), auto (occupancy when the scene has a box)",
+    },
+    "--target-samples": {
+        "type": int,
+        "help": "occupancy sampler: MLP samples per step (the ray batch adapts)",
+    },
     "--early-stop-eps": {"type": float, "help": "stop rays whose transmittance falls below this (0: never)"},
     "--grid-resolution": {"type": int, "help": "occupancy grid cells per axis"},
 }
@@ -53,14 +59,19 @@ def build_parser() -> argparse.ArgumentParser:
     commands = parser.add_subparsers(dest="command", metavar="COMMAND")
 
     train = commands.add_parser("train", help="train a model (no --data: the built-in demo, end to end)")
-    train.add_argument("--data", help="scene folder (Blender or LLFF); default: the built-in procedural scene")
+    train.add_argument(
+        "--data", help="scene folder (Blender or LLFF); default: the built-in procedural scene"
+    )
     _add_train_options(train, default_out="runs/<scene>; runs/demo without --data")
 
     evaluate = commands.add_parser("eval", help="score a checkpoint on held-out views")
     evaluate.add_argument("--ckpt", required=True, help="checkpoint file (e.g. runs/demo/checkpoint.pt)")
     evaluate.add_argument("--data", help="scene folder (default: the one trained on)")
-    evaluate.add_argument("--split", choices=("test", "val", "train"),
-                          help="default: test, or val when the scene has no test views")
+    evaluate.add_argument(
+        "--split",
+        choices=("test", "val", "train"),
+        help="default: test, or val when the scene has no test views",
+    )
     evaluate.add_argument("--out", help="output folder (default: <checkpoint folder>/eval_<split>)")
     evaluate.add_argument("--max-images", type=int, help="score only the first N views")
     _add_device_options(evaluate)
@@ -68,14 +79,20 @@ def build_parser() -> argparse.ArgumentParser:
     render = commands.add_parser("render", help="render a turntable/spiral video and depth maps")
     render.add_argument("--ckpt", required=True, help="checkpoint file")
     render.add_argument("--frames", type=int, default=120, help="number of frames (default 120)")
-    render.add_argument("--path", choices=VIDEO_PATHS, default="auto",
-                        help="camera path (default: spiral for forward-facing scenes, else turntable)")
+    render.add_argument(
+        "--path",
+        choices=VIDEO_PATHS,
+        default="auto",
+        help="camera path (default: spiral for forward-facing scenes, else turntable)",
+    )
     render.add_argument("--fps", type=int, default=30)
     render.add_argument("--scale", type=float, default=1.0, help="resolution relative to the training images")
     render.add_argument("--out", help="output folder (default: <checkpoint folder>/video)")
     _add_device_options(render)
 
-    demo = commands.add_parser("demo", help="train, evaluate and render the built-in scene (a few CPU minutes)")
+    demo = commands.add_parser(
+        "demo", help="train, evaluate and render the built-in scene (a few CPU minutes)"
+    )
     _add_train_options(demo, default_out=DEMO_OUT)
     demo.set_defaults(data=None)
     return parser
@@ -115,12 +132,18 @@ def run_train(args: argparse.Namespace) -> int:
     cfg = train_config_from_args(args)
     if args.data is None and not args.resume:
         chosen = {k: getattr(cfg, k) for k in DEMO_SETTINGS}
-        print("no --data: training on the built-in procedural scene with CPU-friendly settings:\n  "
-              + ", ".join(f"{k}={v}" for k, v in chosen.items()))
+        print(
+            "no --data: training on the built-in procedural scene with CPU-friendly settings:\n  "
+            + ", ".join(f"{k}={v}" for k, v in chosen.items())
+        )
     summary = _train(cfg, args.resume)
     ckpt = Path(summary["checkpoint"])
     held_out = _evaluate(ckpt, device=cfg.device, backend=cfg.backend)
-    video = _render(ckpt, DEMO_VIDEO_FRAMES, device=cfg.device, backend=cfg.backend) if args.data is None else None
+    video = (
+        _render(ckpt, DEMO_VIDEO_FRAMES, device=cfg.device, backend=cfg.backend)
+        if args.data is None
+        else None
+    )
     _report(summary, held_out, video)
     return 0
 
@@ -130,8 +153,9 @@ def run_eval(args: argparse.Namespace) -> int:
 
     if args.max_images is not None and args.max_images < 1:
         raise UserError(f"--max-images must be positive, got {args.max_images}")
-    record = evaluate(args.ckpt, data=args.data, split=args.split, out=args.out, device=args.device,
-                      backend=args.backend)
+    record = evaluate(
+        args.ckpt, data=args.data, split=args.split, out=args.out, device=args.device, backend=args.backend
+    )
     _print_eval(record)
     return 0
 
@@ -139,8 +163,16 @@ def run_eval(args: argparse.Namespace) -> int:
 def run_render(args: argparse.Namespace) -> int:
     from .video import render_video
 
-    result = render_video(args.ckpt, out=args.out, frames=args.frames, path=args.path, fps=args.fps,
-                          scale=args.scale, device=args.device, backend=args.backend)
+    result = render_video(
+        args.ckpt,
+        out=args.out,
+        frames=args.frames,
+        path=args.path,
+        fps=args.fps,
+        scale=args.scale,
+        device=args.device,
+        backend=args.backend,
+    )
     _print_video(result)
     return 0
 
@@ -153,8 +185,15 @@ def _train(cfg: TrainConfig, resume: bool) -> dict[str, Any]:
 
     trainer = Trainer(cfg, resume=resume)
     c = trainer.cfg
-    print(f"training {c.steps} steps on {c.device} ({c.precision}, backend {c.backend}), preset {c.preset}, "
-          f"{c.batch_rays} rays x ({c.num_coarse} + {c.num_fine}) samples -> {trainer.files.root}")
+    sampling = (
+        f"occupancy-grid sampling, ~{c.target_samples} samples per step"
+        if c.sampler == "occupancy"
+        else f"{c.batch_rays} rays x ({c.num_coarse} + {c.num_fine}) samples"
+    )
+    print(
+        f"training {c.steps} steps on {c.device} ({c.precision}, backend {c.backend}), preset {c.preset}, "
+        f"{sampling} -> {trainer.files.root}"
+    )
     summary = trainer.fit()
     print(f"training {summary['status']} at step {summary['step']} after {summary['train_seconds']:.1f} s")
     return summary
@@ -183,8 +222,11 @@ def _report(summary: dict[str, Any], held_out: dict[str, Any], video: dict[str, 
 
 def _print_eval(record: dict[str, Any]) -> None:
     s = record["summary"]
-    scores = ", ".join(f"{name} {s[f'mean_{name}']:.4g}" for name in ("psnr", "ssim", "lpips")
-                       if s[f"mean_{name}"] is not None)
+    scores = ", ".join(
+        f"{name} {s[f'mean_{name}']:.4g}"
+        for name in ("psnr", "ssim", "lpips")
+        if s[f"mean_{name}"] is not None
+    )
     print(f"eval ({s['split']}, {s['images']} views): {scores}")
     print(f"  renders and metrics in {record['out']} (metrics.json, metrics.csv, images/, depth/)")
     for note in record["notes"]:
@@ -214,5 +256,16 @@ def _is_user_error(e: Exception) -> bool:
     from .data import DatasetError
     from .train import CheckpointError, NonFiniteError, OutputError
 
-    return isinstance(e, (UserError, DatasetError, CheckpointError, NonFiniteError, OutputError,
-                          FileNotFoundError, PermissionError, ValueError))
+    return isinstance(
+        e,
+        (
+            UserError,
+            DatasetError,
+            CheckpointError,
+            NonFiniteError,
+            OutputError,
+            FileNotFoundError,
+            PermissionError,
+            ValueError,
+        ),
+    )

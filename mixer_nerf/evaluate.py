@@ -70,19 +70,24 @@ def evaluate(
         rays_o, rays_d = scene.rays_for_image(i)
         result = run.render(rays_o, rays_d)
         pred = result.color.reshape(scene.H, scene.W, 3).clamp(0, 1).cpu()
-        depth, opacity = result.depth.reshape(scene.H, scene.W).cpu(), result.opacity.reshape(scene.H, scene.W).cpu()
+        depth, opacity = (
+            result.depth.reshape(scene.H, scene.W).cpu(),
+            result.opacity.reshape(scene.H, scene.W).cpu(),
+        )
         target = scene.images[i].cpu()
         stem = f"{i:03d}"
         write_png(out / "images" / f"{stem}.png", to_uint8(pred))
         lo, hi = depth_range([depth], [opacity], fallback=(scene.near, scene.far))
         write_png(out / "depth" / f"{stem}.png", colorize_depth(depth, opacity, lo, hi))
-        rows.append({
-            "index": i,
-            "name": Path(scene.image_paths[i]).name if i < len(scene.image_paths) else stem,
-            "psnr": float(metrics.psnr(pred, target)),
-            "ssim": float(metrics.ssim(pred, target)) if min(scene.H, scene.W) >= SSIM_MIN_SIZE else None,
-            "lpips": _lpips(pred, target) if lpips_reason is None else None,
-        })
+        rows.append(
+            {
+                "index": i,
+                "name": Path(scene.image_paths[i]).name if i < len(scene.image_paths) else stem,
+                "psnr": float(metrics.psnr(pred, target)),
+                "ssim": float(metrics.ssim(pred, target)) if min(scene.H, scene.W) >= SSIM_MIN_SIZE else None,
+                "lpips": _lpips(pred, target) if lpips_reason is None else None,
+            }
+        )
         log(f"  {rows[-1]['name']}: PSNR {rows[-1]['psnr']:.2f} dB")
 
     summary = {

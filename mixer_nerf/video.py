@@ -30,6 +30,7 @@ AXIS_SNAP_DEGREES = 30.0
 
 # -- camera paths ---------------------------------------------------------------------------------
 
+
 def look_at(eye: torch.Tensor, target: torch.Tensor, up: torch.Tensor) -> torch.Tensor:
     """(N, 4, 4) OpenGL camera-to-world matrices at ``eye`` (N, 3) looking at ``target`` (N, 3) or (3,)."""
     back = _normalize(eye - target)
@@ -40,7 +41,9 @@ def look_at(eye: torch.Tensor, target: torch.Tensor, up: torch.Tensor) -> torch.
     return c2w
 
 
-def turntable_poses(train_poses: torch.Tensor, n_frames: int, center: torch.Tensor | None = None) -> torch.Tensor:
+def turntable_poses(
+    train_poses: torch.Tensor, n_frames: int, center: torch.Tensor | None = None
+) -> torch.Tensor:
     """(n_frames, 4, 4) cameras circling ``center`` (default: the origin) once.
 
     The rotation axis is the training cameras' mean up vector, snapped to the nearest world axis
@@ -110,7 +113,9 @@ def camera_path(scene: dict[str, Any], n_frames: int, kind: str = "auto") -> tup
     return turntable_poses(scene["train_poses"], n_frames, center), kind
 
 
-def frame_rays(scene: dict[str, Any], c2w: torch.Tensor, scale: float = 1.0) -> tuple[torch.Tensor, torch.Tensor, int, int]:
+def frame_rays(
+    scene: dict[str, Any], c2w: torch.Tensor, scale: float = 1.0
+) -> tuple[torch.Tensor, torch.Tensor, int, int]:
     """Rays (H*W, 3) of one camera with the training intrinsics scaled by ``scale``; also H, W."""
     H, W = max(1, round(scene["H"] * scale)), max(1, round(scene["W"] * scale))
     focal, cx, cy = scene["focal"] * scale, scene["cx"] * scale, scene["cy"] * scale
@@ -123,15 +128,18 @@ def frame_rays(scene: dict[str, Any], c2w: torch.Tensor, scale: float = 1.0) -> 
 
 # -- images and videos ----------------------------------------------------------------------------
 
+
 def to_uint8(image: torch.Tensor | np.ndarray) -> np.ndarray:
     """(H, W, 3) float in [0, 1] -> uint8 (values outside are clipped)."""
     array = image.detach().float().cpu().numpy() if isinstance(image, torch.Tensor) else np.asarray(image)
     return (np.clip(array, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
 
 
-def depth_range(depths: list[torch.Tensor], opacities: list[torch.Tensor], fallback: tuple[float, float]) -> tuple[float, float]:
+def depth_range(
+    depths: list[torch.Tensor], opacities: list[torch.Tensor], fallback: tuple[float, float]
+) -> tuple[float, float]:
     """Robust (2nd, 98th percentile) depth range over pixels that are mostly opaque."""
-    solid = torch.cat([d[o > 0.5].flatten().float().cpu() for d, o in zip(depths, opacities)])
+    solid = torch.cat([d[o > 0.5].flatten().float().cpu() for d, o in zip(depths, opacities, strict=True)])
     if solid.numel() < 2:
         return fallback
     lo, hi = torch.quantile(solid[:1_000_000], torch.tensor([0.02, 0.98])).tolist()
@@ -155,7 +163,7 @@ def write_png(path: str | Path, image: np.ndarray) -> None:
 
 
 def video_format() -> str:
-    """"mp4" when imageio-ffmpeg is installed, else "gif"."""
+    """ "mp4" when imageio-ffmpeg is installed, else "gif"."""
     try:
         import imageio_ffmpeg  # noqa: F401
     except ImportError:
@@ -219,13 +227,20 @@ def render_video(
         depths.append(result.depth.reshape(H, W).cpu())
         opacities.append(result.opacity.reshape(H, W).cpu())
     lo, hi = depth_range(depths, opacities, fallback=(run.scene["near"], run.scene["far"]))
-    depth_frames = [colorize_depth(d, o, lo, hi) for d, o in zip(depths, opacities)]
+    depth_frames = [colorize_depth(d, o, lo, hi) for d, o in zip(depths, opacities, strict=True)]
     for i, image in enumerate(depth_frames):
         write_png(depth_dir / f"frame_{i:04d}.png", image)
     video = write_video(out / "video", colors, fps)
     depth_video = write_video(out / "depth", depth_frames, fps)
-    return {"video": str(video), "depth_video": str(depth_video), "depth_frames": str(depth_dir),
-            "path": kind, "frames": frames, "format": video.suffix[1:], "depth_range": [lo, hi]}
+    return {
+        "video": str(video),
+        "depth_video": str(depth_video),
+        "depth_frames": str(depth_dir),
+        "path": kind,
+        "frames": frames,
+        "format": video.suffix[1:],
+        "depth_range": [lo, hi],
+    }
 
 
 def _normalize(v: torch.Tensor) -> torch.Tensor:

@@ -16,11 +16,31 @@ import pytest
 from mixer_nerf import cli
 from mixer_nerf.data import ensure_procedural_scene
 
-TINY_DEMO = {"procedural_resolution": 16, "procedural_views": 4,
-             "model_overrides": {"depth": 2, "width": 16, "skips": (), "view_width": 8, "pos_freqs": 2,
-                                 "dir_freqs": 1, "mlca_channels": 3, "se_reduction": 4},
-             "steps": 4, "batch_rays": 32, "num_coarse": 6, "num_fine": 6, "val_every": 2, "val_images": 1,
-             "ckpt_every": 2, "log_every": 1, "grid_resolution": 8, "grid_warmup": 2, "target_samples": 256}
+TINY_DEMO = {
+    "procedural_resolution": 16,
+    "procedural_views": 4,
+    "model_overrides": {
+        "depth": 2,
+        "width": 16,
+        "skips": (),
+        "view_width": 8,
+        "pos_freqs": 2,
+        "dir_freqs": 1,
+        "mlca_channels": 3,
+        "se_reduction": 4,
+    },
+    "steps": 4,
+    "batch_rays": 32,
+    "num_coarse": 6,
+    "num_fine": 6,
+    "val_every": 2,
+    "val_images": 1,
+    "ckpt_every": 2,
+    "log_every": 1,
+    "grid_resolution": 8,
+    "grid_warmup": 2,
+    "target_samples": 256,
+}
 TINY_FLAGS = ["--backend", "torch", "--device", "cpu", "--no-progress"]
 
 
@@ -48,6 +68,7 @@ def demo_run(tmp_path_factory):
 
 # -- parsing ----------------------------------------------------------------------------------------
 
+
 def parse_train(*argv):
     return cli.train_config_from_args(cli.build_parser().parse_args(["train", *argv]))
 
@@ -65,8 +86,16 @@ def test_data_uses_the_full_defaults():
     assert (cfg.preset, cfg.time_budget, cfg.ckpt_every, cfg.out) == ("A", 30.0, 7, "runs/lego")
 
 
-@pytest.mark.parametrize("argv", [["train", "--steps", "many"], ["train", "--preset", "Z"],
-                                  ["eval"], ["render", "--ckpt", "x", "--path", "zigzag"], ["bogus"]])
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["train", "--steps", "many"],
+        ["train", "--preset", "Z"],
+        ["eval"],
+        ["render", "--ckpt", "x", "--path", "zigzag"],
+        ["bogus"],
+    ],
+)
 def test_usage_errors_exit_2(argv, capsys):
     with pytest.raises(SystemExit) as info:
         cli.main(argv)
@@ -81,6 +110,7 @@ def test_invalid_setting_is_one_line(capsys, tmp_path):
 
 # -- end to end -------------------------------------------------------------------------------------
 
+
 def test_demo_writes_everything_it_reports(demo_run, capsys):
     for name in ("checkpoint.pt", "train_log.csv", "val_log.csv", "curves.png", "summary.json"):
         assert (demo_run / name).is_file(), name
@@ -94,15 +124,37 @@ def test_demo_writes_everything_it_reports(demo_run, capsys):
 
 def test_eval_and_render_commands(demo_run, tmp_path, capsys):
     ckpt = str(demo_run / "checkpoint.pt")
-    assert cli.main(["eval", "--ckpt", ckpt, "--split", "val", "--out", str(tmp_path / "ev"),
-                     "--backend", "torch"]) == 0
+    assert (
+        cli.main(
+            ["eval", "--ckpt", ckpt, "--split", "val", "--out", str(tmp_path / "ev"), "--backend", "torch"]
+        )
+        == 0
+    )
     out = capsys.readouterr().out
     assert "eval (val, 4 views)" in out and str(tmp_path / "ev") in out
     rows = (tmp_path / "ev" / "metrics.csv").read_text().splitlines()
     assert rows[0] == "index,name,psnr,ssim,lpips" and len(rows) == 5
 
-    assert cli.main(["render", "--ckpt", ckpt, "--frames", "2", "--scale", "0.5", "--path", "turntable",
-                     "--out", str(tmp_path / "vid"), "--backend", "torch"]) == 0
+    assert (
+        cli.main(
+            [
+                "render",
+                "--ckpt",
+                ckpt,
+                "--frames",
+                "2",
+                "--scale",
+                "0.5",
+                "--path",
+                "turntable",
+                "--out",
+                str(tmp_path / "vid"),
+                "--backend",
+                "torch",
+            ]
+        )
+        == 0
+    )
     import imageio.v3 as iio
 
     video = next((tmp_path / "vid").glob("video.*"))
@@ -113,9 +165,28 @@ def test_eval_and_render_commands(demo_run, tmp_path, capsys):
 def test_train_with_data_then_resume(tmp_path, capsys):
     scene = ensure_procedural_scene(resolution=16, n_train=4, n_val=2, n_test=2)
     out = tmp_path / "run"
-    argv = ["train", "--data", str(scene), "--steps", "2", "--batch-rays", "16", "--num-coarse", "4",
-            "--num-fine", "4", "--val-every", "1", "--ckpt-every", "1", "--sampler", "hierarchical", "--out", str(out),
-            *TINY_FLAGS]
+    argv = [
+        "train",
+        "--data",
+        str(scene),
+        "--steps",
+        "2",
+        "--batch-rays",
+        "16",
+        "--num-coarse",
+        "4",
+        "--num-fine",
+        "4",
+        "--val-every",
+        "1",
+        "--ckpt-every",
+        "1",
+        "--sampler",
+        "hierarchical",
+        "--out",
+        str(out),
+        *TINY_FLAGS,
+    ]
     assert cli.main(argv) == 0
     assert json.loads((out / "eval_test" / "metrics.json").read_text())["summary"]["images"] == 2
     # A second run into the same folder refuses; --resume continues (here: already finished).
@@ -127,6 +198,7 @@ def test_train_with_data_then_resume(tmp_path, capsys):
 
 
 # -- bad input --------------------------------------------------------------------------------------
+
 
 def test_missing_data_path(tmp_path, capsys):
     missing = tmp_path / "nowhere"
@@ -164,6 +236,10 @@ def test_truncated_checkpoint(command, demo_run, tmp_path, capsys):
 
 
 def test_python_dash_m_entry_point():
-    result = subprocess.run([sys.executable, "-m", "mixer_nerf", "--help"], capture_output=True, text=True,
-                            env={**os.environ, "PYTHONPATH": os.getcwd()})
+    result = subprocess.run(
+        [sys.executable, "-m", "mixer_nerf", "--help"],
+        capture_output=True,
+        text=True,
+        env={**os.environ, "PYTHONPATH": os.getcwd()},
+    )
     assert result.returncode == 0 and "train" in result.stdout and "render" in result.stdout

@@ -28,8 +28,16 @@ from mixer_nerf.train.checkpoint import capture_rng_state, restore_rng_state
 from mixer_nerf.train.guard import NonFiniteGuard
 from mixer_nerf.train.logbook import CsvLog, plot_curves
 
-TINY_MODEL = {"depth": 2, "width": 16, "skips": (), "view_width": 8, "pos_freqs": 2, "dir_freqs": 1,
-              "mlca_channels": 3, "se_reduction": 4}
+TINY_MODEL = {
+    "depth": 2,
+    "width": 16,
+    "skips": (),
+    "view_width": 8,
+    "pos_freqs": 2,
+    "dir_freqs": 1,
+    "mlca_channels": 3,
+    "se_reduction": 4,
+}
 
 
 @pytest.fixture(scope="session", autouse=True)
@@ -45,11 +53,28 @@ def scene_cache(tmp_path_factory):
 
 
 def tiny_config(out, **overrides) -> TrainConfig:
-    values = dict(procedural_resolution=16, procedural_views=4, model_overrides=TINY_MODEL, steps=6,
-                  batch_rays=32, num_coarse=6, num_fine=6, val_every=3, val_images=1, ckpt_every=3,
-                  log_every=1, backend="torch", device="cpu", progress=False, out=str(out),
-                  sampler="hierarchical", grid_resolution=8, grid_warmup=2, grid_every=2,
-                  target_samples=256)
+    values = dict(
+        procedural_resolution=16,
+        procedural_views=4,
+        model_overrides=TINY_MODEL,
+        steps=6,
+        batch_rays=32,
+        num_coarse=6,
+        num_fine=6,
+        val_every=3,
+        val_images=1,
+        ckpt_every=3,
+        log_every=1,
+        backend="torch",
+        device="cpu",
+        progress=False,
+        out=str(out),
+        sampler="hierarchical",
+        grid_resolution=8,
+        grid_warmup=2,
+        grid_every=2,
+        target_samples=256,
+    )
     values.update(overrides)
     return TrainConfig(**values)
 
@@ -64,9 +89,21 @@ def params_of(trainer: Trainer) -> dict[str, torch.Tensor]:
 
 # -- configuration ----------------------------------------------------------------------------------
 
-@pytest.mark.parametrize("field, value", [("steps", 0), ("batch_rays", -1), ("preset", "E"),
-                                          ("precision", "fp8"), ("backend", "cuda"), ("lr", 0.0),
-                                          ("time_budget", -1.0), ("device", "tpu"), ("num_fine", -1)])
+
+@pytest.mark.parametrize(
+    "field, value",
+    [
+        ("steps", 0),
+        ("batch_rays", -1),
+        ("preset", "E"),
+        ("precision", "fp8"),
+        ("backend", "cuda"),
+        ("lr", 0.0),
+        ("time_budget", -1.0),
+        ("device", "tpu"),
+        ("num_fine", -1),
+    ],
+)
 def test_config_rejects_bad_values_naming_them(field, value):
     with pytest.raises(ValueError, match=field):
         TrainConfig(**{field: value})
@@ -86,6 +123,7 @@ def test_config_round_trips_and_resolves_for_the_machine():
 
 
 # -- checkpoints ------------------------------------------------------------------------------------
+
 
 def minimal_state(step=1):
     return {"step": step, "train_config": {}, "model_config": {}, "scene": {}, "model": {"w": torch.randn(3)}}
@@ -149,6 +187,7 @@ def test_rng_state_round_trip():
 
 # -- training, resume, output folder --------------------------------------------------------------
 
+
 @pytest.mark.parametrize("sampler", ["hierarchical", "occupancy"])
 def test_resume_after_a_kill_is_bit_exact(tmp_path, monkeypatch, sampler):
     """2N steps straight == N steps, a kill at step N+2 (losing at most ckpt_every steps), resume."""
@@ -171,9 +210,15 @@ def test_resume_after_a_kill_is_bit_exact(tmp_path, monkeypatch, sampler):
     assert load_checkpoint(cfg.out + "/checkpoint.pt")["step"] == 3  # lost only the steps since
     assert max(int(r["step"]) for r in CsvLog(tmp_path / "b" / "train_log.csv").rows()) == 4
 
-    resumed = Trainer(dataclasses.replace(cfg, steps=1), resume=True, log=quiet)  # settings come from the checkpoint
+    resumed = Trainer(
+        dataclasses.replace(cfg, steps=1), resume=True, log=quiet
+    )  # settings come from the checkpoint
     assert resumed.step == 3 and resumed.cfg.steps == cfg.steps
-    assert [int(r["step"]) for r in resumed.train_log.rows()] == [1, 2, 3]  # rows after the checkpoint dropped
+    assert [int(r["step"]) for r in resumed.train_log.rows()] == [
+        1,
+        2,
+        3,
+    ]  # rows after the checkpoint dropped
     resumed.fit()
     a, b = params_of(straight), params_of(resumed)
     assert a.keys() == b.keys()
@@ -190,7 +235,14 @@ def test_run_writes_logs_plot_summary_and_a_loadable_checkpoint(tmp_path):
     assert trainer.cfg.sampler == "occupancy" and trainer.fields.fine is None  # procedural scene has a box
     summary = trainer.fit()
     assert summary["status"] == "finished" and summary["step"] == 6
-    for name in ("checkpoint.pt", "config.json", "train_log.csv", "val_log.csv", "curves.png", "summary.json"):
+    for name in (
+        "checkpoint.pt",
+        "config.json",
+        "train_log.csv",
+        "val_log.csv",
+        "curves.png",
+        "summary.json",
+    ):
         assert (tmp_path / name).is_file(), name
     rows = trainer.train_log.rows()
     assert [int(r["step"]) for r in rows] == list(range(1, 7))
@@ -236,6 +288,7 @@ def test_unwritable_output_is_reported(tmp_path):
 
 # -- non-finite guard -------------------------------------------------------------------------------
 
+
 def test_guard_reports_first_bad_step_and_tensor():
     guard = NonFiniteGuard(["a.weight", "b.bias"], torch.device("cpu"))
     for step in (1, 2):
@@ -274,6 +327,7 @@ def test_nan_stops_training_and_keeps_the_last_good_checkpoint(tmp_path, monkeyp
 
 # -- logs -------------------------------------------------------------------------------------------
 
+
 def test_csv_log_truncation_and_plot(tmp_path):
     log, val = CsvLog(tmp_path / "t.csv"), CsvLog(tmp_path / "v.csv")
     for step in range(1, 6):
@@ -286,6 +340,7 @@ def test_csv_log_truncation_and_plot(tmp_path):
 
 
 # -- camera paths and videos ------------------------------------------------------------------------
+
 
 def test_turntable_orbits_the_centre_looking_at_it():
     from mixer_nerf.data.procedural import orbit_poses

@@ -30,14 +30,24 @@ class MixedPrecisionField(nn.Module):
         self.dtype = dtype
 
     def forward(
-        self, x: torch.Tensor, d: torch.Tensor, ray_indices: torch.Tensor | None = None, num_rays: int | None = None
+        self,
+        x: torch.Tensor,
+        d: torch.Tensor,
+        ray_indices: torch.Tensor | None = None,
+        num_rays: int | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        with torch.autocast(self.device_type, dtype=self.dtype or torch.float32, enabled=self.dtype is not None):
+        with torch.autocast(
+            self.device_type, dtype=self.dtype or torch.float32, enabled=self.dtype is not None
+        ):
             sigma, rgb = self.field(x, d, ray_indices=ray_indices, num_rays=num_rays)
         return sigma.float(), rgb.float()
 
-    def density(self, x: torch.Tensor, ray_indices: torch.Tensor | None = None, num_rays: int | None = None) -> torch.Tensor:
-        with torch.autocast(self.device_type, dtype=self.dtype or torch.float32, enabled=self.dtype is not None):
+    def density(
+        self, x: torch.Tensor, ray_indices: torch.Tensor | None = None, num_rays: int | None = None
+    ) -> torch.Tensor:
+        with torch.autocast(
+            self.device_type, dtype=self.dtype or torch.float32, enabled=self.dtype is not None
+        ):
             return self.field.density(x, ray_indices=ray_indices, num_rays=num_rays).float()
 
 
@@ -64,7 +74,9 @@ class RadianceFields(nn.Module):
         return coarse, fine
 
 
-def model_config(preset: str, overrides: dict[str, Any], bbox: torch.Tensor | None, backend: str) -> ModelConfig:
+def model_config(
+    preset: str, overrides: dict[str, Any], bbox: torch.Tensor | None, backend: str
+) -> ModelConfig:
     """The preset's model configuration for a scene: positions are normalised by the centre and
     largest half-size of the scene box ``bbox`` (2, 3), and the encoding uses ``backend``.
     Explicit ``overrides`` win."""
@@ -114,20 +126,41 @@ class ImageRenderer:
         self.fields.eval()
         try:
             if self.fields.grid is not None:
-                return self._marched(coarse, rays_o.to(device, torch.float32), rays_d.to(device, torch.float32))
+                return self._marched(
+                    coarse, rays_o.to(device, torch.float32), rays_d.to(device, torch.float32)
+                )
             return render_image(
-                coarse, rays_o.to(device, torch.float32), rays_d.to(device, torch.float32), self.near,
-                self.far, chunk=self.chunk, fine_field=fine, num_coarse=self.num_coarse,
-                num_fine=self.num_fine, stratified=False, background=self.background, backend=self.backend)
+                coarse,
+                rays_o.to(device, torch.float32),
+                rays_d.to(device, torch.float32),
+                self.near,
+                self.far,
+                chunk=self.chunk,
+                fine_field=fine,
+                num_coarse=self.num_coarse,
+                num_fine=self.num_fine,
+                stratified=False,
+                background=self.background,
+                backend=self.backend,
+            )
         finally:
             self.fields.train(was_training)
 
     def _marched(self, field: nn.Module, rays_o: torch.Tensor, rays_d: torch.Tensor) -> ImageResult:
         parts = [
-            render_rays_marched(field, rays_o[i:i + self.chunk], rays_d[i:i + self.chunk], self.fields.grid,
-                                self.near, self.far, stratified=False, background=self.background,
-                                early_stop_eps=self.early_stop_eps, alpha_threshold=self.alpha_threshold,
-                                backend=self.backend)
+            render_rays_marched(
+                field,
+                rays_o[i : i + self.chunk],
+                rays_d[i : i + self.chunk],
+                self.fields.grid,
+                self.near,
+                self.far,
+                stratified=False,
+                background=self.background,
+                early_stop_eps=self.early_stop_eps,
+                alpha_threshold=self.alpha_threshold,
+                backend=self.backend,
+            )
             for i in range(0, rays_o.shape[0], self.chunk)
         ]
         return ImageResult(*(torch.cat([getattr(p, k) for p in parts]) for k in ImageResult._fields))

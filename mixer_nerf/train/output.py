@@ -53,8 +53,10 @@ def prepare_run_folder(out: str | Path, resume: bool) -> RunFiles:
         if not files.checkpoint.is_file():
             raise OutputError(f"{files.checkpoint}: no checkpoint to resume from")
     elif files.checkpoint.exists():
-        raise OutputError(f"{files.root}: already holds a run ({files.checkpoint.name}); pass --resume to "
-                          "continue it or choose another --out")
+        raise OutputError(
+            f"{files.root}: already holds a run ({files.checkpoint.name}); pass --resume to "
+            "continue it or choose another --out"
+        )
     ensure_writable_folder(files.root)
     return files
 

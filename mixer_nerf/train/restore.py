@@ -43,8 +43,9 @@ def load_trained(path: str | Path, device: str | None = None, backend: str | Non
     if device is None:
         device = "cuda" if (saved.device or "").startswith("cuda") and cuda else "cpu"
     precision = saved.precision if device.startswith("cuda") else "fp32"  # bf16 autocast is slow on CPUs
-    cfg = dataclasses.replace(saved, device=device, precision=precision,
-                              backend=backend or saved.backend).resolved(cuda)
+    cfg = dataclasses.replace(
+        saved, device=device, precision=precision, backend=backend or saved.backend
+    ).resolved(cuda)
     set_matmul_precision(cfg.precision)
     bbox = state["scene"].get("bbox")
     fields = RadianceFields(model_cfg, cfg.fine_network, make_grid(cfg, bbox))
@@ -55,7 +56,17 @@ def load_trained(path: str | Path, device: str | None = None, backend: str | Non
     dev = torch.device(cfg.device)
     fields.to(dev).eval()
     scene = state["scene"]
-    renderer = ImageRenderer(fields, cfg.precision, scene["near"], scene["far"],
-                             scene["background"].to(dev, torch.float32), cfg.num_coarse, cfg.num_fine,
-                             cfg.chunk, cfg.backend, cfg.early_stop_eps, cfg.alpha_threshold)
+    renderer = ImageRenderer(
+        fields,
+        cfg.precision,
+        scene["near"],
+        scene["far"],
+        scene["background"].to(dev, torch.float32),
+        cfg.num_coarse,
+        cfg.num_fine,
+        cfg.chunk,
+        cfg.backend,
+        cfg.early_stop_eps,
+        cfg.alpha_threshold,
+    )
     return TrainedRun(path, cfg, int(state["step"]), scene, renderer, dev)

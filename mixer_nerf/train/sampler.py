@@ -25,8 +25,9 @@ class RaySampler:
 
     def sample(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """One batch: origins, dirs, target colours, each (batch_rays, 3) float32."""
-        flat = torch.randint(self._total, (self.batch_rays,), generator=self.generator,
-                             device=self.generator.device)
+        flat = torch.randint(
+            self._total, (self.batch_rays,), generator=self.generator, device=self.generator.device
+        )
         image_idx, pixel_idx = flat // self._pixels, flat % self._pixels
         origins, dirs = self.scene.rays_at(image_idx, pixel_idx)
         return origins.float(), dirs.float(), self.scene.colors_at(image_idx, pixel_idx)

@@ -15,8 +15,11 @@ def scene_source(cfg: TrainConfig) -> tuple[Path, str]:
     """(folder, format) of the scene ``cfg`` names; renders the built-in scene if needed."""
     if cfg.data is None:
         folder = ensure_procedural_scene(
-            resolution=cfg.procedural_resolution, n_train=cfg.procedural_views,
-            n_val=PROCEDURAL_HELD_OUT_VIEWS, n_test=PROCEDURAL_HELD_OUT_VIEWS)
+            resolution=cfg.procedural_resolution,
+            n_train=cfg.procedural_views,
+            n_val=PROCEDURAL_HELD_OUT_VIEWS,
+            n_test=PROCEDURAL_HELD_OUT_VIEWS,
+        )
         return folder, "blender"
     folder = Path(cfg.data)
     if not folder.is_dir():

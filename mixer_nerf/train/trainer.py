@@ -83,8 +83,9 @@ class Trainer:
         if resume:
             state = load_checkpoint(self.files.checkpoint)
             saved = TrainConfig.from_dict(state["train_config"])
-            cfg = TrainConfig(**{**saved.to_dict(), **{k: getattr(cfg, k) for k in RESUMABLE_OVERRIDES},
-                                 "out": cfg.out})
+            cfg = TrainConfig(
+                **{**saved.to_dict(), **{k: getattr(cfg, k) for k in RESUMABLE_OVERRIDES}, "out": cfg.out}
+            )
         self.cfg = cfg = cfg.resolved(torch.cuda.is_available())
         self.device = torch.device(cfg.device)
         set_matmul_precision(cfg.precision)
@@ -107,10 +108,21 @@ class Trainer:
         self.optimizer = torch.optim.Adam(self.params, lr=cfg.lr, fused=self.device.type == "cuda")
         decay = cfg.lr_final / cfg.lr
         self.scheduler = torch.optim.lr_scheduler.LambdaLR(
-            self.optimizer, lambda s: decay ** (min(s, cfg.steps) / cfg.steps))
+            self.optimizer, lambda s: decay ** (min(s, cfg.steps) / cfg.steps)
+        )
         self.renderer = ImageRenderer(
-            self.fields, cfg.precision, self.train_scene.near, self.train_scene.far, self.background,
-            cfg.num_coarse, cfg.num_fine, cfg.chunk, cfg.backend, cfg.early_stop_eps, cfg.alpha_threshold)
+            self.fields,
+            cfg.precision,
+            self.train_scene.near,
+            self.train_scene.far,
+            self.background,
+            cfg.num_coarse,
+            cfg.num_fine,
+            cfg.chunk,
+            cfg.backend,
+            cfg.early_stop_eps,
+            cfg.alpha_threshold,
+        )
         self.sampler = RaySampler(self.train_scene, cfg.batch_rays, cfg.seed)
         if self.fields.grid is not None and cfg.target_samples is not None:
             # The grid starts fully occupied: start small and let the batch grow to the target.
@@ -122,8 +134,9 @@ class Trainer:
         self.rays_seen = self.samples_seen = 0
         if state is not None:
             self._load_state(state)
-        self.files.config.write_text(json.dumps(
-            {"train": cfg.to_dict(), "model": model_config_to_dict(self.model_cfg)}, indent=1))
+        self.files.config.write_text(
+            json.dumps({"train": cfg.to_dict(), "model": model_config_to_dict(self.model_cfg)}, indent=1)
+        )
 
     # -- one step ---------------------------------------------------------------------------
 
@@ -152,11 +165,22 @@ class Trainer:
     def _hierarchical_losses(self, rays_o, rays_d, target) -> dict[str, torch.Tensor]:
         cfg = self.cfg
         out = render_rays(
-            self.coarse_field, rays_o, rays_d, self.train_scene.near, self.train_scene.far,
-            num_coarse=cfg.num_coarse, num_fine=cfg.num_fine, fine_field=self.fine_field,
-            stratified=True, background=self.background, backend=cfg.backend,
-            generator=self.sampler.generator)
-        self.samples_seen += rays_o.shape[0] * (cfg.num_coarse + (cfg.num_coarse + cfg.num_fine) * (out.fine is not None))
+            self.coarse_field,
+            rays_o,
+            rays_d,
+            self.train_scene.near,
+            self.train_scene.far,
+            num_coarse=cfg.num_coarse,
+            num_fine=cfg.num_fine,
+            fine_field=self.fine_field,
+            stratified=True,
+            background=self.background,
+            backend=cfg.backend,
+            generator=self.sampler.generator,
+        )
+        self.samples_seen += rays_o.shape[0] * (
+            cfg.num_coarse + (cfg.num_coarse + cfg.num_fine) * (out.fine is not None)
+        )
         losses = {"loss_coarse": F.mse_loss(out.coarse.color, target)}
         if out.fine is not None:
             losses["loss_fine"] = F.mse_loss(out.fine.color, target)
@@ -164,12 +188,28 @@ class Trainer:
 
     def _marched_losses(self, rays_o, rays_d, target) -> dict[str, torch.Tensor]:
         cfg, grid = self.cfg, self.fields.grid
-        grid.update(self.step, lambda x: self.coarse_field.density(x), every=cfg.grid_every,
-                    threshold=cfg.grid_threshold, warmup_steps=cfg.grid_warmup, generator=self.sampler.generator)
+        grid.update(
+            self.step,
+            lambda x: self.coarse_field.density(x),
+            every=cfg.grid_every,
+            threshold=cfg.grid_threshold,
+            warmup_steps=cfg.grid_warmup,
+            generator=self.sampler.generator,
+        )
         out = render_rays_marched(
-            self.coarse_field, rays_o, rays_d, grid, self.train_scene.near, self.train_scene.far,
-            stratified=True, background=self.background, early_stop_eps=cfg.early_stop_eps,
-            alpha_threshold=cfg.alpha_threshold, backend=cfg.backend, generator=self.sampler.generator)
+            self.coarse_field,
+            rays_o,
+            rays_d,
+            grid,
+            self.train_scene.near,
+            self.train_scene.far,
+            stratified=True,
+            background=self.background,
+            early_stop_eps=cfg.early_stop_eps,
+            alpha_threshold=cfg.alpha_threshold,
+            backend=cfg.backend,
+            generator=self.sampler.generator,
+        )
         num_samples = out.samples.t_starts.shape[0]  # known on the host: marching synchronised
         self.samples_seen += num_samples
         if cfg.target_samples is not None:
@@ -206,8 +246,14 @@ class Trainer:
         from tqdm import tqdm
 
         cfg = self.cfg
-        bar = tqdm(total=cfg.steps, initial=self.step, disable=not cfg.progress, unit="step",
-                   dynamic_ncols=True, leave=False)
+        bar = tqdm(
+            total=cfg.steps,
+            initial=self.step,
+            disable=not cfg.progress,
+            unit="step",
+            dynamic_ncols=True,
+            leave=False,
+        )
         status = "finished"
         mark_rays, mark_time = self.rays_seen, self.clock.elapsed
         self.clock.start()
@@ -222,8 +268,9 @@ class Trainer:
                     self.guard.raise_if_bad()
                 if self.step % cfg.log_every == 0:
                     now = self.clock.pause()
-                    self._log_train(stats, rays_per_s=(self.rays_seen - mark_rays) / max(now - mark_time, 1e-9),
-                                    bar=bar)
+                    self._log_train(
+                        stats, rays_per_s=(self.rays_seen - mark_rays) / max(now - mark_time, 1e-9), bar=bar
+                    )
                     mark_rays, mark_time = self.rays_seen, now
                     self.clock.start()
                 if self.step % cfg.val_every == 0:
@@ -248,20 +295,26 @@ class Trainer:
     def save(self) -> None:
         """Atomically write the full training state to ``checkpoint.pt`` (after the guard check)."""
         self.guard.raise_if_bad()
-        save_checkpoint(self.files.checkpoint, {
-            "step": self.step,
-            "elapsed": self.clock.elapsed,
-            "train_config": self.cfg.to_dict(),
-            "model_config": model_config_to_dict(self.model_cfg),
-            "scene": self.scene,
-            "model": self.fields.state_dict(),
-            "optimizer": self.optimizer.state_dict(),
-            "scheduler": self.scheduler.state_dict(),
-            "rng": capture_rng_state(self.sampler.generator),
-            # The occupancy sampler adapts the batch size; the counters feed samples_per_ray.
-            "progress": {"batch_rays": self.sampler.batch_rays, "rays_seen": self.rays_seen,
-                         "samples_seen": self.samples_seen},
-        })
+        save_checkpoint(
+            self.files.checkpoint,
+            {
+                "step": self.step,
+                "elapsed": self.clock.elapsed,
+                "train_config": self.cfg.to_dict(),
+                "model_config": model_config_to_dict(self.model_cfg),
+                "scene": self.scene,
+                "model": self.fields.state_dict(),
+                "optimizer": self.optimizer.state_dict(),
+                "scheduler": self.scheduler.state_dict(),
+                "rng": capture_rng_state(self.sampler.generator),
+                # The occupancy sampler adapts the batch size; the counters feed samples_per_ray.
+                "progress": {
+                    "batch_rays": self.sampler.batch_rays,
+                    "rays_seen": self.rays_seen,
+                    "samples_seen": self.samples_seen,
+                },
+            },
+        )
 
     # -- internals --------------------------------------------------------------------------
 
@@ -289,10 +342,15 @@ class Trainer:
 
     def _log_train(self, stats: dict[str, torch.Tensor], rays_per_s: float, bar: Any) -> None:
         loss, mse = stats["loss"].item(), stats["mse"].item()
-        row = {"step": self.step, "seconds": round(self.clock.elapsed, 3),
-               "lr": self.scheduler.get_last_lr()[0], "loss": loss,
-               "psnr": -10.0 * math.log10(max(mse, 1e-30)), "rays_per_s": round(rays_per_s, 1),
-               "samples_per_ray": round(self.samples_seen / max(self.rays_seen, 1), 2)}
+        row = {
+            "step": self.step,
+            "seconds": round(self.clock.elapsed, 3),
+            "lr": self.scheduler.get_last_lr()[0],
+            "loss": loss,
+            "psnr": -10.0 * math.log10(max(mse, 1e-30)),
+            "rays_per_s": round(rays_per_s, 1),
+            "samples_per_ray": round(self.samples_seen / max(self.rays_seen, 1), 2),
+        }
         self.train_log.append(row)
         bar.set_postfix(loss=f"{loss:.4f}", psnr=f"{row['psnr']:.2f}", rays_s=f"{rays_per_s:,.0f}")
 
