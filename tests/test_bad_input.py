@@ -516,21 +516,11 @@ def test_render_image_rejects_bad_input(kwargs, error, message):
         render_image(ConstantField(), **args)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="render_rays checks near <= far only for float bounds: per-ray "
-    "tensors with near > far render silently (reversed depths, opacity ~0.98 here)",
-)
 def test_render_rays_rejects_per_ray_near_beyond_far():
     with pytest.raises(ValueError, match="near"):
         render_rays(ConstantField(), RAYS_O, RAYS_D, torch.full((4,), 6.0), torch.full((4,), 2.0), 8, 0)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="render_rays calls field(x, d) without checking it: field=None "
-    "fails with \"'NoneType' object is not callable\", which does not name the argument",
-)
 def test_render_rays_rejects_a_field_that_is_not_callable():
     with pytest.raises(TypeError, match="field"):
         render_rays(None, RAYS_O, RAYS_D, 2.0, 6.0)
@@ -569,22 +559,11 @@ def test_model_forward_rejects_bad_input_naming_the_argument(model, case):
         model(x, d)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="MixerNeRF.forward does not compare x with its parameters: float64 x "
-    "into a float32 model fails inside nn.Linear with 'mat1 and mat2 must have the same dtype'",
-)
 def test_model_forward_names_x_when_its_dtype_differs_from_the_model(model):
     with pytest.raises(TypeError, match="x"):
         model(torch.zeros(2, 4, 3, dtype=torch.float64), torch.zeros(2, 1, 3, dtype=torch.float64))
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="MixerNeRF.forward does not compare x's device with its parameters: "
-    "inputs on another device than the model fail inside torch ('Tensor on device cpu is not on "
-    "the expected device meta!'), without naming x",
-)
 def test_model_forward_names_x_when_its_device_differs_from_the_model(model):
     with pytest.raises(ValueError, match="x"):
         model(torch.zeros(2, 4, 3, device=META), torch.zeros(2, 1, 3, device=META))

@@ -90,6 +90,7 @@ class MixerNeRF(nn.Module):
             (float32 under autocast, whose low precision stays inside the MLP).
         """
         d = _check_inputs(x, d, ray_indices)
+        self._check_matches_parameters(x)
         direction = self._encode_direction(d)
         features = self._trunk_features(x, direction, ray_indices, num_rays)
         out = self.head(features)
@@ -109,11 +110,21 @@ class MixerNeRF(nn.Module):
         """Only ``sigma`` (skips the colour branch), e.g. for occupancy-grid updates. ``d`` is needed
         only when ``cfg.mlca_concat_direction`` makes the density view-dependent."""
         d = _check_inputs(x, d, ray_indices)
+        self._check_matches_parameters(x)
         direction = None if d is None else self._encode_direction(d)
         features = self._trunk_features(x, direction, ray_indices, num_rays)
         return self._activate_density(
             F.linear(features, self.head.weight[:1], self.head.bias[:1])[..., 0], x.dtype
         )
+
+    def _check_matches_parameters(self, x: torch.Tensor) -> None:
+        """x must live where the weights do, in their dtype unless autocast picks the matmul dtype."""
+        weight = self.head.weight
+        if x.device != weight.device:
+            raise ValueError(f"x is on {x.device} but the model's parameters are on {weight.device}")
+        if x.dtype != weight.dtype and not torch.is_autocast_enabled(x.device.type):
+            raise TypeError(f"x has dtype {x.dtype} but the model's parameters are {weight.dtype} "
+                            f"(convert one of them, or run under torch.autocast)")
 
     def _encode_direction(self, d: torch.Tensor) -> torch.Tensor:
         return positional_encoding(d, self.cfg.dir_freqs, scale=self.cfg.pe_scale, backend=self.cfg.backend)

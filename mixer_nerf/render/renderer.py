@@ -82,7 +82,7 @@ def render_rays(
         ``(R, 3)``, depth ``(R,)``, opacity ``(R,)``, weights ``(R, S)``, differentiable through
         the field. The fine samples depend on the coarse weights only through a no-grad resampling.
     """
-    near_t, far_t = _validate(rays_o, rays_d, near, far, num_coarse, num_fine, background, backend, lindisp)
+    near_t, far_t = _validate(field, rays_o, rays_d, near, far, num_coarse, num_fine, background, backend, lindisp)
     depths = stratified_depths(near_t, far_t, num_coarse, stratified, lindisp, generator)
     coarse = _render_pass(field, rays_o, rays_d, depths, near_t, far_t, background, backend, last_delta)
     if num_fine == 0:
@@ -187,7 +187,9 @@ def _ray_bound(value, name: str, rays_o: torch.Tensor) -> torch.Tensor:
     return torch.full((1, 1), float(value), dtype=rays_o.dtype, device=rays_o.device).expand(num_rays, 1)
 
 
-def _validate(rays_o, rays_d, near, far, num_coarse, num_fine, background, backend, lindisp):
+def _validate(field, rays_o, rays_d, near, far, num_coarse, num_fine, background, backend, lindisp):
+    if not callable(field):
+        raise TypeError(f"field must be a callable nn.Module field(x, d) -> (sigma, rgb), got {type(field).__name__}")
     check_backend(backend)
     check_floating("rays_o", rays_o)
     check_floating("rays_d", rays_d)
@@ -209,8 +211,11 @@ def _validate(rays_o, rays_d, near, far, num_coarse, num_fine, background, backe
                 f"background must have shape (3,) or ({rays_o.shape[0]}, 3), got {tuple(background.shape)}"
             )
     near_t, far_t = _ray_bound(near, "near", rays_o), _ray_bound(far, "far", rays_o)
-    if not isinstance(near, torch.Tensor) and not isinstance(far, torch.Tensor) and near > far:
-        raise ValueError(f"near must be <= far, got near={near}, far={far}")
+    if not isinstance(near, torch.Tensor) and not isinstance(far, torch.Tensor):
+        if near > far:
+            raise ValueError(f"near must be <= far, got near={near}, far={far}")
+    elif bool((near_t > far_t).any()):  # per-ray bounds: one reduction (a sync on GPUs)
+        raise ValueError("near must be <= far for every ray")
     if lindisp and not isinstance(near, torch.Tensor) and near <= 0:
         raise ValueError(f"lindisp needs near > 0, got near={near}")
     return near_t, far_t
