@@ -294,6 +294,7 @@ def test_guard_reports_first_bad_step_and_tensor():
     for step in (1, 2):
         guard.observe_losses(step, loss_coarse=torch.tensor(1.0), loss_fine=torch.tensor(1.0))
         guard.observe_grads(step, [torch.ones(2), torch.ones(1)])
+    guard.observe_grads(2, [torch.ones(2), None])  # a parameter without a gradient is fine
     guard.raise_if_bad()
     guard.observe_losses(3, loss_coarse=torch.tensor(1.0), loss_fine=torch.tensor(math.inf))
     guard.observe_grads(3, [torch.ones(2), torch.tensor([math.nan])])

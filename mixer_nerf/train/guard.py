@@ -24,6 +24,7 @@ class NonFiniteGuard:
         self.param_names = param_names
         self.device = device
         self._first_bad: dict[str, torch.Tensor] = {}
+        self._zero: torch.Tensor | None = None
 
     def observe_losses(self, step: int, **losses: torch.Tensor) -> None:
         """Record ``step`` for each named scalar that is not finite (and not already bad)."""
@@ -31,14 +32,12 @@ class NonFiniteGuard:
             self._record(name, step, ~torch.isfinite(value.detach()))
 
     def observe_grads(self, step: int, grads: list[torch.Tensor | None]) -> None:
-        """Record ``step`` per parameter (ordered as ``param_names``) whose gradient is not finite."""
-        present = [(i, g) for i, g in enumerate(grads) if g is not None]
-        if not present:
-            return
-        norms = torch.stack(torch._foreach_norm([g.detach() for _, g in present]))
-        bad = torch.zeros(len(grads), dtype=torch.bool, device=self.device)
-        bad[[i for i, _ in present]] = ~torch.isfinite(norms)
-        self._record("gradients", step, bad)
+        """Record ``step`` per parameter (ordered as ``param_names``) whose gradient is not finite.
+        A missing gradient counts as finite; nothing here copies from the host or synchronises."""
+        if self._zero is None:
+            self._zero = torch.zeros((), device=self.device)
+        norms = torch._foreach_norm([self._zero if g is None else g.detach() for g in grads])
+        self._record("gradients", step, ~torch.isfinite(torch.stack(norms)))
 
     def raise_if_bad(self) -> None:
         """Synchronise and raise :class:`NonFiniteError` describing the first bad step, if any."""
