@@ -76,28 +76,32 @@ def main() -> None:
     repeats = args.repeats or (50 if device.type == "cuda" else 5)
     copy_gbps = copy_bandwidth_gbps(device) if device.type == "cuda" else None
 
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
     results: list[Result] = []
     for op in args.ops.split(","):
         module = importlib.import_module(f"benchmarks.cases_{op}")
         for case in module.cases(device):
             results.extend(run_case(case, device, repeats=repeats, warmup=max(2, repeats // 10)))
             torch.manual_seed(0)
+        text = write_results(results, device, repeats, copy_gbps, out)  # after each op: a cut-off run keeps what it did
+    print(text)
 
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+
+def write_results(results: list[Result], device: torch.device, repeats: int, copy_gbps: float | None, out: Path) -> str:
+    """Write ``ops_<device>.md``, ``.json`` and the time-against-error plot; return the markdown."""
     stamp = datetime.date.today().isoformat()
     header = (f"# Op benchmarks on {device_name(device)}, {stamp}\n\ntorch {torch.__version__}; "
               f"median of {repeats} runs; errors against a float64 reference (rel: scaled by each output's max |truth|)"
               + (f"; device copy bandwidth {copy_gbps:.0f} GB/s (read + write)" if copy_gbps else "")
-              + "\n\nCommand: `python -m benchmarks.bench_ops " + f"--device {device.type}`\n\n")
+              + "\n\nCommand: `python -m benchmarks.bench_ops " + f"--device {device.type} --repeats {repeats}`\n\n")
     text = header + table(results, copy_gbps) + "\n"
     (out / f"ops_{device.type}.md").write_text(text)
     (out / f"ops_{device.type}.json").write_text(json.dumps({
         "device": device_name(device), "date": stamp, "torch": torch.__version__, "copy_gbps": copy_gbps,
         "results": [dataclasses.asdict(r) for r in results]}, indent=1))
     plot(results, out / f"ops_{device.type}_time_vs_error.png")
-    print(text)
-
+    return text
 
 if __name__ == "__main__":
     main()

@@ -81,7 +81,7 @@ def run_curve(step_fn: Callable[[int], dict], render: Callable, val, checkpoints
     return curve
 
 
-def nerfacc_method(args, train, val, device) -> tuple[Callable, Callable]:
+def nerfacc_method(args, train, val, device) -> tuple[Callable, Callable, None]:
     import nerfacc
 
     from mixer_nerf.model import MixerNeRF, preset_config
@@ -147,10 +147,10 @@ def nerfacc_method(args, train, val, device) -> tuple[Callable, Callable]:
         estimator.eval()
         return render(rays_o, rays_d)[0]
 
-    return step_fn, render_val
+    return step_fn, render_val, None
 
 
-def ours_method(args, train, val, device) -> tuple[Callable, Callable]:
+def ours_method(args, train, val, device) -> tuple[Callable, Callable, object]:
     import tempfile
 
     from mixer_nerf.train import TrainConfig, Trainer
@@ -168,7 +168,7 @@ def ours_method(args, train, val, device) -> tuple[Callable, Callable]:
         return {"samples_per_ray": trainer.samples_seen / max(trainer.rays_seen, 1),
                 "rays": trainer.sampler.batch_rays}
 
-    return step_fn, trainer.render_rgb
+    return step_fn, trainer.render_rgb, trainer
 
 
 def main() -> None:
@@ -185,7 +185,11 @@ def main() -> None:
     parser.add_argument("--target-samples", type=int, default=65536, help="ours: MLP samples per step")
     parser.add_argument("--precision", default="bf16", help="ours: bf16 | tf32 | fp32")
     parser.add_argument("--lr", type=float, default=5e-4, help="ours: initial learning rate")
+    parser.add_argument("--skip-report", action="store_true",
+                        help="ours, occupancy sampler: after training, time one val render under each skip")
     args = parser.parse_args()
+    if args.skip_report and (args.method != "ours" or args.sampler != "occupancy"):
+        parser.error("--skip-report needs --method ours --sampler occupancy")
 
     torch.manual_seed(args.seed)
     torch.backends.cuda.matmul.allow_tf32 = True
@@ -196,16 +200,19 @@ def main() -> None:
     checkpoints = [float(c) for c in args.checkpoints.split(",")]
     label = args.label or args.method
 
-    if args.method == "nerfacc":
-        step_fn, render = nerfacc_method(args, train, val, device)
-    else:
-        step_fn, render = ours_method(args, train, val, device)
+    method = nerfacc_method if args.method == "nerfacc" else ours_method
+    step_fn, render, trainer = method(args, train, val, device)
 
     curve = run_curve(step_fn, render, val, checkpoints, log=lambda p: print(label, json.dumps(p), flush=True))
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     record = {"label": label, "method": args.method, "data": args.data, "device": torch.cuda.get_device_name(),
               "val_views": len(val), "curve": curve}
+    if args.skip_report:
+        from benchmarks.skip_report import skip_report
+
+        record["skip_report"] = skip_report(trainer, val)
+        print(label, json.dumps(record["skip_report"]), flush=True)
     (out / f"{label}.json").write_text(json.dumps(record, indent=1))
 
 
