@@ -72,8 +72,8 @@ C10_HOST_DEVICE inline void sincospi_quarter(double f, double& s, double& c) {
 }
 
 // sin(pi p), cos(pi p), rounded once to T, for a phase p = hi + lo in half-turns, |lo| << |hi|, both
-// finite (see bounded_input). hi is reduced exactly; lo joins the remainder, which is reduced
-// once more. Branch-free, so host loops over it vectorise.
+// finite (see bounded_input; a NaN phase gives NaN sin and cos). hi is reduced exactly; lo joins
+// the remainder, which is reduced once more. Branch-free, so host loops over it vectorise.
 template <typename T>
 C10_HOST_DEVICE inline void sincospi(phase_t hi, phase_t lo, T& s, T& c) {
   const double n_hi = round_even(2 * hi);      // quarter turns of hi; 2 hi is exact
@@ -100,12 +100,13 @@ C10_HOST_DEVICE inline void sincospi(phase_t hi, phase_t lo, T& s, T& c) {
 #endif
 }
 
-// x itself, or 0 where |c_hi x| >= 2^900: such phases are meaningless at any precision, and
-// zeroing them keeps every octave's phase (up to 2^63 times larger) finite, so no NaN/Inf comes
-// out of finite inputs. NaN stays NaN.
+// x itself, or x - x where |c_hi x| >= 2^900: such phases are meaningless at any precision. For
+// finite x that is 0, which keeps every octave's phase (up to 2^63 times larger) finite, so no
+// NaN/Inf comes out of finite inputs; for x = +-inf it is NaN, which reaches every sin/cos and
+// the gradient (as sin(inf) does). NaN stays NaN. A select, no branch: host loops vectorise.
 C10_HOST_DEVICE inline double bounded_input(double x, double c_hi) {
   constexpr double kMaxPhase = 0x1p900;
-  return std::fabs(c_hi * x) >= kMaxPhase ? 0.0 : x;
+  return std::fabs(c_hi * x) >= kMaxPhase ? x - x : x;
 }
 
 // c = scale / pi in half-turns per radian, as hi + lo with hi of 29 significant bits (so hi times

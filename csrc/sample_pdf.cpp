@@ -30,6 +30,10 @@ template <typename acc_t, typename Weights, typename Edges, typename Emit>
 void sample_ray(Weights weights, Edges edges, int num_bins, const acc_t* u, int64_t num_samples, cdf_t* cdf,
                 Emit emit) {
   const cdf_t total = build_cdf(weights, num_bins, cdf);
+  if (nan_pdf(total)) {
+    for (int64_t n = 0; n < num_samples; ++n) emit(n, not_a_number<acc_t>());
+    return;
+  }
   if (no_pdf<acc_t>(total)) {
     for (int64_t n = 0; n < num_samples; ++n) emit(n, sample_uniform(u[n], num_bins, edges));
     return;
@@ -150,11 +154,13 @@ at::Tensor hierarchical_samples_fwd_cpu(const at::Tensor& z_coarse, const at::Te
       for (int64_t r = begin; r < end; ++r) {
         const scalar_t* z = z_p + r * coarse;
         scalar_t* row = out_p + r * merged;
-        int64_t j = 0;  // coarse depths emitted so far; ties put the coarse depth first
+        // Coarse depths emitted so far; ties put the coarse depth first, and NaN samples (a ray
+        // with a NaN weight) go after every coarse depth, as torch.sort puts NaN last.
+        int64_t j = 0;
         sample_ray(PaddedWeights<acc, scalar_t>{weights_p + r * coarse + 1, static_cast<acc>(weight_padding)},
                    MidpointEdges<acc, scalar_t>{z}, static_cast<int>(num_bins), u_p + r * batch.u_row_stride,
                    batch.samples, cdf.data(), [&](int64_t n, acc s) {
-                     while (j < coarse && static_cast<acc>(z[j]) <= s) row[n + j] = z[j], ++j;
+                     while (j < coarse && (static_cast<acc>(z[j]) <= s || s != s)) row[n + j] = z[j], ++j;
                      row[n + j] = static_cast<scalar_t>(s);
                    });
         for (; j < coarse; ++j) row[batch.samples + j] = z[j];

@@ -3,11 +3,12 @@
 // convention at clamps, is the one of mixer_nerf/ops/sample_pdf_reference.py:
 //
 //   w_k = weights_k + pad, flushed to 0 below the smallest normal number (so 1 / w_k is finite
-//   and "empty" has one meaning),  C_k = w_0 + ... + w_{k-1} (summed sequentially, so C is
-//   non-decreasing and exactly flat over zero-weight bins),  W = C_B,  v = u W,
-//   k = #{j in 1..B-1 : C_j < v},  t = clamp((v - C_k) / w_k, 0, 1) (0 if w_k == 0),
+//   and "empty" has one meaning; NaN stays NaN),  C_k = w_0 + ... + w_{k-1} (summed
+//   sequentially, so C is non-decreasing and exactly flat over zero-weight bins),  W = C_B,
+//   v = u W,  k = #{j in 1..B-1 : C_j < v},  t = clamp((v - C_k) / w_k, 0, 1) (0 if w_k == 0),
 //   s = min(e_k + t (e_{k+1} - e_k), e_{k+1});  rays with W == 0 (or beyond the accumulation
-//   type's range) sample s = min(e_0 + u (e_B - e_0), e_B) instead.
+//   type's range) sample s = min(e_0 + u (e_B - e_0), e_B) instead, and rays with a NaN weight
+//   (so W is NaN) sample NaN, with NaN gradients for all their weights and edges.
 // Both clamps only undo rounding, so gradients pass straight through them.
 #pragma once
 
@@ -15,6 +16,7 @@
 #include <c10/macros/Macros.h>
 
 #include <cfloat>
+#include <cmath>  // NAN
 
 #include "common.h"
 
@@ -124,19 +126,30 @@ C10_HOST_DEVICE inline double smallest_normal(double) { return DBL_MIN; }
 C10_HOST_DEVICE inline float largest_finite(float) { return FLT_MAX; }
 C10_HOST_DEVICE inline double largest_finite(double) { return DBL_MAX; }
 
+// A ray with a NaN weight: flush_weight keeps the NaN and the sum carries it into the total.
+// Its samples are NaN and so are the gradients of all its weights and edges; other rays are
+// untouched.
+C10_HOST_DEVICE inline bool nan_pdf(cdf_t total) { return total != total; }
+
+// The samples of such a ray (and its gradients).
+template <typename acc_t>
+C10_HOST_DEVICE inline acc_t not_a_number() {
+  return static_cast<acc_t>(NAN);
+}
+
 // A ray whose total weight is zero (after flushing subnormal weights) or exceeds the
 // accumulation type's range has no usable PDF: it samples uniformly between its first and last
-// edge.
+// edge. A NaN total is not one of them (see nan_pdf).
 template <typename acc_t>
 C10_HOST_DEVICE inline bool no_pdf(cdf_t total) {
-  return !(total >= cdf_t(smallest_normal(acc_t{})) && total <= cdf_t(largest_finite(acc_t{})));
+  return total < cdf_t(smallest_normal(acc_t{})) || total > cdf_t(largest_finite(acc_t{}));
 }
 
 // Padded weights of one ray as the accumulation type, read from any element type; subnormal
-// (and, unchecked, negative or NaN) weights count as 0 and get no gradient.
+// (and, unchecked, negative) weights count as 0 and get no gradient. NaN stays NaN (nan_pdf).
 template <typename acc_t>
 C10_HOST_DEVICE inline acc_t flush_weight(acc_t w) {
-  return w >= smallest_normal(acc_t{}) ? w : acc_t(0);
+  return w < smallest_normal(acc_t{}) ? acc_t(0) : w;
 }
 
 template <typename acc_t, typename T>
@@ -248,6 +261,11 @@ C10_HOST_DEVICE inline void sample_pdf_ray_backward(
   const GivenEdges<acc_t, scalar_t> edges{bins};
   const cdf_t total = build_cdf(padded, num_bins, cdf);
 
+  if (nan_pdf(total)) {
+    for (int k = 0; k < num_bins; ++k) grad_weights[k] = static_cast<scalar_t>(not_a_number<acc_t>());
+    for (int k = 0; k <= num_bins; ++k) grad_bins[k] = static_cast<scalar_t>(not_a_number<acc_t>());
+    return;
+  }
   if (no_pdf<acc_t>(total)) {
     acc_t first = 0, last = 0;
     for (int n = 0; n < num_samples; ++n) {

@@ -448,16 +448,27 @@ def test_sample_pdf_non_finite_rays_do_not_touch_their_neighbours(case, bad, whe
         assert torch.equal(merged[1:], merged_alone)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="sample_pdf treats a NaN weight like an empty PDF: the ray samples "
-    "uniformly with finite results instead of propagating the NaN (kernel and reference)",
-)
-def test_sample_pdf_nan_weight_propagates():
-    bins = torch.tensor([[0.0, 1.0, 2.0]])
-    weights = torch.tensor([[NAN, 1.0]])
-    samples = sample_pdf(bins, weights, 3, deterministic=True, backend="kernel", check_values=False)
-    assert torch.isnan(samples).all()
+@pytest.mark.parametrize("backend", ["kernel", "torch"])
+def test_sample_pdf_nan_weight_propagates(backend):
+    """A NaN weight makes its ray's samples, and the gradients of all its weights and edges, NaN;
+    the other ray is untouched. hierarchical_samples puts such a ray's NaN fine depths after its
+    coarse ones (as torch.sort puts NaN last)."""
+    bins = torch.tensor([[0.0, 1.0, 2.0], [0.0, 1.0, 2.0]], requires_grad=True)
+    weights = torch.tensor([[NAN, 1.0], [1.0, 3.0]], requires_grad=True)
+    samples = sample_pdf(bins, weights, 3, deterministic=True, backend=backend, check_values=False)
+    assert torch.isnan(samples[0]).all()
+    samples.sum().backward()
+    assert torch.isnan(bins.grad[0]).all() and torch.isnan(weights.grad[0]).all()
+    alone = [x[1:].detach().clone().requires_grad_() for x in (bins, weights)]
+    samples_alone = sample_pdf(*alone, 3, deterministic=True, backend=backend)
+    samples_alone.sum().backward()
+    assert torch.equal(samples[1:], samples_alone)
+    assert torch.equal(bins.grad[1:], alone[0].grad) and torch.equal(weights.grad[1:], alone[1].grad)
+    z = torch.tensor([[0.0, 1.0, 2.0, 3.0], [0.0, 1.0, 2.0, 3.0]])
+    weights_coarse = torch.tensor([[1.0, NAN, 1.0, 1.0], [1.0] * 4])
+    merged = hierarchical_samples(z, weights_coarse, 2, deterministic=True, backend=backend)
+    assert torch.equal(merged[0, :4], z[0]) and torch.isnan(merged[0, 4:]).all()
+    assert torch.isfinite(merged[1]).all()
 
 
 # ---------------------------------------------------------------------------------------------
@@ -671,12 +682,6 @@ def test_positional_encoding_non_finite_rows_do_not_touch_their_neighbours(case,
         assert torch.isnan(sincos).all()
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="the positional_encoding kernel encodes x = +-inf like 0 "
-    "(sin 0, cos 1, finite gradient) instead of propagating NaN as torch.sin(inf) and the "
-    "reference path do; only *finite* huge x is documented to encode like 0",
-)
 def test_positional_encoding_infinite_input_propagates_nan():
     x = torch.tensor([[INF, 0.5]], requires_grad=True)
     encoded = positional_encoding(x, 2, include_input=False, backend="kernel")

@@ -122,21 +122,26 @@ __global__ void sample_forward_kernel(int64_t rays, WarpLayout layout, Rows rows
   __syncwarp();
 
   const cdf_t total = sh.cdf[B];
-  const bool uniform = no_pdf<acc>(total);
+  const bool nan_ray = nan_pdf(total), uniform = no_pdf<acc>(total);
   const GivenEdges<acc, acc> given{sh.edges};
   const int64_t out_row = ray * (int64_t(N) + S);
   for (int n = lane; n < N; n += kWarpSize) {
     const acc un = fine[n];
     const cdf_t v = cdf_t(un) * total;
-    const acc s = uniform ? sample_uniform(un, B, given) : sample_in_bin<acc>(v, find_bin(sh.cdf, B, v), sh.cdf, padded, given);
+    const acc s = nan_ray   ? not_a_number<acc>()
+                  : uniform ? sample_uniform(un, B, given)
+                            : sample_in_bin<acc>(v, find_bin(sh.cdf, B, v), sh.cdf, padded, given);
     if constexpr (kMerge) fine[n] = s;
     else out[out_row + n] = static_cast<scalar_t>(s);
   }
   if constexpr (kMerge) {
     __syncwarp();
-    // Ties put the coarse depth first, like the CPU kernel; the values are equal either way.
+    // Ties put the coarse depth first, like the CPU kernel; the values are equal either way. NaN
+    // samples (all of a ray with a NaN weight) go after every coarse depth, as torch.sort puts
+    // NaN last; no coarse depth counts them as smaller, so the positions stay a permutation.
     for (int n = lane; n < N; n += kWarpSize) {
-      out[out_row + n + count_before<true>(z, S, fine[n])] = static_cast<scalar_t>(fine[n]);
+      const acc s = fine[n];
+      out[out_row + n + (s != s ? S : count_before<true>(z, S, s))] = static_cast<scalar_t>(s);
     }
     for (int j = lane; j < S; j += kWarpSize) {
       out[out_row + j + count_before<false>(fine, N, z[j])] = edges_row[j];
@@ -201,6 +206,13 @@ __global__ void sample_pdf_backward_kernel(int64_t rays, WarpLayout layout, Rows
   __syncwarp();
   const cdf_t total = sh.cdf[B];
 
+  if (nan_pdf(total)) {  // a NaN weight: NaN gradients for every weight and edge of the ray
+    for (int i = lane; i <= B; i += kWarpSize) {
+      if (i < B) grad_weights_row[i] = static_cast<scalar_t>(not_a_number<acc>());
+      grad_bins_row[i] = static_cast<scalar_t>(not_a_number<acc>());
+    }
+    return;
+  }
   if (no_pdf<acc>(total)) {  // s = e_0 + u (e_B - e_0): only the end edges get gradient
     acc first = 0, last = 0;
     for (int n = lane; n < N; n += kWarpSize) {

@@ -50,7 +50,8 @@ def positional_encoding(
     product ``c_hi 2^k x`` to 53 bits). The reference formulation rounds ``θ`` itself to float32
     and is off by up to ``|θ| 2^-24`` (0.1 already at ``|x| = 1e3`` with 10 octaves). A finite
     ``x`` with ``|scale x / π| >= 2^900`` encodes like 0 (sin 0, cos 1): no NaN/Inf from finite
-    inputs.
+    inputs. ``x = ±inf`` or NaN gives NaN in every sin/cos column of that coordinate and in its
+    gradient, as ``torch.sin`` (the reference path) does.
     """
     check_floating("x", x)
     if x.dim() < 1 or x.shape[-1] == 0:

@@ -7,9 +7,11 @@ the original NeRF code adds 1e-5); samples are its quantile function at sorted `
 so they come out sorted and within ``[bins[:, 0], bins[:, -1]]``; bins of zero weight are never
 sampled, and padded weights below the smallest normal number of the accumulation dtype
 (float32, or float64 for float64 inputs) count as zero; a ray whose weights are then all zero,
-or whose total overflows, samples uniformly between its first and last edge. Gradients with
-respect to the weights scale like (bin width) / (bin weight): exact, and large where a sample
-falls in a light bin.
+or whose total overflows, samples uniformly between its first and last edge. A ray with a NaN
+weight samples NaN, and all its weights and edges get NaN gradients (other rays are untouched;
+``hierarchical_samples`` puts its NaN fine depths after its coarse ones, as ``torch.sort``
+puts NaN last). Gradients with respect to the weights scale like (bin width) / (bin weight):
+exact, and large where a sample falls in a light bin.
 
 Positions ``u``:
   * explicit ``u``: ``(R, N)`` or ``(N,)`` shared by every ray, sorted, in [0, 1];

@@ -4,7 +4,7 @@ The formulation is exactly the one the C++/CUDA kernels evaluate and differentia
 autograd through this file gives the kernels' gradients:
 
   w_i  = weights_i + weight_padding, 0 if below the smallest normal number of the accumulation
-         dtype (subnormal weights are flushed: 1 / w_k stays finite)                  (R, B)
+         dtype (subnormal weights are flushed: 1 / w_k stays finite; NaN stays NaN)   (R, B)
   C_k  = w_0 + ... + w_{k-1},  W = C_B                    (unnormalised CDF, C_0 = 0)
   v    = u * W                                            (u in [0, 1], sorted)
   k    = #{j in 1..B-1 : C_j < v}                         (the bin with C_k < v <= C_{k+1})
@@ -23,7 +23,9 @@ The kernels carry C, v and t in float64 (see csrc/sample_pdf_math.h), so they ar
 accurate as this float32 path; the formulas are the same.
 
 A ray whose weights are all 0 (after flushing), or whose total overflows, has no PDF: it samples
-uniformly, s = min(b_0 + u (b_B - b_0), b_B), and its weights get zero gradient.
+uniformly, s = min(b_0 + u (b_B - b_0), b_B), and its weights get zero gradient. A ray with a
+NaN weight (so W is NaN) samples NaN, and every weight and edge of it gets a NaN gradient; other
+rays are untouched.
 
 Half and bfloat16 inputs are computed in float32 and the result cast back, like the kernels.
 """
@@ -45,17 +47,19 @@ def sample_pdf_reference(
     acc = accumulation_dtype(bins.dtype)
     finfo = torch.finfo(acc)
     edges = bins.to(acc)
-    w = weights.to(acc) + weight_padding
-    w = torch.where(w >= finfo.tiny, w, torch.zeros_like(w))
+    raw = weights.to(acc)
+    w = raw + weight_padding
+    w = torch.where(w < finfo.tiny, torch.zeros_like(w), w)  # NaN stays NaN
     num_rays, num_bins = w.shape
     u = u.to(acc).expand(num_rays, u.shape[-1])
 
     cdf = torch.cat([w.new_zeros(num_rays, 1), torch.cumsum(w, dim=-1)], dim=-1)  # (R, B+1)
     total = cdf[:, -1:]
-    empty = ~((total >= finfo.tiny) & (total <= finfo.max))  # (R, 1): no PDF, sample [b_0, b_B] uniformly
-    # Empty rays take the other branch of every where() below; keep this one finite for them
-    # (a NaN or inf there would turn their zero gradients into NaN).
-    v = u * torch.where(empty, torch.ones_like(total), total)
+    nan_ray = torch.isnan(total)  # (R, 1): a NaN weight, NaN samples and gradients
+    empty = (total < finfo.tiny) | (total > finfo.max)  # (R, 1): no PDF, sample [b_0, b_B] uniformly
+    # Empty rays take the other branch of the where()s below, NaN rays the last one; keep this
+    # one finite for both (a NaN or inf there would turn the empty rays' zero gradients into NaN).
+    v = u * torch.where(empty | nan_ray, torch.ones_like(total), total)
     # side="left" counts the interior CDF values strictly below v.
     k = torch.searchsorted(cdf[:, 1:-1].contiguous(), v.detach(), side="left")  # (R, N) in [0, B-1]
 
@@ -71,6 +75,11 @@ def sample_pdf_reference(
     hi = torch.where(empty, edges[:, -1:], hi)
     samples = lo + t * (hi - lo)
     samples = _straight_through(torch.minimum(samples, hi), samples)
+    # NaN rays: NaN, with a NaN gradient for every weight and edge of the ray (the factor is
+    # their NaN total). Other rays get a zero gradient through it, times a finite factor 1.
+    factor = torch.where(nan_ray, total, torch.ones_like(total)).detach()
+    carrier = (raw.sum(-1, keepdim=True) + edges.sum(-1, keepdim=True)) * factor
+    samples = torch.where(nan_ray, carrier, samples)
     return samples.to(bins.dtype)
 
 
