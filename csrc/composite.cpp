@@ -14,6 +14,19 @@
 //             = alpha_j g_j + exp(-tau_j) G_{j+1},  G_S = g_S.
 // G is a convex combination of upstream gradients (bounded, no cancellation, no division by an
 // underflowed T), so the gradient stays exact when T underflows or tau is 1e18 (delta = 1e10).
+//
+// The backward computes in double for every input dtype (tau, T, alpha, g and G; only the
+// gradients it writes are rounded). G starts at g_S = O(1) and is multiplied S times by
+// exp(-tau_j); in thin media (tau ~ 1e-9..1e-4) that rounds to ~1 in float32, so a float32 G
+// held ~S float32 ulps of g_S, and g_j - G_{j+1} kept that absolute error where it is small
+// (float32 gradients off by ~1e-2 relative, ten times the reference path's error). In double
+// the error is ~S * 2^-53 of max |g|, far below float32's resolution: float32/half/bfloat16
+// gradients are the float64 ones rounded once (benchmarks/error_budget.py: within half an ulp on
+// every distribution). Float64 inputs keep ~S float64 ulps of G. exp(-tau_j) comes from the
+// expm1 that alpha needs, as 1 + expm1(-tau_j) where that is >= 1/2 (within an ulp; no second
+// transcendental on thin samples), else from exp (the sum would keep only an absolute ulp of a
+// tiny exp(-tau); tau = 1e18 still gives exactly 0). The CUDA kernel (csrc/cuda/composite.cu)
+// still carries G in float for float32 inputs.
 #include <torch/library.h>
 
 #include <ATen/ATen.h>
@@ -30,9 +43,8 @@
 namespace mixer_nerf {
 namespace {
 
-template <typename scalar_t>
+template <typename scalar_t, typename acc = acc_t<scalar_t>>
 struct Sample {
-  using acc = acc_t<scalar_t>;
   acc sigma, t_start, t_end, tau;
   Sample(const CompositeInputs<scalar_t>& in, int64_t i)
       : sigma(in.sigmas[i]), t_start(in.t_starts[i]), t_end(in.t_ends[i]), tau(sigma * (t_end - t_start)) {}
@@ -68,15 +80,17 @@ void composite_forward_ray(const CompositeInputs<scalar_t>& in, int64_t ray, int
 
 // Backward of one ray: a forward pass records T_{i+1} in `transmittance_after` (caller scratch
 // of at least `count` entries; a reverse pass cannot rebuild it without subtracting sums), then
-// one reverse pass carries G (see the file comment).
+// one reverse pass carries G, all in double (see the file comment).
+using backward_acc = double;
+
 template <typename scalar_t>
 void composite_backward_ray(const CompositeInputs<scalar_t>& in, const CompositeGrads<scalar_t>& g, int64_t ray,
-                            int64_t offset, int64_t count, acc_t<scalar_t>* transmittance_after) {
-  using acc = acc_t<scalar_t>;
+                            int64_t offset, int64_t count, backward_acc* transmittance_after) {
+  using acc = backward_acc;
   const int64_t C = in.channels;
   acc optical_depth = 0;
   for (int64_t k = 0; k < count; ++k) {
-    optical_depth += Sample<scalar_t>(in, offset + k).tau;
+    optical_depth += Sample<scalar_t, acc>(in, offset + k).tau;
     transmittance_after[k] = std::exp(-optical_depth);
   }
   const acc transmittance_end = count > 0 ? transmittance_after[count - 1] : acc(1);
@@ -90,13 +104,16 @@ void composite_backward_ray(const CompositeInputs<scalar_t>& in, const Composite
   }
   if (g.background_rows) {
     for (int64_t c = 0; c < C; ++c) {
-      g.background_rows[ray * C + c] = grad_color ? acc(grad_color[c]) * transmittance_end : acc(0);
+      g.background_rows[ray * C + c] =
+          static_cast<acc_t<scalar_t>>(grad_color ? acc(grad_color[c]) * transmittance_end : acc(0));
     }
   }
   for (int64_t k = count - 1; k >= 0; --k) {
     const int64_t i = offset + k;
-    const Sample<scalar_t> s(in, i);
-    const acc alpha = -std::expm1(-s.tau);
+    const Sample<scalar_t, acc> s(in, i);
+    const acc decay_m1 = std::expm1(-s.tau);  // exp(-tau) - 1
+    const acc alpha = -decay_m1;
+    const acc decay = decay_m1 >= acc(-0.5) ? acc(1) + decay_m1 : std::exp(-s.tau);  // exp(-tau)
     const acc w = (k > 0 ? transmittance_after[k - 1] : acc(1)) * alpha;
     const scalar_t* rgb = in.rgbs + i * C;
     acc g_i = grad_depth * s.midpoint() + (g.weights ? acc(g.weights[i]) : acc(0));
@@ -106,7 +123,7 @@ void composite_backward_ray(const CompositeInputs<scalar_t>& in, const Composite
       g.rgbs[i * C + c] = static_cast<scalar_t>(gc * w);
     }
     const acc grad_tau = transmittance_after[k] * (g_i - G);
-    G = alpha * g_i + std::exp(-s.tau) * G;
+    G = alpha * g_i + decay * G;
     g.sigmas[i] = static_cast<scalar_t>(grad_tau * (s.t_end - s.t_start));
     if (g.t_starts) {
       const acc from_depth = acc(0.5) * grad_depth * w;
@@ -157,7 +174,7 @@ composite_backward(const std::optional<at::Tensor>& grad_color, const std::optio
     const auto in = inputs_of<scalar_t>(sigmas, rgbs, t_starts, t_ends, background);
     const auto g = grads.pointers<scalar_t>(grad_color, grad_depth, grad_opacity, grad_weights);
     at::parallel_for(0, R, ray_grain(sigmas.numel(), R), [&](int64_t begin, int64_t end) {
-      std::vector<acc_t<scalar_t>> transmittance_after;
+      std::vector<backward_acc> transmittance_after;
       for (int64_t r = begin; r < end; ++r) {
         const composite_layout::RaySpan span = rays(r);
         if (static_cast<int64_t>(transmittance_after.size()) < span.count) transmittance_after.resize(span.count);
