@@ -159,7 +159,7 @@ def ours_method(args, train, val, device) -> tuple[Callable, Callable, object]:
         data=args.data, preset=args.preset, sampler=args.sampler, steps=args.nominal_steps,
         target_samples=args.target_samples, precision=args.precision, device="cuda", seed=args.seed,
         val_every=10**9, ckpt_every=10**9, log_every=10**9, progress=False,
-        out=tempfile.mkdtemp(prefix="ttq_"), lr=args.lr)
+        out=tempfile.mkdtemp(prefix="ttq_"), lr=args.lr, backend=args.backend)
     trainer = Trainer(cfg, log=lambda _: None)
 
     def step_fn(step: int) -> dict:
@@ -185,6 +185,7 @@ def main() -> None:
     parser.add_argument("--target-samples", type=int, default=65536, help="ours: MLP samples per step")
     parser.add_argument("--precision", default="bf16", help="ours: bf16 | tf32 | fp32")
     parser.add_argument("--lr", type=float, default=5e-4, help="ours: initial learning rate")
+    parser.add_argument("--backend", default="auto", help="ours: auto | kernel | torch (the pure-PyTorch path)")
     parser.add_argument("--skip-report", action="store_true",
                         help="ours, occupancy sampler: after training, time one val render under each skip")
     args = parser.parse_args()
