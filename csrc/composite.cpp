@@ -15,18 +15,30 @@
 // G is a convex combination of upstream gradients (bounded, no cancellation, no division by an
 // underflowed T), so the gradient stays exact when T underflows or tau is 1e18 (delta = 1e10).
 //
-// The backward computes in double for every input dtype (tau, T, alpha, g and G; only the
-// gradients it writes are rounded). G starts at g_S = O(1) and is multiplied S times by
-// exp(-tau_j); in thin media (tau ~ 1e-9..1e-4) that rounds to ~1 in float32, so a float32 G
-// held ~S float32 ulps of g_S, and g_j - G_{j+1} kept that absolute error where it is small
-// (float32 gradients off by ~1e-2 relative, ten times the reference path's error). In double
-// the error is ~S * 2^-53 of max |g|, far below float32's resolution: float32/half/bfloat16
-// gradients are the float64 ones rounded once (benchmarks/error_budget.py: within half an ulp on
-// every distribution). Float64 inputs keep ~S float64 ulps of G. exp(-tau_j) comes from the
-// expm1 that alpha needs, as 1 + expm1(-tau_j) where that is >= 1/2 (within an ulp; no second
-// transcendental on thin samples), else from exp (the sum would keep only an absolute ulp of a
-// tiny exp(-tau); tau = 1e18 still gives exactly 0). The CUDA kernel (csrc/cuda/composite.cu)
-// still carries G in float for float32 inputs.
+// Both scans compute in double for every input dtype (ray_acc); only the outputs and gradients
+// they write are rounded, once. Float64 inputs are unchanged by this (their accumulation type
+// was double already).
+//
+// Forward: tau, E, T, alpha, w and the color and depth sums are doubles. A float32 sequential
+// E drifted by up to ~i float32 ulps after i samples, and T = exp(-E) turned that into a relative
+// error of ~E times it; with tau, alpha and the weighted sums also rounded to float32 at every
+// step, float32 weights were off by up to ~1e2 ulps (5.7e-6 relative, typical rays) and colors,
+// depths and opacities by a few ulps, 2-4 times the reference path's error (whose torch.cumsum
+// accumulates float32 in double). In double, float32/half/bfloat16 outputs are the float64 ones
+// rounded once (benchmarks/error_budget.py: within half an ulp on every distribution). The cost
+// is glibc's double exp against expf, ~1 ns a sample (double expm1 is no slower than expm1f).
+//
+// Backward: G starts at g_S = O(1) and is multiplied S times by exp(-tau_j); in thin media
+// (tau ~ 1e-9..1e-4) that rounds to ~1 in float32, so a float32 G held ~S float32 ulps of g_S,
+// and g_j - G_{j+1} kept that absolute error where it is small (float32 gradients off by ~1e-2
+// relative, ten times the reference path's error). In double the error is ~S * 2^-53 of max |g|,
+// far below float32's resolution: float32/half/bfloat16 gradients are the float64 ones rounded
+// once (within half an ulp on every distribution of the error budget). Float64 inputs keep ~S
+// float64 ulps of G. exp(-tau_j) comes from the expm1 that alpha needs, as 1 + expm1(-tau_j)
+// where that is >= 1/2 (within an ulp; no second transcendental on thin samples), else from exp
+// (the sum would keep only an absolute ulp of a tiny exp(-tau); tau = 1e18 still gives exactly
+// 0). The CUDA kernel (csrc/cuda/composite.cu) still computes in float for float32 inputs, in
+// the forward and in the backward.
 #include <torch/library.h>
 
 #include <ATen/ATen.h>
@@ -43,7 +55,10 @@
 namespace mixer_nerf {
 namespace {
 
-template <typename scalar_t, typename acc = acc_t<scalar_t>>
+// Both scans compute in double for every input dtype (see the file comment).
+using ray_acc = double;
+
+template <typename scalar_t, typename acc = ray_acc>
 struct Sample {
   acc sigma, t_start, t_end, tau;
   Sample(const CompositeInputs<scalar_t>& in, int64_t i)
@@ -54,9 +69,9 @@ struct Sample {
 // Forward scan of one ray; color_acc is caller scratch of C accumulators.
 template <typename scalar_t>
 void composite_forward_ray(const CompositeInputs<scalar_t>& in, int64_t ray, int64_t offset, int64_t count,
-                           acc_t<scalar_t>* color_acc, scalar_t* color, scalar_t* depth, scalar_t* opacity,
+                           ray_acc* color_acc, scalar_t* color, scalar_t* depth, scalar_t* opacity,
                            scalar_t* weights) {
-  using acc = acc_t<scalar_t>;
+  using acc = ray_acc;
   const int64_t C = in.channels;
   std::fill(color_acc, color_acc + C, acc(0));
   acc optical_depth = 0, depth_acc = 0;
@@ -81,16 +96,14 @@ void composite_forward_ray(const CompositeInputs<scalar_t>& in, int64_t ray, int
 // Backward of one ray: a forward pass records T_{i+1} in `transmittance_after` (caller scratch
 // of at least `count` entries; a reverse pass cannot rebuild it without subtracting sums), then
 // one reverse pass carries G, all in double (see the file comment).
-using backward_acc = double;
-
 template <typename scalar_t>
 void composite_backward_ray(const CompositeInputs<scalar_t>& in, const CompositeGrads<scalar_t>& g, int64_t ray,
-                            int64_t offset, int64_t count, backward_acc* transmittance_after) {
-  using acc = backward_acc;
+                            int64_t offset, int64_t count, ray_acc* transmittance_after) {
+  using acc = ray_acc;
   const int64_t C = in.channels;
   acc optical_depth = 0;
   for (int64_t k = 0; k < count; ++k) {
-    optical_depth += Sample<scalar_t, acc>(in, offset + k).tau;
+    optical_depth += Sample<scalar_t>(in, offset + k).tau;
     transmittance_after[k] = std::exp(-optical_depth);
   }
   const acc transmittance_end = count > 0 ? transmittance_after[count - 1] : acc(1);
@@ -110,7 +123,7 @@ void composite_backward_ray(const CompositeInputs<scalar_t>& in, const Composite
   }
   for (int64_t k = count - 1; k >= 0; --k) {
     const int64_t i = offset + k;
-    const Sample<scalar_t, acc> s(in, i);
+    const Sample<scalar_t> s(in, i);
     const acc decay_m1 = std::expm1(-s.tau);  // exp(-tau) - 1
     const acc alpha = -decay_m1;
     const acc decay = decay_m1 >= acc(-0.5) ? acc(1) + decay_m1 : std::exp(-s.tau);  // exp(-tau)
@@ -150,7 +163,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> composite_forward(
   MIXER_NERF_DISPATCH_FLOATING(sigmas.scalar_type(), "composite_fwd_cpu", [&] {
     const auto in = inputs_of<scalar_t>(sigmas, rgbs, t_starts, t_ends, background);
     at::parallel_for(0, R, ray_grain(sigmas.numel(), R), [&](int64_t begin, int64_t end) {
-      std::vector<acc_t<scalar_t>> color_acc(C);
+      std::vector<ray_acc> color_acc(C);
       for (int64_t r = begin; r < end; ++r) {
         const composite_layout::RaySpan span = rays(r);
         composite_forward_ray(in, r, span.offset, span.count, color_acc.data(), color.data_ptr<scalar_t>(),
@@ -174,7 +187,7 @@ composite_backward(const std::optional<at::Tensor>& grad_color, const std::optio
     const auto in = inputs_of<scalar_t>(sigmas, rgbs, t_starts, t_ends, background);
     const auto g = grads.pointers<scalar_t>(grad_color, grad_depth, grad_opacity, grad_weights);
     at::parallel_for(0, R, ray_grain(sigmas.numel(), R), [&](int64_t begin, int64_t end) {
-      std::vector<backward_acc> transmittance_after;
+      std::vector<ray_acc> transmittance_after;
       for (int64_t r = begin; r < end; ++r) {
         const composite_layout::RaySpan span = rays(r);
         if (static_cast<int64_t>(transmittance_after.size()) < span.count) transmittance_after.resize(span.count);
