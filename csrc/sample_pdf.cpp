@@ -4,7 +4,8 @@
 // Per ray the unnormalised CDF is built once (sample_pdf_math.h); the samples are sorted, so
 // their bins are found by walking forward through it (O(B + N), no binary search), and the fine
 // samples of hierarchical_samples come out sorted and are merged with the coarse depths on the
-// fly (no sort). The backward is one reverse pass per ray (sample_pdf_ray_backward).
+// fly (no sort). The backward is one reverse pass per ray (sample_pdf_ray_backward), in double
+// for every input dtype.
 #include <torch/library.h>
 
 #include <ATen/ATen.h>

@@ -253,6 +253,15 @@ C10_HOST_DEVICE inline acc_t sample_uniform(acc_t u, int num_bins, Edges edges) 
 // Walking the samples from the last one down, the middle sum is a running suffix. Every element
 // of grad_bins (B+1) and grad_weights (B) is written exactly once; cdf (B+1) is scratch that
 // also holds the partial weight gradients until the last step.
+//
+// The terms a_n, t_n and every running sum are doubles for every input dtype (grad_t), and each
+// gradient is rounded once. dL/dw_i is a difference of sums of up to N terms that largely cancel.
+// With float32 sums (N roundings each) float32 weight gradients were ~2 ulps off in the median,
+// twice the reference path's error, and up to 0.37 relative where the cancellation is deep;
+// the three float32 roundings of a_n alone would still leave ~1e-4 there. In double, float32
+// gradients of weights and edges are the float64 ones rounded once (benchmarks/error_budget.py:
+// within half an ulp on typical PDFs), at no measurable cost. Only the CPU kernel calls this function;
+// the CUDA backward (cuda/sample_pdf.cu) has its own warp-scan sums in the accumulation type.
 template <typename acc_t, typename scalar_t>
 C10_HOST_DEVICE inline void sample_pdf_ray_backward(
     const scalar_t* grad, const scalar_t* bins, const scalar_t* weights, const acc_t* u, int num_bins,
@@ -266,10 +275,11 @@ C10_HOST_DEVICE inline void sample_pdf_ray_backward(
     for (int k = 0; k <= num_bins; ++k) grad_bins[k] = static_cast<scalar_t>(not_a_number<acc_t>());
     return;
   }
+  using grad_t = cdf_t;  // double: see above
   if (no_pdf<acc_t>(total)) {
-    acc_t first = 0, last = 0;
+    grad_t first = 0, last = 0;
     for (int n = 0; n < num_samples; ++n) {
-      const acc_t g = static_cast<acc_t>(grad[n]);
+      const grad_t g = static_cast<grad_t>(grad[n]);
       first += g - g * u[n];
       last += g * u[n];
     }
@@ -281,16 +291,16 @@ C10_HOST_DEVICE inline void sample_pdf_ray_backward(
     return;
   }
 
-  acc_t sum_a_u = 0;   // sum_n a_n u_n, common to every weight
-  acc_t suffix_a = 0;  // sum of a_n over the bins above the current one
-  acc_t bin_a = 0, bin_a_t = 0;       // the current bin's sum of a_n and of a_n t_n
-  acc_t bin_lo = 0, bin_hi = 0;       // gradient reaching the current bin's lower / upper edge
-  acc_t above_lo = 0;                 // gradient reaching edge k+1 as the lower edge of bin k+1
+  grad_t sum_a_u = 0;   // sum_n a_n u_n, common to every weight
+  grad_t suffix_a = 0;  // sum of a_n over the bins above the current one
+  grad_t bin_a = 0, bin_a_t = 0;  // the current bin's sum of a_n and of a_n t_n
+  grad_t bin_lo = 0, bin_hi = 0;  // gradient reaching the current bin's lower / upper edge
+  grad_t above_lo = 0;            // gradient reaching edge k+1 as the lower edge of bin k+1
   int k = num_bins - 1;
   auto close_bin = [&]() {
     grad_bins[k + 1] = static_cast<scalar_t>(above_lo + bin_hi);
     above_lo = bin_lo;
-    cdf[k] = -(cdf_t(suffix_a) + cdf_t(bin_a_t));  // C_k is no longer needed
+    cdf[k] = -(suffix_a + bin_a_t);  // C_k is no longer needed
     suffix_a += bin_a;
     bin_a = bin_a_t = bin_lo = bin_hi = 0;
   };
@@ -300,13 +310,13 @@ C10_HOST_DEVICE inline void sample_pdf_ray_backward(
       close_bin();
       --k;
     }
-    const acc_t g = static_cast<acc_t>(grad[n]);
-    const acc_t w_k = padded(k);
-    const Fraction<acc_t> f = fraction_in_bin(v, cdf[k], w_k);
+    const grad_t g = static_cast<grad_t>(grad[n]);
+    const grad_t w_k = padded(k);
+    const Fraction<grad_t> f = fraction_in_bin(v, cdf[k], w_k);
     bin_lo += g - g * f.t;
     bin_hi += g * f.t;
     if (f.weighted) {
-      const acc_t a = g * (edges(k + 1) - edges(k)) / w_k;
+      const grad_t a = g * (grad_t(edges(k + 1)) - grad_t(edges(k))) / w_k;
       sum_a_u += a * u[n];
       bin_a += a;
       bin_a_t += a * f.t_raw;
@@ -315,7 +325,7 @@ C10_HOST_DEVICE inline void sample_pdf_ray_backward(
   for (; k >= 0; --k) close_bin();
   grad_bins[0] = static_cast<scalar_t>(above_lo);
   for (int i = 0; i < num_bins; ++i) {
-    grad_weights[i] = padded(i) > 0 ? static_cast<scalar_t>(cdf[i] + cdf_t(sum_a_u)) : scalar_t(0);
+    grad_weights[i] = padded(i) > 0 ? static_cast<scalar_t>(cdf[i] + sum_a_u) : scalar_t(0);
   }
 }
 
