@@ -261,7 +261,7 @@ C10_HOST_DEVICE inline acc_t sample_uniform(acc_t u, int num_bins, Edges edges) 
 // the three float32 roundings of a_n alone would still leave ~1e-4 there. In double, float32
 // gradients of weights and edges are the float64 ones rounded once (benchmarks/error_budget.py:
 // within half an ulp on typical PDFs), at no measurable cost. Only the CPU kernel calls this function;
-// the CUDA backward (cuda/sample_pdf.cu) has its own warp-scan sums in the accumulation type.
+// the CUDA backward (cuda/sample_pdf.cu) computes the same sums with warp scans, also in double.
 template <typename acc_t, typename scalar_t>
 C10_HOST_DEVICE inline void sample_pdf_ray_backward(
     const scalar_t* grad, const scalar_t* bins, const scalar_t* weights, const acc_t* u, int num_bins,

@@ -11,6 +11,7 @@ once and leaves the reference path working; ``backend="kernel"`` then raises wit
 
 from __future__ import annotations
 
+import hashlib
 import importlib.util
 import os
 import sys
@@ -22,6 +23,7 @@ import torch
 from . import _sources
 
 _MODES = ("auto", "prebuilt", "jit", "off")
+_JIT_NAME = "mixer_nerf_C"
 _state: dict = {}
 
 
@@ -61,12 +63,29 @@ def _want_cuda() -> bool:
     return torch.version.cuda is not None and CUDA_HOME is not None and bool(_sources.cuda_sources())
 
 
+def _jit_build_dir(with_cuda: bool) -> Path:
+    """One build directory per torch version, source hash and CUDA target set: a library found
+    there was built from exactly these sources, so it is loaded without invoking ninja (whose
+    staleness check trusts file times, which a copied checkout or cache does not keep)."""
+    flavour = f"torch{torch.__version__}-{'cuda' if with_cuda else 'cpu'}".replace("+", "_")
+    key = _sources.source_hash() or ""
+    if with_cuda:  # torch builds for TORCH_CUDA_ARCH_LIST, else for the GPUs it sees
+        archs = os.environ.get("TORCH_CUDA_ARCH_LIST") or ",".join(
+            "{}.{}".format(*torch.cuda.get_device_capability(i)) for i in range(torch.cuda.device_count())
+        )
+        key += "|" + archs
+    return cache_dir() / "build" / f"{flavour}-{hashlib.sha256(key.encode()).hexdigest()[:16]}"
+
+
 def _jit_build() -> None:
     from torch.utils import cpp_extension
 
     with_cuda = _want_cuda()
-    flavour = f"torch{torch.__version__}-{'cuda' if with_cuda else 'cpu'}".replace("+", "_")
-    build_dir = cache_dir() / "build" / flavour
+    build_dir = _jit_build_dir(with_cuda)
+    library = build_dir / f"{_JIT_NAME}.so"
+    if library.exists():
+        torch.ops.load_library(str(library))
+        return
     build_dir.mkdir(parents=True, exist_ok=True)
     sources = _sources.cpp_sources() + (_sources.cuda_sources() if with_cuda else [])
     print(
@@ -76,7 +95,7 @@ def _jit_build() -> None:
         flush=True,
     )
     cpp_extension.load(
-        name="mixer_nerf_C",
+        name=_JIT_NAME,
         sources=[str(s) for s in sources],
         extra_cflags=["-O3", "-fopenmp"],
         extra_ldflags=["-fopenmp"],

@@ -237,19 +237,23 @@ def test_cpu_adversarial_values(gen, C):
 def row_relative_errors(got, want):
     """|got - want| / max(|want|, half a float32 ulp of the row's largest |want|) (the error
     budget's metric: errors below the resolution of the row's largest entry are not magnified)."""
-    got, want = got.double(), want.double()
+    got, want = got.double().cpu(), want.double().cpu()
     floor = want.abs().amax(dim=-1, keepdim=True) * torch.finfo(torch.float32).eps / 2
     return (got - want).abs() / torch.maximum(want.abs(), floor.clamp_min(torch.finfo(torch.float32).tiny))
 
 
+KERNEL_DEVICES = ["cpu", pytest.param("cuda", marks=cuda)]
+
+
 @needs_kernels
-def test_cpu_float32_gradients_in_thin_media(gen):
+@pytest.mark.parametrize("device", KERNEL_DEVICES)
+def test_float32_gradients_in_thin_media(gen, device):
     """Fog, optical thickness 1e-9..1e-4 per sample over S = 192 samples: dL/dtau_j =
     T_{j+1} (g_j - G_{j+1}) with g_j and G_{j+1} both O(1) and often close. G is built by S
     multiplications by exp(-tau) ~ 1; carried in float32 it held ~S ulps of the background term
     and the float32 gradients were off by up to ~1e-2 relative where g_j ~ G_{j+1}, ten times the
-    reference path's error. The kernel must be at least as accurate as the reference (and, as it
-    computes in double, within an ulp of the float64 truth)."""
+    reference path's error. The kernel must be at least as accurate as the reference on the same
+    device (and, as it computes in double, within an ulp of the float64 truth)."""
     R, S = 128, 192
     u = torch.rand(R, S, generator=gen, dtype=torch.float64)
     sigmas = 10.0 ** (-8 + 5 * u)
@@ -257,7 +261,7 @@ def test_cpu_float32_gradients_in_thin_media(gen):
     t_starts = 2.0 + deltas.cumsum(1) - deltas
     rgbs = torch.rand(R, S, 3, generator=gen, dtype=torch.float64)
     bg = torch.rand(3, generator=gen, dtype=torch.float64)
-    inputs = [t.float() for t in (sigmas, rgbs, t_starts, t_starts + deltas, bg)]
+    inputs = [t.float().to(device) for t in (sigmas, rgbs, t_starts, t_starts + deltas, bg)]
     upstream = random_upstream(inputs, gen)  # float32: the truth takes the same values
     want = truth(inputs, upstream)[1]
     kernel = run(inputs, upstream, backend="kernel")[1]
@@ -270,8 +274,9 @@ def test_cpu_float32_gradients_in_thin_media(gen):
 
 
 @needs_kernels
+@pytest.mark.parametrize("device", KERNEL_DEVICES)
 @pytest.mark.parametrize("medium", ["typical", "thin"])
-def test_cpu_float32_outputs_at_least_as_accurate_as_reference(gen, medium):
+def test_float32_outputs_at_least_as_accurate_as_reference(gen, medium, device):
     """Forward outputs in float32 against the float64 truth. The optical depth E was a float32
     sequential sum, drifting by ~i ulps after i samples, and T = exp(-E) multiplied that by E;
     with tau, alpha and the color/depth sums also rounded at every step, float32 weights were off
@@ -286,7 +291,7 @@ def test_cpu_float32_outputs_at_least_as_accurate_as_reference(gen, medium):
     t_starts = 2.0 + deltas.cumsum(1) - deltas
     rgbs = torch.rand(R, S, 3, generator=gen, dtype=torch.float64)
     bg = torch.rand(3, generator=gen, dtype=torch.float64)
-    inputs = [t.float() for t in (sigmas, rgbs, t_starts, t_starts + deltas, bg)]
+    inputs = [t.float().to(device) for t in (sigmas, rgbs, t_starts, t_starts + deltas, bg)]
     want = composite(*[t.double() for t in inputs], backend="torch")
     kernel = composite(*inputs, backend="kernel")
     reference = composite(*inputs, backend="torch")

@@ -9,6 +9,8 @@ import sys
 import textwrap
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parent.parent
 
 
@@ -95,3 +97,31 @@ def test_source_hash_changes_with_the_sources(tmp_path):
     (tmp_path / "a.cpp").write_text("int b;")
     assert _sources.source_hash(tmp_path) != first
     assert _sources.source_hash(tmp_path / "missing") is None
+
+
+def test_jit_cache_hit_loads_the_library_without_building(tmp_path):
+    """A library in the build directory of the current sources is loaded as is: no compiler, no
+    ninja (a copied checkout or cache has file times ninja would distrust)."""
+    result = run_python(
+        """
+        import importlib.util, shutil
+        from torch.utils import cpp_extension
+        from mixer_nerf import _extension
+        prebuilt = importlib.util.find_spec("mixer_nerf._C")
+        if prebuilt is None:
+            print("no prebuilt library to stand in for a cached build")
+            raise SystemExit
+        build_dir = _extension._jit_build_dir(_extension._want_cuda())
+        build_dir.mkdir(parents=True)
+        shutil.copy(prebuilt.origin, build_dir / "mixer_nerf_C.so")
+        def no_build(*args, **kwargs):
+            raise AssertionError("a cache hit must not build")
+        cpp_extension.load = no_build
+        print("loaded" if _extension.available() else "failed")
+        """,
+        MIXER_NERF_EXTENSION="jit", MIXER_NERF_CACHE=str(tmp_path),
+    )
+    assert result.returncode == 0, result.stderr
+    if "no prebuilt" in result.stdout:
+        pytest.skip(result.stdout.strip())
+    assert result.stdout.strip() == "loaded", result.stdout + result.stderr

@@ -243,7 +243,8 @@ def _row_relative_errors(got, want):
     return (got - want).abs() / torch.maximum(want.abs(), floor.clamp_min(torch.finfo(torch.float32).tiny))
 
 
-def test_float32_gradients_at_least_as_accurate_as_reference():
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=[cuda, needs_cuda])])
+def test_float32_gradients_at_least_as_accurate_as_reference(device):
     """NeRF-like coarse weights (1e-4..1, 30% zeros) on jittered bins, B = 63, N = 128, float32.
     dL/dw_i = sum a_n u_n - sum_{k_n > i} a_n - sum_{k_n = i} a_n t_n cancels; with the sums in
     float32 the kernel's weight gradients were ~2 ulps off in the median, twice the reference
@@ -261,8 +262,9 @@ def test_float32_gradients_at_least_as_accurate_as_reference():
     u = torch.sort(torch.rand(R, N, generator=gen), dim=-1).values
     upstream = torch.randn(R, N, generator=gen)
     want = _grads("torch", bins.double(), weights.double(), u.double(), upstream=upstream.double())
-    kernel = _grads("kernel", bins, weights, u, upstream=upstream)
-    reference = _grads("torch", bins, weights, u, upstream=upstream)
+    bins, weights, u, upstream = (t.to(device) for t in (bins, weights, u, upstream))
+    kernel = [g.cpu() for g in _grads("kernel", bins, weights, u, upstream=upstream)]
+    reference = [g.cpu() for g in _grads("torch", bins, weights, u, upstream=upstream)]
     for name, k_grad, r_grad, truth in zip(("d bins", "d weights"), kernel, reference, want, strict=True):
         kernel_err, reference_err = _row_relative_errors(k_grad, truth), _row_relative_errors(r_grad, truth)
         for stat in ("max", "median"):

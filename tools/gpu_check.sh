@@ -1,7 +1,15 @@
 #!/usr/bin/env bash
-# One device call: JIT-build the kernels, run the whole test suite on the GPU, compute-sanitizer
-# over the CUDA sample_pdf/composite tests, the CUDA error budget and the op benchmarks.
-# Usage on the GPU machine: bash tools/gpu_check.sh  (writes under $OUT; prints a summary last)
+# GPU checks in one device call: JIT-build the kernels, then the named stages in order.
+# Usage on the GPU machine: bash tools/gpu_check.sh [STAGE ...]   (default: every stage)
+#   pytest[:PATH] the whole test suite, or one test file
+#   sanitizer     compute-sanitizer memcheck over the CUDA sample_pdf/composite tests
+#   error_budget  python benchmarks/error_budget.py --device cuda
+#   bench[:OPS]   python -m benchmarks.bench_ops --device cuda [--ops OPS]
+#   long_run      python benchmarks/long_run_stability.py (--budget $LONG_RUN_BUDGET, default 400 s)
+#   crash         tools/diagnose_exception_crash.py (in the background, alongside later stages)
+# Logs and results are packed into $OUT/gpu_check.tgz (the device returns at most 8 files), the
+# built library into $OUT/jit_cache.tar (unpack it into .gpu_cache and carry that to skip the build
+# next time); a summary is printed last.
 source tools/gpu_env.sh >/dev/null
 export MIXER_NERF_CACHE=${MIXER_NERF_CACHE:-$PWD/.gpu_cache}
 OUT=${OUT:-/tmp/gpu_check}; mkdir -p "$OUT/results"
@@ -14,10 +22,26 @@ step() {  # step NAME SECONDS CMD...: run with a time limit, keep the log, recor
   summary+=("$name rc=$rc $((SECONDS - t0))s: $(grep -E 'passed|failed|ERROR SUMMARY|error' "$OUT/$name.log" | tail -1)")
 }
 step build 300 python -c "from mixer_nerf import _extension as e; assert e.has_cuda_kernels(); print('CUDA kernels loaded')"
-step pytest 240 python -m pytest -q -p no:cacheprovider -rs
-step sanitizer 150 compute-sanitizer --tool memcheck --error-exitcode 1 python -m pytest -q -p no:cacheprovider \
-  tests/test_sample_pdf.py tests/test_composite.py -m cuda -k "not opcheck"
-step error_budget 150 python benchmarks/error_budget.py --device cuda --out "$OUT/results"
-step bench_ops 420 python -m benchmarks.bench_ops --device cuda --repeats 30 --out "$OUT/results"
-tail -n 40 "$OUT/bench_ops.log"
+(cd "$MIXER_NERF_CACHE" && tar cf "$OUT/jit_cache.tar" $(find build -name mixer_nerf_C.so))
+stages=("$@")
+[ ${#stages[@]} -eq 0 ] && stages=(crash pytest sanitizer error_budget bench)
+for stage in "${stages[@]}"; do
+  case $stage in
+    pytest*) paths=${stage#pytest}; step pytest 240 python -m pytest -q -p no:cacheprovider -rs ${paths#:} ;;
+    sanitizer) step sanitizer 240 compute-sanitizer --tool memcheck --error-exitcode 1 python -m pytest -q \
+      -p no:cacheprovider tests/test_sample_pdf.py tests/test_composite.py -m cuda -k "not opcheck" ;;
+    error_budget) step error_budget 150 python benchmarks/error_budget.py --device cuda --out "$OUT/results" ;;
+    bench*) ops=${stage#bench}; step bench_ops 420 python -m benchmarks.bench_ops --device cuda --repeats 30 \
+      --out "$OUT/results" ${ops:+--ops ${ops#:}} ;;
+    long_run) step long_run 560 python benchmarks/long_run_stability.py --out "$OUT/results" \
+      --budget "${LONG_RUN_BUDGET:-400}" ;;
+    crash) timeout 400 python tools/diagnose_exception_crash.py >"$OUT/crash.log" 2>&1 & ;;
+    *) echo "unknown stage $stage"; exit 2 ;;
+  esac
+done
+wait
+tail -n 40 "$OUT/bench_ops.log" 2>/dev/null
+tail -n 16 "$OUT/long_run.log" 2>/dev/null
+cat "$OUT/crash.log" 2>/dev/null
+(cd "$OUT" && tar czf gpu_check.tgz results *.log && rm -r results *.log)
 printf '%s\n' "${summary[@]}"

@@ -11,6 +11,16 @@
 // reverse; subtracting sums would cancel after a 1e10-long interval, so a first forward pass
 // keeps one value per chunk but the last in global scratch (a ray of <= 32 samples skips that
 // pass; packed rays are mostly that short). No atomics.
+//
+// Like the CPU kernel, both passes compute in double for every input dtype (ray_acc) and round
+// each output once. In float32 the kernel was less accurate than the reference path
+// (benchmarks/results/error_budget_cuda.md before this change): thin-media opacity max 2.0e-7 vs
+// 1.7e-7 (E drifted by a few ulps over a ray) and, far worse, thin-media sigma gradients max 4.6
+// vs 0.96, median 1.9e-7 vs 7.8e-8: G starts at O(1) and is multiplied S times by exp(-tau_j),
+// which rounds to 1 in float32 in fog, so a float32 G held ~S ulps that g_j - G_{j+1} kept where
+// it is small. The doubles cost FP64 math (one double expm1 per sample, one exp per run; see
+// Attenuation) and a second shuffle per scan step, not memory traffic
+// (benchmarks/results/ops_cuda.md measures the kernels with them).
 #include <torch/library.h>
 
 #include <ATen/ATen.h>
@@ -39,10 +49,6 @@ constexpr int kBackwardRun = 1;
 constexpr int kForwardChunk = kWarpSize * kForwardRun;
 constexpr int kBackwardChunk = kWarpSize * kBackwardRun;
 
-__device__ __forceinline__ float exp_(float x) { return expf(x); }
-__device__ __forceinline__ double exp_(double x) { return exp(x); }
-__device__ __forceinline__ float expm1_(float x) { return expm1f(x); }
-__device__ __forceinline__ double expm1_(double x) { return expm1(x); }
 
 template <typename T>
 __device__ __forceinline__ T warp_inclusive_sum(T x, int lane) {
@@ -61,6 +67,8 @@ __device__ __forceinline__ T warp_sum(T x) {
   return x;
 }
 
+using ray_acc = double;  // what both passes compute in (see the file comment)
+
 // A lane's run of K consecutive samples of a chunk. Samples past the ray's end hold
 // an empty interval (tau = 0, g = 0), the identity of both scans.
 template <typename scalar_t, int K>
@@ -68,8 +76,9 @@ struct LaneSamples {
   using acc = acc_t<scalar_t>;
   int64_t first;  // index of the run's first sample
   int valid;      // how many of the run's samples are in the ray
-  acc sigma[K] = {}, t_start[K] = {}, t_end[K] = {}, tau[K] = {};
-  acc total = 0;  // sum of tau over the run
+  acc sigma[K] = {}, t_start[K] = {}, t_end[K] = {};
+  ray_acc tau[K] = {};  // exact for float inputs: a double holds the product of two floats
+  ray_acc total = 0;    // sum of tau over the run
   __device__ LaneSamples(const CompositeInputs<scalar_t>& in, int64_t offset, int64_t count, int64_t k)
       : first(offset + k), valid(static_cast<int>(k >= count ? 0 : (count - k < K ? count - k : K))) {
 #pragma unroll
@@ -78,12 +87,26 @@ struct LaneSamples {
         sigma[j] = in.sigmas[first + j];
         t_start[j] = in.t_starts[first + j];
         t_end[j] = in.t_ends[first + j];
-        tau[j] = sigma[j] * (t_end[j] - t_start[j]);
+        tau[j] = ray_acc(sigma[j]) * (ray_acc(t_end[j]) - ray_acc(t_start[j]));
         total += tau[j];
       }
     }
   }
-  __device__ acc midpoint(int j) const { return acc(0.5) * (t_start[j] + t_end[j]); }
+  __device__ ray_acc midpoint(int j) const { return ray_acc(0.5) * (ray_acc(t_start[j]) + ray_acc(t_end[j])); }
+};
+
+// A sample's alpha = 1 - exp(-tau) and decay = exp(-tau). One expm1 gives both where exp(-tau)
+// >= 1/2 (1 + expm1 is then within an ulp, however thin the sample), else exp gives the decay.
+// Transmittance within a lane's run is carried as T_{i+1} = T_i * decay_i: a product of at most
+// a run's factors, in double, so one exp per run (at the run's start, from the exclusive scan)
+// replaces one per sample.
+struct Attenuation {
+  ray_acc alpha, decay;
+  __device__ explicit Attenuation(ray_acc tau) {
+    const ray_acc decay_m1 = expm1(-tau);
+    alpha = -decay_m1;
+    decay = decay_m1 >= ray_acc(-0.5) ? ray_acc(1) + decay_m1 : exp(-tau);
+  }
 };
 
 // Optical depth before a lane's run given the optical depth `carry` before the chunk; advances
@@ -102,19 +125,19 @@ __device__ __forceinline__ acc run_optical_depth(acc run_total, int lane, acc& c
 template <typename scalar_t>
 __device__ void composite_forward_ray(const CompositeInputs<scalar_t>& in, const CompositeOutputs<scalar_t>& out,
                                       int64_t ray, int64_t offset, int64_t count, int lane) {
-  using acc = acc_t<scalar_t>;
   const int64_t C = in.channels;
   for (int64_t c0 = 0; c0 == 0 || c0 < C; c0 += kChannelsPerPass) {
-    acc color[kChannelsPerPass] = {};
-    acc depth = 0, optical_depth = 0;
+    ray_acc color[kChannelsPerPass] = {};
+    ray_acc depth = 0, optical_depth = 0;
     for (int64_t base = 0; base < count; base += kForwardChunk) {
       const LaneSamples<scalar_t, kForwardRun> s(in, offset, count, base + lane * kForwardRun);
-      acc before = run_optical_depth(s.total, lane, optical_depth);
+      ray_acc transmittance = exp(-run_optical_depth(s.total, lane, optical_depth));
 #pragma unroll
       for (int j = 0; j < kForwardRun; ++j) {
         if (j >= s.valid) break;
-        const acc w = exp_(-before) * -expm1_(-s.tau[j]);
-        before += s.tau[j];
+        const Attenuation att(s.tau[j]);
+        const ray_acc w = transmittance * att.alpha;
+        transmittance *= att.decay;
         const int64_t i = s.first + j;
         if (c0 == 0) {
           out.weights[i] = static_cast<scalar_t>(w);
@@ -123,88 +146,88 @@ __device__ void composite_forward_ray(const CompositeInputs<scalar_t>& in, const
         const scalar_t* rgb = in.rgbs + i * C + c0;
 #pragma unroll
         for (int c = 0; c < kChannelsPerPass; ++c) {
-          if (c0 + c < C) color[c] += w * acc(rgb[c]);
+          if (c0 + c < C) color[c] += w * ray_acc(rgb[c]);
         }
       }
     }
-    const acc transmittance = exp_(-optical_depth);
+    const ray_acc transmittance = exp(-optical_depth);
     const scalar_t* bg = in.background ? in.background + ray * in.background_stride : nullptr;
 #pragma unroll
     for (int c = 0; c < kChannelsPerPass; ++c) {
-      const acc total = warp_sum(color[c]);
+      const ray_acc total = warp_sum(color[c]);
       if (lane == 0 && c0 + c < C) {
-        out.color[ray * C + c0 + c] = static_cast<scalar_t>(total + (bg ? transmittance * acc(bg[c0 + c]) : acc(0)));
+        out.color[ray * C + c0 + c] =
+            static_cast<scalar_t>(total + (bg ? transmittance * ray_acc(bg[c0 + c]) : ray_acc(0)));
       }
     }
     if (c0 == 0) {
       depth = warp_sum(depth);
       if (lane == 0) {
         out.depth[ray] = static_cast<scalar_t>(depth);
-        out.opacity[ray] = static_cast<scalar_t>(-expm1_(-optical_depth));
+        out.opacity[ray] = static_cast<scalar_t>(-expm1(-optical_depth));
       }
     }
   }
 }
 
 // Backward of one ray by one warp; chunk_start is this ray's scratch, one entry per chunk but the last.
+
 template <typename scalar_t>
 __device__ void composite_backward_ray(const CompositeInputs<scalar_t>& in, const CompositeGrads<scalar_t>& g,
                                        int64_t ray, int64_t offset, int64_t count, int lane,
-                                       acc_t<scalar_t>* chunk_start) {
+                                       ray_acc* chunk_start) {
   using acc = acc_t<scalar_t>;
   const int64_t C = in.channels;
   const int64_t chunks = (count + kBackwardChunk - 1) / kBackwardChunk;
 
   // Optical depth before every chunk but the last; the reverse pass below starts there and
   // finds the total (hence T past the last sample) itself.
-  acc optical_depth = 0;
+  ray_acc optical_depth = 0;
   for (int64_t q = 0; q + 1 < chunks; ++q) {
     if (lane == 0) chunk_start[q] = optical_depth;
     optical_depth += warp_sum(LaneSamples<scalar_t, kBackwardRun>(in, offset, count, q * kBackwardChunk + lane * kBackwardRun).total);
   }
   __syncwarp();  // orders lane 0's scratch writes before every lane's reads
-  acc total_optical_depth = optical_depth;  // final once the last chunk is added below
+  ray_acc total_optical_depth = optical_depth;  // final once the last chunk is added below
 
   const scalar_t* grad_color = g.color ? g.color + ray * C : nullptr;
-  const acc grad_depth = g.depth ? acc(g.depth[ray]) : acc(0);
+  const ray_acc grad_depth = g.depth ? ray_acc(g.depth[ray]) : ray_acc(0);
   // G past the last sample: the background seen with weight T_S, minus the opacity gradient.
-  acc G = g.opacity ? -acc(g.opacity[ray]) : acc(0);
+  ray_acc G = g.opacity ? -ray_acc(g.opacity[ray]) : ray_acc(0);
   if (in.background && grad_color) {
     const scalar_t* bg = in.background + ray * in.background_stride;
-    for (int64_t c = 0; c < C; ++c) G += acc(grad_color[c]) * acc(bg[c]);
+    for (int64_t c = 0; c < C; ++c) G += ray_acc(grad_color[c]) * ray_acc(bg[c]);
   }
 
   for (int64_t q = chunks - 1; q >= 0; --q) {
     const LaneSamples<scalar_t, kBackwardRun> s(in, offset, count, q * kBackwardChunk + lane * kBackwardRun);
     const bool last = q == chunks - 1;
-    acc carry = last ? optical_depth : chunk_start[q];
-    acc before = run_optical_depth(s.total, lane, carry);
+    ray_acc carry = last ? optical_depth : chunk_start[q];
+    ray_acc transmittance = exp(-run_optical_depth(s.total, lane, carry));
     if (last) total_optical_depth = carry;
-    acc transmittance = exp_(-before);
-    acc alpha[kBackwardRun], decay[kBackwardRun], g_in[kBackwardRun], t_after[kBackwardRun];
-    acc w[kBackwardRun];
+    ray_acc alpha[kBackwardRun], decay[kBackwardRun], g_in[kBackwardRun], t_after[kBackwardRun], w[kBackwardRun];
 #pragma unroll
     for (int j = 0; j < kBackwardRun; ++j) {
       alpha[j] = 0, decay[j] = 1, g_in[j] = 0, t_after[j] = 0, w[j] = 0;
       if (j >= s.valid) continue;
-      alpha[j] = -expm1_(-s.tau[j]);
-      decay[j] = exp_(-s.tau[j]);
-      before += s.tau[j];
-      t_after[j] = exp_(-before);
-      w[j] = transmittance * alpha[j];
+      const Attenuation att(s.tau[j]);
+      alpha[j] = att.alpha;
+      decay[j] = att.decay;
+      t_after[j] = transmittance * att.decay;
+      w[j] = transmittance * att.alpha;
       transmittance = t_after[j];
       const int64_t i = s.first + j;
-      g_in[j] = grad_depth * s.midpoint(j) + (g.weights ? acc(g.weights[i]) : acc(0));
+      g_in[j] = grad_depth * s.midpoint(j) + (g.weights ? ray_acc(g.weights[i]) : ray_acc(0));
       const scalar_t* rgb = in.rgbs + i * C;
       for (int64_t c = 0; c < C; ++c) {
-        const acc gc = grad_color ? acc(grad_color[c]) : acc(0);
-        g_in[j] += gc * acc(rgb[c]);
+        const ray_acc gc = grad_color ? ray_acc(grad_color[c]) : ray_acc(0);
+        g_in[j] += gc * ray_acc(rgb[c]);
         g.rgbs[i * C + c] = static_cast<scalar_t>(gc * w[j]);
       }
     }
     // The run's map x -> a + b x (its samples' maps composed), then a reverse inclusive warp scan:
     // lane l ends with runs l, l+1, ..., 31 composed.
-    acc a = 0, b = 1;
+    ray_acc a = 0, b = 1;
 #pragma unroll
     for (int j = kBackwardRun - 1; j >= 0; --j) {
       a = alpha[j] * g_in[j] + decay[j] * a;
@@ -212,35 +235,35 @@ __device__ void composite_backward_ray(const CompositeInputs<scalar_t>& in, cons
     }
 #pragma unroll
     for (int d = 1; d < kWarpSize; d <<= 1) {
-      const acc a_next = __shfl_down_sync(kFullMask, a, d);
-      const acc b_next = __shfl_down_sync(kFullMask, b, d);
+      const ray_acc a_next = __shfl_down_sync(kFullMask, a, d);
+      const ray_acc b_next = __shfl_down_sync(kFullMask, b, d);
       if (lane + d < kWarpSize) {
         a += b * a_next;
         b *= b_next;
       }
     }
     // G after this lane's run: the later lanes' composition applied to G after the chunk.
-    const acc a_later = __shfl_down_sync(kFullMask, a, 1), b_later = __shfl_down_sync(kFullMask, b, 1);
-    acc G_run = lane == kWarpSize - 1 ? G : a_later + b_later * G;
+    const ray_acc a_later = __shfl_down_sync(kFullMask, a, 1), b_later = __shfl_down_sync(kFullMask, b, 1);
+    ray_acc G_run = lane == kWarpSize - 1 ? G : a_later + b_later * G;
     G = __shfl_sync(kFullMask, a + b * G, 0);  // G before the chunk, for the next (earlier) chunk
 #pragma unroll
     for (int j = kBackwardRun - 1; j >= 0; --j) {
       if (j >= s.valid) continue;
-      const acc grad_tau = t_after[j] * (g_in[j] - G_run);
+      const ray_acc grad_tau = t_after[j] * (g_in[j] - G_run);
       G_run = alpha[j] * g_in[j] + decay[j] * G_run;
       const int64_t i = s.first + j;
-      g.sigmas[i] = static_cast<scalar_t>(grad_tau * (s.t_end[j] - s.t_start[j]));
+      g.sigmas[i] = static_cast<scalar_t>(grad_tau * (ray_acc(s.t_end[j]) - ray_acc(s.t_start[j])));
       if (g.t_starts) {
-        const acc from_depth = acc(0.5) * grad_depth * w[j];
-        g.t_starts[i] = static_cast<scalar_t>(from_depth - grad_tau * s.sigma[j]);
-        g.t_ends[i] = static_cast<scalar_t>(from_depth + grad_tau * s.sigma[j]);
+        const ray_acc from_depth = ray_acc(0.5) * grad_depth * w[j];
+        g.t_starts[i] = static_cast<scalar_t>(from_depth - grad_tau * ray_acc(s.sigma[j]));
+        g.t_ends[i] = static_cast<scalar_t>(from_depth + grad_tau * ray_acc(s.sigma[j]));
       }
     }
   }
   if (g.background_rows) {
-    const acc transmittance_end = exp_(-total_optical_depth);
+    const ray_acc transmittance_end = exp(-total_optical_depth);
     for (int64_t c = lane; c < C; c += kWarpSize) {
-      g.background_rows[ray * C + c] = grad_color ? acc(grad_color[c]) * transmittance_end : acc(0);
+      g.background_rows[ray * C + c] = static_cast<acc>(grad_color ? ray_acc(grad_color[c]) * transmittance_end : ray_acc(0));
     }
   }
 }
@@ -263,7 +286,7 @@ int64_t scratch_entries(int64_t N, int64_t R) { return N / kBackwardChunk + R; }
 template <typename scalar_t, typename Rays>
 __global__ void __launch_bounds__(kMaxWarpsPerBlock* kWarpSize)
     composite_bwd_kernel(CompositeInputs<scalar_t> in, CompositeGrads<scalar_t> g, int64_t R, Rays rays,
-                         acc_t<scalar_t>* scratch) {
+                         ray_acc* scratch) {
   const int64_t ray = int64_t(blockIdx.x) * (blockDim.x / kWarpSize) + threadIdx.x / kWarpSize;
   if (ray >= R) return;
   const composite_layout::RaySpan span = rays(ray);
@@ -307,14 +330,13 @@ composite_backward(const std::optional<at::Tensor>& grad_color, const std::optio
   check_upstream(grad_color, grad_depth, grad_opacity, grad_weights, sigmas, rgbs, R, at::kCUDA);
   CompositeGradTensors grads(sigmas, rgbs, background, R, interval_grads);
   if (R > 0) {
-    const at::Tensor scratch = at::empty({scratch_entries(sigmas.numel(), R)},
-                                         sigmas.options().dtype(at::toOpMathType(sigmas.scalar_type())));
+    const at::Tensor scratch = at::empty({scratch_entries(sigmas.numel(), R)}, sigmas.options().dtype(at::kDouble));
     MIXER_NERF_DISPATCH_FLOATING(sigmas.scalar_type(), "composite_bwd_cuda", [&] {
       composite_bwd_kernel<scalar_t><<<blocks_for(R), kMaxWarpsPerBlock * kWarpSize, 0,
                                        c10::cuda::getCurrentCUDAStream()>>>(
           inputs_of<scalar_t>(sigmas, rgbs, t_starts, t_ends, background),
           grads.pointers<scalar_t>(grad_color, grad_depth, grad_opacity, grad_weights), R, rays,
-          scratch.data_ptr<acc_t<scalar_t>>());
+          scratch.data_ptr<ray_acc>());
       C10_CUDA_KERNEL_LAUNCH_CHECK();
     });
   }

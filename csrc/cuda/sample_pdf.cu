@@ -40,6 +40,7 @@ constexpr int kWarpSize = 32;
 constexpr unsigned kFullMask = 0xffffffffu;
 constexpr int kMaxWarpsPerBlock = 8;
 constexpr size_t kDefaultSharedBytes = 48 * 1024;
+using grad_t = cdf_t;  // the backward's sums: double for every input dtype
 
 // #{i < n : a[i] <= x} (kInclusive) or #{i < n : a[i] < x}, for sorted a.
 template <bool kInclusive, typename acc_t>
@@ -53,31 +54,32 @@ __device__ int count_before(const acc_t* a, int n, acc_t x) {
   return lo;
 }
 
-// Shared memory of one warp: the CDF (B+1, cdf_t), then in the accumulation type the padded
-// weights (B), the edges (B+1) and `tail` more elements for the kernel's own use. Each warp's
-// region is a multiple of 16 bytes, so every CDF stays aligned.
+// Shared memory of one warp: the CDF (B+1, cdf_t), `tail` elements of tail_t for the kernel's
+// own use, then in the accumulation type the padded weights (B) and the edges (B+1). Each warp's
+// region is a multiple of 16 bytes and the CDF and tail come first, so every double is aligned.
 struct WarpLayout {
   int num_bins;
   int tail;
-  template <typename acc_t>
+  template <typename acc_t, typename tail_t>
   __host__ __device__ size_t bytes() const {
-    const size_t acc_elements = 2 * size_t(num_bins) + 1 + size_t(tail);
-    return (sizeof(cdf_t) * (num_bins + 1) + sizeof(acc_t) * acc_elements + 15) / 16 * 16;
+    const size_t acc_elements = 2 * size_t(num_bins) + 1;
+    return (sizeof(cdf_t) * (num_bins + 1) + sizeof(tail_t) * size_t(tail) + sizeof(acc_t) * acc_elements + 15) /
+           16 * 16;
   }
 };
 
-template <typename acc_t>
+template <typename acc_t, typename tail_t = acc_t>
 struct WarpShared {
-  cdf_t* cdf;    // (B+1)
-  acc_t* w;      // (B) padded, flushed
-  acc_t* edges;  // (B+1)
-  acc_t* tail;
+  cdf_t* cdf;     // (B+1)
+  tail_t* tail;   // (layout.tail)
+  acc_t* w;       // (B) padded, flushed
+  acc_t* edges;   // (B+1)
 
   __device__ WarpShared(unsigned char* raw, const WarpLayout& layout, int warp) {
-    cdf = reinterpret_cast<cdf_t*>(raw + warp * layout.bytes<acc_t>());
-    w = reinterpret_cast<acc_t*>(cdf + layout.num_bins + 1);
+    cdf = reinterpret_cast<cdf_t*>(raw + warp * layout.bytes<acc_t, tail_t>());
+    tail = reinterpret_cast<tail_t*>(cdf + layout.num_bins + 1);
+    w = reinterpret_cast<acc_t*>(tail + layout.tail);
     edges = w + layout.num_bins;
-    tail = edges + layout.num_bins + 1;
   }
 };
 
@@ -169,6 +171,11 @@ __device__ acc_t warp_sum(acc_t x) {
 }
 
 // Backward. Tail: per bin, sum a, sum a t, gradient reaching its lower and its upper edge (4 B).
+// Every term and sum is a double for every input dtype (grad_t), as in the CPU kernel's
+// sample_pdf_ray_backward (see its comment): dL/dw_i is a difference of sums that largely cancel.
+// With float32 sums, float32 weight gradients were less accurate than the reference path's
+// (benchmarks/results/error_budget_cuda.md before this change: 9.9e63 vs 3.3e63 max on extreme
+// PDFs). The doubles cost shuffles and shared memory, not memory traffic.
 template <typename scalar_t, typename Rows>
 __global__ void sample_pdf_backward_kernel(int64_t rays, WarpLayout layout, Rows rows, const scalar_t* __restrict__ grad,
                                            const scalar_t* __restrict__ bins, const scalar_t* __restrict__ weights,
@@ -183,11 +190,11 @@ __global__ void sample_pdf_backward_kernel(int64_t rays, WarpLayout layout, Rows
 
   const RayBins ray_bins = rows(ray);
   const int B = ray_bins.num_bins, N = num_samples;
-  const WarpShared<acc> sh(shared_raw, layout, warp);
-  acc* bin_a = sh.tail;
-  acc* bin_a_t = bin_a + B;
-  acc* bin_lo = bin_a_t + B;
-  acc* bin_hi = bin_lo + B;
+  const WarpShared<acc, grad_t> sh(shared_raw, layout, warp);
+  grad_t* bin_a = sh.tail;
+  grad_t* bin_a_t = bin_a + B;
+  grad_t* bin_lo = bin_a_t + B;
+  grad_t* bin_hi = bin_lo + B;
   const scalar_t* grad_row = grad + ray * N;
   const acc* u_row = u + ray * u_row_stride;
   scalar_t* grad_bins_row = grad_bins + ray_bins.edges;
@@ -196,7 +203,7 @@ __global__ void sample_pdf_backward_kernel(int64_t rays, WarpLayout layout, Rows
   for (int i = lane; i <= B; i += kWarpSize) {
     if (i < B) {
       sh.w[i] = PaddedWeights<acc, scalar_t>{weights + ray_bins.weights, pad}(i);
-      bin_a[i] = bin_a_t[i] = bin_lo[i] = bin_hi[i] = acc(0);
+      bin_a[i] = bin_a_t[i] = bin_lo[i] = bin_hi[i] = grad_t(0);
     }
     sh.edges[i] = static_cast<acc>(bins[ray_bins.edges + i]);
   }
@@ -214,9 +221,9 @@ __global__ void sample_pdf_backward_kernel(int64_t rays, WarpLayout layout, Rows
     return;
   }
   if (no_pdf<acc>(total)) {  // s = e_0 + u (e_B - e_0): only the end edges get gradient
-    acc first = 0, last = 0;
+    grad_t first = 0, last = 0;
     for (int n = lane; n < N; n += kWarpSize) {
-      const acc g = static_cast<acc>(grad_row[n]);
+      const grad_t g = static_cast<grad_t>(grad_row[n]);
       first += g - g * u_row[n];
       last += g * u_row[n];
     }
@@ -224,26 +231,26 @@ __global__ void sample_pdf_backward_kernel(int64_t rays, WarpLayout layout, Rows
     last = warp_sum(last);
     for (int i = lane; i <= B; i += kWarpSize) {  // a ray without bins: one edge gets both
       if (i < B) grad_weights_row[i] = scalar_t(0);
-      grad_bins_row[i] = static_cast<scalar_t>((i == 0 ? first : acc(0)) + (i == B ? last : acc(0)));
+      grad_bins_row[i] = static_cast<scalar_t>((i == 0 ? first : grad_t(0)) + (i == B ? last : grad_t(0)));
     }
     return;
   }
 
-  acc sum_a_u = 0;
+  grad_t sum_a_u = 0;
   for (int base = 0; base < N; base += kWarpSize) {  // the same trip count in every lane
     const int n = base + lane;
     int key = INT_MAX;  // lanes past the end form their own segment and write nothing
-    acc a = 0, a_t = 0, lo = 0, hi = 0;
+    grad_t a = 0, a_t = 0, lo = 0, hi = 0;
     if (n < N) {
-      const acc g = static_cast<acc>(grad_row[n]);
+      const grad_t g = static_cast<grad_t>(grad_row[n]);
       const cdf_t v = cdf_t(u_row[n]) * total;
       key = find_bin(sh.cdf, B, v);
-      const acc w_k = sh.w[key];
-      const Fraction<acc> f = fraction_in_bin(v, sh.cdf[key], w_k);
+      const grad_t w_k = sh.w[key];
+      const Fraction<grad_t> f = fraction_in_bin(v, sh.cdf[key], w_k);
       lo = g - g * f.t;
       hi = g * f.t;
       if (f.weighted) {
-        a = g * (sh.edges[key + 1] - sh.edges[key]) / w_k;
+        a = g * (grad_t(sh.edges[key + 1]) - grad_t(sh.edges[key])) / w_k;
         a_t = a * f.t_raw;
         sum_a_u += a * u_row[n];
       }
@@ -262,33 +269,33 @@ __global__ void sample_pdf_backward_kernel(int64_t rays, WarpLayout layout, Rows
 
   // dL/dw_i = sum a u - (sum of bin_a above i) - bin_a_t[i], from the last bin down: lane 0 takes
   // the highest bin of each chunk, and `above` carries the chunks already done.
-  acc above = 0;
+  grad_t above = 0;
   for (int base = 0; base < B; base += kWarpSize) {
     const int i = B - 1 - base - lane;
-    acc inclusive = i >= 0 ? bin_a[i] : acc(0);
+    grad_t inclusive = i >= 0 ? bin_a[i] : grad_t(0);
 #pragma unroll
     for (int offset = 1; offset < kWarpSize; offset *= 2) {
-      const acc up = __shfl_up_sync(kFullMask, inclusive, offset);
+      const grad_t up = __shfl_up_sync(kFullMask, inclusive, offset);
       if (lane >= offset) inclusive += up;
     }
-    const acc below = __shfl_up_sync(kFullMask, inclusive, 1);  // every lane: the mask says all 32
-    const acc exclusive = lane == 0 ? acc(0) : below;
+    const grad_t below = __shfl_up_sync(kFullMask, inclusive, 1);  // every lane: the mask says all 32
+    const grad_t exclusive = lane == 0 ? grad_t(0) : below;
     if (i >= 0) {
       grad_weights_row[i] = sh.w[i] > 0 ? static_cast<scalar_t>(sum_a_u - (above + exclusive) - bin_a_t[i]) : scalar_t(0);
     }
     above += __shfl_sync(kFullMask, inclusive, kWarpSize - 1);
   }
   for (int e = lane; e <= B; e += kWarpSize) {
-    grad_bins_row[e] = static_cast<scalar_t>((e < B ? bin_lo[e] : acc(0)) + (e > 0 ? bin_hi[e - 1] : acc(0)));
+    grad_bins_row[e] = static_cast<scalar_t>((e < B ? bin_lo[e] : grad_t(0)) + (e > 0 ? bin_hi[e - 1] : grad_t(0)));
   }
 }
 
 // Launches a warp-per-ray kernel with as many warps per block as fit the default shared memory
 // (at least one, opting in to more shared memory for very long rays).
-template <typename acc, typename Kernel, typename... Args>
+template <typename acc, typename tail_t, typename Kernel, typename... Args>
 void launch_warp_per_ray(Kernel kernel, const WarpLayout& layout, int64_t rays, Args... args) {
   if (rays == 0) return;
-  const size_t warp_bytes = layout.bytes<acc>();
+  const size_t warp_bytes = layout.bytes<acc, tail_t>();
   const int warps = int(std::max<size_t>(1, std::min<size_t>(kMaxWarpsPerBlock, kDefaultSharedBytes / warp_bytes)));
   const size_t shared = warps * warp_bytes;
   if (shared > kDefaultSharedBytes) {
@@ -325,7 +332,7 @@ at::Tensor sample_forward(const at::Tensor& bins, const at::Tensor& weights, con
   const int num_samples = int(batch.samples);
   MIXER_NERF_DISPATCH_FLOATING(bins.scalar_type(), "sample_pdf_fwd_cuda", [&] {
     using acc = acc_t<scalar_t>;
-    launch_warp_per_ray<acc>(sample_forward_kernel<scalar_t, false, Rows>, WarpLayout{max_bins, num_samples},
+    launch_warp_per_ray<acc, acc>(sample_forward_kernel<scalar_t, false, Rows>, WarpLayout{max_bins, num_samples},
                              batch.rays, rows, bins.data_ptr<scalar_t>(), weights.data_ptr<scalar_t>(),
                              u.data_ptr<acc>(), batch.u_row_stride, num_samples, static_cast<acc>(weight_padding),
                              samples.data_ptr<scalar_t>());
@@ -347,7 +354,7 @@ std::tuple<at::Tensor, at::Tensor> sample_backward(const at::Tensor& grad_sample
   const int num_samples = int(batch.samples);
   MIXER_NERF_DISPATCH_FLOATING(bins.scalar_type(), "sample_pdf_bwd_cuda", [&] {
     using acc = acc_t<scalar_t>;
-    launch_warp_per_ray<acc>(sample_pdf_backward_kernel<scalar_t, Rows>, WarpLayout{max_bins, 4 * max_bins},
+    launch_warp_per_ray<acc, grad_t>(sample_pdf_backward_kernel<scalar_t, Rows>, WarpLayout{max_bins, 4 * max_bins},
                              batch.rays, rows, grad_samples.data_ptr<scalar_t>(), bins.data_ptr<scalar_t>(),
                              weights.data_ptr<scalar_t>(), u.data_ptr<acc>(), batch.u_row_stride, num_samples,
                              static_cast<acc>(weight_padding), grad_bins.data_ptr<scalar_t>(),
@@ -399,7 +406,7 @@ at::Tensor hierarchical_samples_fwd_cuda(const at::Tensor& z_coarse, const at::T
   at::Tensor merged = at::empty({batch.rays, coarse + batch.samples}, z_coarse.options());
   MIXER_NERF_DISPATCH_FLOATING(z_coarse.scalar_type(), "hierarchical_samples_fwd_cuda", [&] {
     using acc = acc_t<scalar_t>;
-    launch_warp_per_ray<acc>(sample_forward_kernel<scalar_t, true, DenseBins>,
+    launch_warp_per_ray<acc, acc>(sample_forward_kernel<scalar_t, true, DenseBins>,
                              WarpLayout{coarse - 2, coarse + num_samples}, batch.rays, DenseBins{coarse - 2},
                              z_coarse.data_ptr<scalar_t>(), weights.data_ptr<scalar_t>(), u.data_ptr<acc>(),
                              batch.u_row_stride, num_samples, static_cast<acc>(weight_padding),
