@@ -6,6 +6,10 @@
 #include <ATen/Parallel.h>
 #include <c10/macros/Macros.h>
 
+#include <string>
+#include <type_traits>
+#include <vector>
+
 namespace mixer_nerf {
 
 // Accumulation type: float for half/bfloat16/float, double for double.
@@ -14,9 +18,49 @@ using acc_t = at::opmath_type<scalar_t>;
 
 // Defensive checks inside kernels' host code; user-facing validation with clear messages
 // happens in Python (mixer_nerf/ops/_checks.py) before any kernel runs.
-#define MIXER_NERF_CHECK_INPUT(t, dev)                                                        \
-  TORCH_CHECK((t).device().type() == (dev), #t " must be on ", (dev), ", got ", (t).device()); \
-  TORCH_CHECK((t).is_contiguous(), #t " must be contiguous")
+//
+// MIXER_NERF_CHECK(cond, parts...) is TORCH_CHECK with the message built here, from string
+// pieces, integers, shapes, devices and dtypes, and handed to torch as one C string. On the GPU
+// machine (torch 2.11+cu130, extension built with g++ 13.3) a failing TORCH_CHECK whose message
+// streams a value (torch's c10::str / std::ostream path; a shape, say) killed the process with
+// SIGSEGV instead of raising, in any extension (tools/diagnose_exception_crash.py reproduces it);
+// a message of one C string takes torch's other path and raises a RuntimeError as it should.
+namespace check_message {
+inline void append(std::string& out, const char* part) { out += part; }
+inline void append(std::string& out, const std::string& part) { out += part; }
+template <typename T, std::enable_if_t<std::is_arithmetic_v<T>, int> = 0>
+void append(std::string& out, T value) {
+  out += std::to_string(value);
+}
+inline void append(std::string& out, c10::IntArrayRef shape) {
+  out += '[';
+  for (size_t i = 0; i < shape.size(); ++i) out += (i ? ", " : "") + std::to_string(shape[i]);
+  out += ']';
+}
+inline void append(std::string& out, const std::vector<int64_t>& shape) { append(out, c10::IntArrayRef(shape)); }
+inline void append(std::string& out, c10::DeviceType type) { out += c10::DeviceTypeName(type, /*lower_case=*/true); }
+inline void append(std::string& out, const c10::Device& device) { out += device.str(); }
+inline void append(std::string& out, c10::ScalarType dtype) { out += c10::toString(dtype); }
+
+template <typename... Parts>
+std::string build(const Parts&... parts) {
+  std::string out;
+  (append(out, parts), ...);
+  return out;
+}
+}  // namespace check_message
+
+#define MIXER_NERF_CHECK(cond, ...)                                                  \
+  do {                                                                               \
+    if (C10_UNLIKELY(!(cond))) {                                                     \
+      const std::string mixer_nerf_message = ::mixer_nerf::check_message::build(__VA_ARGS__); \
+      TORCH_CHECK(false, mixer_nerf_message.c_str());                                \
+    }                                                                                \
+  } while (false)
+
+#define MIXER_NERF_CHECK_INPUT(t, dev)                                                             \
+  MIXER_NERF_CHECK((t).device().type() == (dev), #t " must be on ", (dev), ", got ", (t).device()); \
+  MIXER_NERF_CHECK((t).is_contiguous(), #t " must be contiguous")
 
 // Floating dtypes every kernel accepts: float, double, half, bfloat16.
 #define MIXER_NERF_DISPATCH_FLOATING(TYPE, NAME, ...) \

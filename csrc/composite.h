@@ -88,32 +88,32 @@ inline void check_composite_inputs(const at::Tensor& sigmas, const at::Tensor& r
   MIXER_NERF_CHECK_INPUT(rgbs, device);
   MIXER_NERF_CHECK_INPUT(t_starts, device);
   MIXER_NERF_CHECK_INPUT(t_ends, device);
-  TORCH_CHECK(rgbs.dim() == sigmas.dim() + 1 && rgbs.sizes().slice(0, sigmas.dim()) == sigmas.sizes(),
+  MIXER_NERF_CHECK(rgbs.dim() == sigmas.dim() + 1 && rgbs.sizes().slice(0, sigmas.dim()) == sigmas.sizes(),
               "composite: rgbs must be (*sigmas.shape, C)");
-  TORCH_CHECK(t_starts.sizes() == sigmas.sizes() && t_ends.sizes() == sigmas.sizes(),
+  MIXER_NERF_CHECK(t_starts.sizes() == sigmas.sizes() && t_ends.sizes() == sigmas.sizes(),
               "composite: t_starts/t_ends must match sigmas");
   for (const at::Tensor* t : {&rgbs, &t_starts, &t_ends}) {
-    TORCH_CHECK(t->scalar_type() == sigmas.scalar_type(), "composite: inputs must share one dtype");
+    MIXER_NERF_CHECK(t->scalar_type() == sigmas.scalar_type(), "composite: inputs must share one dtype");
   }
   if (background) {
     MIXER_NERF_CHECK_INPUT(*background, device);
-    TORCH_CHECK(background->scalar_type() == sigmas.scalar_type(), "composite: inputs must share one dtype");
+    MIXER_NERF_CHECK(background->scalar_type() == sigmas.scalar_type(), "composite: inputs must share one dtype");
     const int64_t C = rgbs.size(-1);
     const bool shared = background->dim() == 1 && background->size(0) == C;
     const bool per_ray = background->dim() == 2 && background->size(0) == rays && background->size(1) == C;
-    TORCH_CHECK(shared || per_ray, "composite: background must be (C) or (R, C)");
+    MIXER_NERF_CHECK(shared || per_ray, "composite: background must be (C) or (R, C)");
   }
 }
 
 inline void check_dense(const at::Tensor& sigmas) {
-  TORCH_CHECK(sigmas.dim() == 2, "composite: sigmas must be (R, S)");
+  MIXER_NERF_CHECK(sigmas.dim() == 2, "composite: sigmas must be (R, S)");
 }
 
 // Packed samples: sigmas (N), offsets (R+1) int64. Returns R.
 inline int64_t check_packed(const at::Tensor& sigmas, const at::Tensor& offsets, at::DeviceType device) {
-  TORCH_CHECK(sigmas.dim() == 1, "composite_packed: sigmas must be (N)");
+  MIXER_NERF_CHECK(sigmas.dim() == 1, "composite_packed: sigmas must be (N)");
   MIXER_NERF_CHECK_INPUT(offsets, device);
-  TORCH_CHECK(offsets.scalar_type() == at::kLong && offsets.dim() == 1 && offsets.size(0) >= 1,
+  MIXER_NERF_CHECK(offsets.scalar_type() == at::kLong && offsets.dim() == 1 && offsets.size(0) >= 1,
               "composite_packed: offsets must be (R+1) int64");
   return offsets.size(0) - 1;
 }
@@ -130,8 +130,8 @@ inline void check_upstream(const std::optional<at::Tensor>& grad_color, const st
     if (!*grad) continue;
     const at::Tensor& upstream = **grad;
     MIXER_NERF_CHECK_INPUT(upstream, device);
-    TORCH_CHECK(upstream.scalar_type() == sigmas.scalar_type(), "composite_bwd: gradient dtype mismatch");
-    TORCH_CHECK(upstream.sizes() == shape, "composite_bwd: gradient of shape ", upstream.sizes(), ", expected ", shape);
+    MIXER_NERF_CHECK(upstream.scalar_type() == sigmas.scalar_type(), "composite_bwd: gradient dtype mismatch");
+    MIXER_NERF_CHECK(upstream.sizes() == shape, "composite_bwd: gradient of shape ", upstream.sizes(), ", expected ", shape);
   }
 }
 

@@ -37,8 +37,8 @@ struct Encoding {
 
 void check_args(const at::Tensor& x, int64_t num_freqs) {
   MIXER_NERF_CHECK_INPUT(x, at::kCPU);
-  TORCH_CHECK(x.dim() >= 1 && x.size(-1) > 0, "x must have shape (..., D) with D > 0, got ", x.sizes());
-  TORCH_CHECK(num_freqs >= 0, "num_freqs must be non-negative, got ", num_freqs);
+  MIXER_NERF_CHECK(x.dim() >= 1 && x.size(-1) > 0, "x must have shape (..., D) with D > 0, got ", x.sizes());
+  MIXER_NERF_CHECK(num_freqs >= 0, "num_freqs must be non-negative, got ", num_freqs);
 }
 
 template <typename scalar_t>
@@ -134,9 +134,9 @@ at::Tensor positional_encoding_bwd_cpu(const at::Tensor& grad_out, const at::Ten
   const Encoding enc{x.size(-1), num_freqs, include_input, scale};
   auto out_shape = x.sizes().vec();
   out_shape.back() = enc.width();
-  TORCH_CHECK(grad_out.sizes() == at::IntArrayRef(out_shape), "grad_out must have shape ", at::IntArrayRef(out_shape),
+  MIXER_NERF_CHECK(grad_out.sizes() == at::IntArrayRef(out_shape), "grad_out must have shape ", at::IntArrayRef(out_shape),
               ", got ", grad_out.sizes());
-  TORCH_CHECK(grad_out.scalar_type() == x.scalar_type(), "grad_out must have the dtype of x");
+  MIXER_NERF_CHECK(grad_out.scalar_type() == x.scalar_type(), "grad_out must have the dtype of x");
   at::Tensor grad_x = at::empty_like(x);
   const int64_t n = x.numel() / enc.dims;
   MIXER_NERF_DISPATCH_FLOATING(x.scalar_type(), "positional_encoding_bwd_cpu", [&] {

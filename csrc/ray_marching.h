@@ -30,27 +30,27 @@ inline void check_ray_marching_inputs(const at::Tensor& rays_o, const at::Tensor
   MIXER_NERF_CHECK_INPUT(bitfield, dev);
   MIXER_NERF_CHECK_INPUT(aabb, dev);
   const int64_t R = rays_o.size(0);
-  TORCH_CHECK(rays_o.dim() == 2 && rays_o.size(1) == 3, "rays_o must be (R, 3)");
-  TORCH_CHECK(rays_d.sizes() == rays_o.sizes(), "rays_d must be (R, 3) like rays_o");
-  TORCH_CHECK(near.dim() == 1 && near.size(0) == R && far.dim() == 1 && far.size(0) == R, "near, far must be (R)");
+  MIXER_NERF_CHECK(rays_o.dim() == 2 && rays_o.size(1) == 3, "rays_o must be (R, 3)");
+  MIXER_NERF_CHECK(rays_d.sizes() == rays_o.sizes(), "rays_d must be (R, 3) like rays_o");
+  MIXER_NERF_CHECK(near.dim() == 1 && near.size(0) == R && far.dim() == 1 && far.size(0) == R, "near, far must be (R)");
   const auto dtype = rays_o.scalar_type();
-  TORCH_CHECK(rays_d.scalar_type() == dtype && near.scalar_type() == dtype && far.scalar_type() == dtype,
+  MIXER_NERF_CHECK(rays_d.scalar_type() == dtype && near.scalar_type() == dtype && far.scalar_type() == dtype,
               "rays_o, rays_d, near, far must share one dtype");
   if (jitter) {
     MIXER_NERF_CHECK_INPUT(*jitter, dev);
-    TORCH_CHECK(jitter->dim() == 1 && jitter->size(0) == R && jitter->scalar_type() == dtype,
+    MIXER_NERF_CHECK(jitter->dim() == 1 && jitter->size(0) == R && jitter->scalar_type() == dtype,
                 "jitter must be (R) with the dtype of rays_o");
   }
-  TORCH_CHECK(resolution.size() == 3 && resolution[0] > 0 && resolution[1] > 0 && resolution[2] > 0,
+  MIXER_NERF_CHECK(resolution.size() == 3 && resolution[0] > 0 && resolution[1] > 0 && resolution[2] > 0,
               "resolution must be 3 positive sizes");
-  TORCH_CHECK(bitfield.scalar_type() == at::kByte && bitfield.dim() == 1 &&
+  MIXER_NERF_CHECK(bitfield.scalar_type() == at::kByte && bitfield.dim() == 1 &&
                   bitfield.size(0) * 8 >= resolution[0] * resolution[1] * resolution[2],
               "bitfield must be uint8 with one bit per cell");
-  TORCH_CHECK(aabb.numel() == 6 && aabb.scalar_type() == ray_marching_acc_type(dtype),
+  MIXER_NERF_CHECK(aabb.numel() == 6 && aabb.scalar_type() == ray_marching_acc_type(dtype),
               "aabb must hold 6 values of the march's arithmetic type (float32, or float64 for float64 rays)");
-  TORCH_CHECK(step_size > 0 && std::isfinite(step_size), "step_size must be positive and finite");
-  TORCH_CHECK(cone_angle >= 0 && std::isfinite(cone_angle), "cone_angle must be non-negative and finite");
-  TORCH_CHECK(!max_samples_per_ray || *max_samples_per_ray >= 1, "max_samples_per_ray must be >= 1");
+  MIXER_NERF_CHECK(step_size > 0 && std::isfinite(step_size), "step_size must be positive and finite");
+  MIXER_NERF_CHECK(cone_angle >= 0 && std::isfinite(cone_angle), "cone_angle must be non-negative and finite");
+  MIXER_NERF_CHECK(!max_samples_per_ray || *max_samples_per_ray >= 1, "max_samples_per_ray must be >= 1");
 }
 
 template <typename scalar_t, typename T>

@@ -67,13 +67,13 @@ inline RayBatch check_batch(const at::Tensor& edges_or_z, const at::Tensor& weig
   MIXER_NERF_CHECK_INPUT(edges_or_z, device);
   MIXER_NERF_CHECK_INPUT(weights, device);
   MIXER_NERF_CHECK_INPUT(u, device);
-  TORCH_CHECK(edges_or_z.dim() == 2 && weights.dim() == 2, "expected 2-D bins/z and weights");
-  TORCH_CHECK(weights.scalar_type() == edges_or_z.scalar_type(), "weights must have the dtype of bins/z");
-  TORCH_CHECK(weights.size(0) == edges_or_z.size(0), "weights and bins/z must have the same number of rays");
-  TORCH_CHECK(u.scalar_type() == at::toOpMathType(edges_or_z.scalar_type()),
+  MIXER_NERF_CHECK(edges_or_z.dim() == 2 && weights.dim() == 2, "expected 2-D bins/z and weights");
+  MIXER_NERF_CHECK(weights.scalar_type() == edges_or_z.scalar_type(), "weights must have the dtype of bins/z");
+  MIXER_NERF_CHECK(weights.size(0) == edges_or_z.size(0), "weights and bins/z must have the same number of rays");
+  MIXER_NERF_CHECK(u.scalar_type() == at::toOpMathType(edges_or_z.scalar_type()),
               "u must be in the accumulation dtype of bins/z (float32, or float64 for float64)");
-  TORCH_CHECK(u.dim() == 1 || (u.dim() == 2 && u.size(0) == edges_or_z.size(0)), "u must be (N) or (R, N)");
-  TORCH_CHECK(edges_or_z.size(1) < (int64_t{1} << 30) && u.size(-1) < (int64_t{1} << 30), "too many bins or samples");
+  MIXER_NERF_CHECK(u.dim() == 1 || (u.dim() == 2 && u.size(0) == edges_or_z.size(0)), "u must be (N) or (R, N)");
+  MIXER_NERF_CHECK(edges_or_z.size(1) < (int64_t{1} << 30) && u.size(-1) < (int64_t{1} << 30), "too many bins or samples");
   const int64_t samples = u.size(-1);
   return {edges_or_z.size(0), samples, u.dim() == 2 ? samples : 0};
 }
@@ -85,33 +85,33 @@ inline RayBatch check_packed_batch(const at::Tensor& bins, const at::Tensor& wei
   MIXER_NERF_CHECK_INPUT(weights, device);
   MIXER_NERF_CHECK_INPUT(offsets, device);
   MIXER_NERF_CHECK_INPUT(u, device);
-  TORCH_CHECK(offsets.scalar_type() == at::kLong && offsets.dim() == 1 && offsets.size(0) >= 1,
+  MIXER_NERF_CHECK(offsets.scalar_type() == at::kLong && offsets.dim() == 1 && offsets.size(0) >= 1,
               "offsets must be (R+1) int64");
   const int64_t rays = offsets.size(0) - 1;
-  TORCH_CHECK(bins.dim() == 1 && weights.dim() == 1 && bins.size(0) == weights.size(0) + rays,
+  MIXER_NERF_CHECK(bins.dim() == 1 && weights.dim() == 1 && bins.size(0) == weights.size(0) + rays,
               "packed bins must be (N + R) for weights (N)");
-  TORCH_CHECK(weights.scalar_type() == bins.scalar_type(), "weights must have the dtype of bins");
-  TORCH_CHECK(u.scalar_type() == at::toOpMathType(bins.scalar_type()),
+  MIXER_NERF_CHECK(weights.scalar_type() == bins.scalar_type(), "weights must have the dtype of bins");
+  MIXER_NERF_CHECK(u.scalar_type() == at::toOpMathType(bins.scalar_type()),
               "u must be in the accumulation dtype of bins (float32, or float64 for float64)");
-  TORCH_CHECK(u.dim() == 1 || (u.dim() == 2 && u.size(0) == rays), "u must be (S) or (R, S)");
-  TORCH_CHECK(weights.size(0) < (int64_t{1} << 30) && u.size(-1) < (int64_t{1} << 30), "too many bins or samples");
+  MIXER_NERF_CHECK(u.dim() == 1 || (u.dim() == 2 && u.size(0) == rays), "u must be (S) or (R, S)");
+  MIXER_NERF_CHECK(weights.size(0) < (int64_t{1} << 30) && u.size(-1) < (int64_t{1} << 30), "too many bins or samples");
   const int64_t samples = u.size(-1);
   return {rays, samples, u.dim() == 2 ? samples : 0};
 }
 
 inline void check_bins(const at::Tensor& bins, const at::Tensor& weights) {
-  TORCH_CHECK(weights.size(1) >= 1 && bins.size(1) == weights.size(1) + 1,
+  MIXER_NERF_CHECK(weights.size(1) >= 1 && bins.size(1) == weights.size(1) + 1,
               "bins must be (R, B+1) for weights (R, B), B >= 1");
 }
 
 inline void check_coarse(const at::Tensor& z_coarse, const at::Tensor& weights) {
-  TORCH_CHECK(z_coarse.size(1) >= 3 && weights.size(1) == z_coarse.size(1), "z_coarse and weights must be (R, S), S >= 3");
+  MIXER_NERF_CHECK(z_coarse.size(1) >= 3 && weights.size(1) == z_coarse.size(1), "z_coarse and weights must be (R, S), S >= 3");
 }
 
 inline void check_grad(const at::Tensor& grad_samples, const at::Tensor& bins, const RayBatch& batch) {
   MIXER_NERF_CHECK_INPUT(grad_samples, bins.device().type());
-  TORCH_CHECK(grad_samples.scalar_type() == bins.scalar_type(), "grad_samples must have the dtype of bins");
-  TORCH_CHECK(grad_samples.dim() == 2 && grad_samples.size(0) == batch.rays && grad_samples.size(1) == batch.samples,
+  MIXER_NERF_CHECK(grad_samples.scalar_type() == bins.scalar_type(), "grad_samples must have the dtype of bins");
+  MIXER_NERF_CHECK(grad_samples.dim() == 2 && grad_samples.size(0) == batch.rays && grad_samples.size(1) == batch.samples,
               "grad_samples must be (R, N)");
 }
 

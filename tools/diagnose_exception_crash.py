@@ -1,67 +1,45 @@
-"""Which build of a tiny TORCH_LIBRARY extension survives a TORCH_CHECK failure on this machine.
+"""Which TORCH_CHECK messages survive being raised from a C++ extension on this machine.
 
-Usage: python tools/diagnose_exception_crash.py   (prints one line per variant)
-Each variant is built with torch.utils.cpp_extension.load_inline and called in a subprocess, so a
-crash shows up as that variant's exit status. Used to find why an exception thrown inside
-mixer_nerf's extension killed the process on the GPU machine.
+Usage: python tools/diagnose_exception_crash.py   (prints one line per case)
+
+Builds one tiny TORCH_LIBRARY extension (torch.utils.cpp_extension.load_inline) whose ops fail a
+check with messages of different kinds, and calls each in a subprocess, so that a crash shows up
+as that case's exit status; then calls a mixer_nerf op with bad arguments the same way. Found on
+the GPU machine (torch 2.11+cu130, g++ 13.3, 2026-11-23): a message that streams a shape killed
+the process with SIGSEGV whatever the build flags (-fopenmp, CUDA sources) while a literal
+message raised; hence MIXER_NERF_CHECK in csrc/common.h, which builds the message itself.
 """
 
 from __future__ import annotations
 
-import os
-import shutil
 import subprocess
 import sys
 import tempfile
 
-CPP = r"""
-#include <torch/library.h>
-#include <ATen/ATen.h>
-at::Tensor always_throws(const at::Tensor& x) {
-  TORCH_CHECK(x.dim() == 99, "always_throws: x must be 99-d, got shape ", x.sizes());
-  return x;
-}
-TORCH_LIBRARY(NAMESPACE, m) { m.def("always_throws(Tensor x) -> Tensor"); }
-TORCH_LIBRARY_IMPL(NAMESPACE, CPU, m) { m.impl("always_throws", &always_throws); }
-"""
-
-CU = r"""
-#include <torch/library.h>
-#include <ATen/ATen.h>
-__global__ void noop() {}
-at::Tensor cuda_throws(const at::Tensor& x) {
-  noop<<<1, 1>>>();
-  TORCH_CHECK(x.dim() == 99, "cuda_throws: x must be 99-d, got shape ", x.sizes());
-  return x;
-}
-TORCH_LIBRARY_IMPL(NAMESPACE, CUDA, m) { m.impl("always_throws", &cuda_throws); }
-"""
-
-VARIANTS = {
-    "cpp": dict(cflags=["-O3"], cuda=False),
-    "cpp+openmp": dict(cflags=["-O3", "-fopenmp"], ldflags=["-fopenmp"], cuda=False),
-    "cpp+cuda": dict(cflags=["-O3"], cuda=True),
-    "cpp+cuda+openmp": dict(cflags=["-O3", "-fopenmp"], ldflags=["-fopenmp"], cuda=True),
+CASES = {  # op name -> the failing check's message arguments
+    "literal": '"x must be 99-d"',
+    "streamed_int": '"x must be 99-d, got ", x.dim()',
+    "streamed_shape": '"x must be 99-d, got shape ", x.sizes()',
+    "one_c_string": '(std::string("x must be 99-d, got ") + std::to_string(x.dim())).c_str()',
 }
 
-CHILD = """
+SOURCE = "#include <torch/library.h>\n#include <ATen/ATen.h>\n#include <string>\n" + "".join(
+    f"at::Tensor {name}(const at::Tensor& x) {{ TORCH_CHECK(x.dim() == 99, {message}); return x; }}\n"
+    for name, message in CASES.items()
+) + "TORCH_LIBRARY(crash_probe, m) {\n" + "".join(
+    f'  m.def("{name}(Tensor x) -> Tensor", &{name});\n' for name in CASES
+) + "}\n"
+
+CALL = """
 import sys, torch
-from torch.utils.cpp_extension import load_inline
-name, cflags, ldflags, cuda, build = sys.argv[1], sys.argv[2].split(), sys.argv[3].split(), sys.argv[4] == "1", sys.argv[5]
-ns = name.replace("+", "_")
-src = open(build + "/a.cpp").read().replace("NAMESPACE", ns)
-cu = open(build + "/a.cu").read().replace("NAMESPACE", ns) if cuda else None
-load_inline(ns, cpp_sources=[src], cuda_sources=[cu] if cu else None, extra_cflags=cflags,
-            extra_ldflags=ldflags, is_python_module=False, build_directory=build, with_cuda=cuda)
-dev = sys.argv[6]
+torch.ops.load_library(sys.argv[1])
 try:
-    getattr(torch.ops, ns).always_throws(torch.ones(2, device=dev))
+    getattr(torch.ops.crash_probe, sys.argv[2])(torch.ones(2))
 except RuntimeError as exc:
     print("raised:", str(exc).splitlines()[0])
 """
 
-
-MIXER_NERF_RAW_CALL = """
+MIXER_NERF_CALL = """
 import torch
 from mixer_nerf import _extension
 _extension.load()
@@ -72,36 +50,21 @@ except RuntimeError as exc:
 """
 
 
-def mixer_nerf_under_gdb() -> None:
-    """The failing call on mixer_nerf's own library, plain and (where gdb exists) with a backtrace."""
-    r = subprocess.run([sys.executable, "-c", MIXER_NERF_RAW_CALL], capture_output=True, text=True, timeout=600)
-    print(f"mixer_nerf raw op  cpu   rc={r.returncode:4d} {(r.stdout.strip() or r.stderr.strip()[-300:])}", flush=True)
-    gdb = shutil.which("gdb")
-    if r.returncode == 0 or gdb is None:
-        print("gdb:", gdb)
-        return
-    cmd = [gdb, "-batch", "-ex", "run", "-ex", "bt 40", "--args", sys.executable, "-c", MIXER_NERF_RAW_CALL]
-    r = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
-    print("\n".join((r.stdout + r.stderr).splitlines()[-60:]))
+def report(label: str, result: subprocess.CompletedProcess) -> None:
+    tail = (result.stdout.strip().splitlines() or [""])[-1] or result.stderr.strip()[-300:]
+    print(f"{label:32s} rc={result.returncode:4d} {tail}", flush=True)
 
 
 def main() -> None:
-    import torch
+    from torch.utils.cpp_extension import load_inline
 
-    mixer_nerf_under_gdb()
-
-    devices = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
-    for name, v in VARIANTS.items():
-        if v["cuda"] and not torch.cuda.is_available():
-            continue
-        build = tempfile.mkdtemp(prefix=f"crash_{name.replace('+', '_')}_")
-        open(os.path.join(build, "a.cpp"), "w").write(CPP)
-        open(os.path.join(build, "a.cu"), "w").write(CU)
-        for dev in devices if v["cuda"] else ["cpu"]:
-            args = [name, " ".join(v["cflags"]), " ".join(v.get("ldflags", [])), "1" if v["cuda"] else "0", build, dev]
-            r = subprocess.run([sys.executable, "-c", CHILD, *args], capture_output=True, text=True, timeout=600)
-            tail = (r.stdout.strip().splitlines() or [""])[-1] or r.stderr.strip()[-300:]
-            print(f"{name:18s} {dev:5s} rc={r.returncode:4d} {tail}", flush=True)
+    build = tempfile.mkdtemp(prefix="crash_probe_")
+    load_inline("crash_probe", cpp_sources=[SOURCE], is_python_module=False, build_directory=build)
+    for name in CASES:
+        args = [sys.executable, "-c", CALL, f"{build}/crash_probe.so", name]
+        report(f"tiny extension, {name}", subprocess.run(args, capture_output=True, text=True, timeout=300))
+    args = [sys.executable, "-c", MIXER_NERF_CALL]
+    report("mixer_nerf raw op", subprocess.run(args, capture_output=True, text=True, timeout=600))
 
 
 if __name__ == "__main__":

@@ -18,9 +18,11 @@
 // 1.7e-7 (E drifted by a few ulps over a ray) and, far worse, thin-media sigma gradients max 4.6
 // vs 0.96, median 1.9e-7 vs 7.8e-8: G starts at O(1) and is multiplied S times by exp(-tau_j),
 // which rounds to 1 in float32 in fog, so a float32 G held ~S ulps that g_j - G_{j+1} kept where
-// it is small. The doubles cost FP64 math (one double expm1 per sample, one exp per run; see
-// Attenuation) and a second shuffle per scan step, not memory traffic
-// (benchmarks/results/ops_cuda.md measures the kernels with them).
+// it is small. In the backward exp(-tau) is 1 + expm1(-tau) where that is >= 1/2 (accurate
+// however thin the sample), else exp. The doubles cost FP64 math, not memory traffic: on an H100
+// at R=65536, S=192 the forward went from 0.157 to 0.252 ms and forward+backward from ~0.43 to
+// 0.583 ms (benchmarks/results/ops_cuda.md). Carrying T within a lane's run as a product of
+// exp(-tau) (one exp per run instead of one per sample) measured slower still (0.680 ms).
 #include <torch/library.h>
 
 #include <ATen/ATen.h>
@@ -95,20 +97,6 @@ struct LaneSamples {
   __device__ ray_acc midpoint(int j) const { return ray_acc(0.5) * (ray_acc(t_start[j]) + ray_acc(t_end[j])); }
 };
 
-// A sample's alpha = 1 - exp(-tau) and decay = exp(-tau). One expm1 gives both where exp(-tau)
-// >= 1/2 (1 + expm1 is then within an ulp, however thin the sample), else exp gives the decay.
-// Transmittance within a lane's run is carried as T_{i+1} = T_i * decay_i: a product of at most
-// a run's factors, in double, so one exp per run (at the run's start, from the exclusive scan)
-// replaces one per sample.
-struct Attenuation {
-  ray_acc alpha, decay;
-  __device__ explicit Attenuation(ray_acc tau) {
-    const ray_acc decay_m1 = expm1(-tau);
-    alpha = -decay_m1;
-    decay = decay_m1 >= ray_acc(-0.5) ? ray_acc(1) + decay_m1 : exp(-tau);
-  }
-};
-
 // Optical depth before a lane's run given the optical depth `carry` before the chunk; advances
 // carry past the chunk. Exclusive by shuffling the inclusive scan up a lane: never subtracts.
 template <typename acc>
@@ -131,13 +119,12 @@ __device__ void composite_forward_ray(const CompositeInputs<scalar_t>& in, const
     ray_acc depth = 0, optical_depth = 0;
     for (int64_t base = 0; base < count; base += kForwardChunk) {
       const LaneSamples<scalar_t, kForwardRun> s(in, offset, count, base + lane * kForwardRun);
-      ray_acc transmittance = exp(-run_optical_depth(s.total, lane, optical_depth));
+      ray_acc before = run_optical_depth(s.total, lane, optical_depth);
 #pragma unroll
       for (int j = 0; j < kForwardRun; ++j) {
         if (j >= s.valid) break;
-        const Attenuation att(s.tau[j]);
-        const ray_acc w = transmittance * att.alpha;
-        transmittance *= att.decay;
+        const ray_acc w = exp(-before) * -expm1(-s.tau[j]);
+        before += s.tau[j];
         const int64_t i = s.first + j;
         if (c0 == 0) {
           out.weights[i] = static_cast<scalar_t>(w);
@@ -203,18 +190,20 @@ __device__ void composite_backward_ray(const CompositeInputs<scalar_t>& in, cons
     const LaneSamples<scalar_t, kBackwardRun> s(in, offset, count, q * kBackwardChunk + lane * kBackwardRun);
     const bool last = q == chunks - 1;
     ray_acc carry = last ? optical_depth : chunk_start[q];
-    ray_acc transmittance = exp(-run_optical_depth(s.total, lane, carry));
+    ray_acc before = run_optical_depth(s.total, lane, carry);
     if (last) total_optical_depth = carry;
+    ray_acc transmittance = exp(-before);
     ray_acc alpha[kBackwardRun], decay[kBackwardRun], g_in[kBackwardRun], t_after[kBackwardRun], w[kBackwardRun];
 #pragma unroll
     for (int j = 0; j < kBackwardRun; ++j) {
       alpha[j] = 0, decay[j] = 1, g_in[j] = 0, t_after[j] = 0, w[j] = 0;
       if (j >= s.valid) continue;
-      const Attenuation att(s.tau[j]);
-      alpha[j] = att.alpha;
-      decay[j] = att.decay;
-      t_after[j] = transmittance * att.decay;
-      w[j] = transmittance * att.alpha;
+      const ray_acc decay_m1 = expm1(-s.tau[j]);  // exp(-tau) - 1
+      alpha[j] = -decay_m1;
+      decay[j] = decay_m1 >= ray_acc(-0.5) ? ray_acc(1) + decay_m1 : exp(-s.tau[j]);
+      before += s.tau[j];
+      t_after[j] = exp(-before);
+      w[j] = transmittance * alpha[j];
       transmittance = t_after[j];
       const int64_t i = s.first + j;
       g_in[j] = grad_depth * s.midpoint(j) + (g.weights ? ray_acc(g.weights[i]) : ray_acc(0));
@@ -296,7 +285,7 @@ __global__ void __launch_bounds__(kMaxWarpsPerBlock* kWarpSize)
 
 unsigned blocks_for(int64_t R) {
   const int64_t blocks = (R + kMaxWarpsPerBlock - 1) / kMaxWarpsPerBlock;
-  TORCH_CHECK(blocks <= int64_t(INT32_MAX), "composite: too many rays for one launch");
+  MIXER_NERF_CHECK(blocks <= int64_t(INT32_MAX), "composite: too many rays for one launch");
   return static_cast<unsigned>(blocks);
 }
 

@@ -182,8 +182,8 @@ int direct_blocks(const Encoding& e) {
 
 Encoding encoding_of(const at::Tensor& x, int64_t num_freqs, bool include_input, double scale) {
   MIXER_NERF_CHECK_INPUT(x, at::kCUDA);
-  TORCH_CHECK(x.dim() >= 1 && x.size(-1) > 0, "x must have shape (..., D) with D > 0, got ", x.sizes());
-  TORCH_CHECK(num_freqs >= 0, "num_freqs must be non-negative, got ", num_freqs);
+  MIXER_NERF_CHECK(x.dim() >= 1 && x.size(-1) > 0, "x must have shape (..., D) with D > 0, got ", x.sizes());
+  MIXER_NERF_CHECK(num_freqs >= 0, "num_freqs must be non-negative, got ", num_freqs);
   const int64_t dims = x.size(-1);
   return {x.numel() / dims, dims, num_freqs, include_input, scale, pem::half_turns(scale)};
 }
@@ -217,9 +217,9 @@ at::Tensor positional_encoding_bwd_cuda(const at::Tensor& grad_out, const at::Te
   MIXER_NERF_CHECK_INPUT(grad_out, at::kCUDA);
   auto out_shape = x.sizes().vec();
   out_shape.back() = e.width();
-  TORCH_CHECK(grad_out.sizes().vec() == out_shape, "grad_out must have shape ", out_shape, ", got ", grad_out.sizes());
-  TORCH_CHECK(grad_out.scalar_type() == x.scalar_type(), "grad_out must have the dtype of x");
-  TORCH_CHECK(grad_out.device() == x.device(), "grad_out must be on the device of x");
+  MIXER_NERF_CHECK(grad_out.sizes().vec() == out_shape, "grad_out must have shape ", out_shape, ", got ", grad_out.sizes());
+  MIXER_NERF_CHECK(grad_out.scalar_type() == x.scalar_type(), "grad_out must have the dtype of x");
+  MIXER_NERF_CHECK(grad_out.device() == x.device(), "grad_out must be on the device of x");
   at::Tensor grad_x = at::empty_like(x);
   if (grad_x.numel() == 0) return grad_x;
   const c10::cuda::CUDAGuard guard(x.device());

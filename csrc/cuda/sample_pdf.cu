@@ -302,7 +302,7 @@ void launch_warp_per_ray(Kernel kernel, const WarpLayout& layout, int64_t rays, 
     int device = 0, optin = 0;
     C10_CUDA_CHECK(cudaGetDevice(&device));
     C10_CUDA_CHECK(cudaDeviceGetAttribute(&optin, cudaDevAttrMaxSharedMemoryPerBlockOptin, device));
-    TORCH_CHECK(shared <= size_t(optin), "sample_pdf: ", layout.num_bins, " bins and ", layout.tail,
+    MIXER_NERF_CHECK(shared <= size_t(optin), "sample_pdf: ", layout.num_bins, " bins and ", layout.tail,
                 " more values per ray need ", shared, " bytes of shared memory, more than the GPU's ", optin);
     C10_CUDA_CHECK(cudaFuncSetAttribute(kernel, cudaFuncAttributeMaxDynamicSharedMemorySize, int(shared)));
   }
