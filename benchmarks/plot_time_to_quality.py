@@ -16,13 +16,18 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 
+# Time to quality: the first checkpoint at or above each of these validation PSNRs.
+TARGETS_DB = (25.0, 28.0, 31.0)
+
+
 def main(folder: str) -> None:
     root = Path(folder)
     records = [json.loads(p.read_text()) for p in sorted(root.glob("*.json"))]
     fig, ax = plt.subplots(figsize=(6, 4))
     seconds = sorted({pt["seconds"] // 1 for r in records for pt in r["curve"]})
-    rows = ["| method | " + " | ".join(f"~{int(s)} s" for s in seconds) + " | samples/ray | steps |",
-            "|---|" + "---:|" * (len(seconds) + 2)]
+    rows = ["| method | " + " | ".join(f"~{int(s)} s" for s in seconds) + " | samples/ray | steps | "
+            + " | ".join(f"first checkpoint >= {t} dB" for t in TARGETS_DB) + " |",
+            "|---|" + "---:|" * (len(seconds) + 2 + len(TARGETS_DB))]
     for r in records:
         xs = [pt["seconds"] for pt in r["curve"]]
         ys = [pt["val_psnr"] for pt in r["curve"]]
@@ -30,8 +35,11 @@ def main(folder: str) -> None:
         by_time = {pt["seconds"] // 1: pt["val_psnr"] for pt in r["curve"]}
         last = r["curve"][-1] if r["curve"] else {}
         cells = [f"{by_time[s]:.2f}" if s in by_time else "" for s in seconds]
+        reached = [next((f"{pt['seconds']:.0f} s" for pt in r["curve"] if pt["val_psnr"] >= t),
+                        f"not by {last.get('seconds', 0):.0f} s") for t in TARGETS_DB]
         rows.append(f"| {r['label']} | " + " | ".join(cells)
-                    + f" | {last.get('samples_per_ray', float('nan')):.1f} | {last.get('step', '')} |")
+                    + f" | {last.get('samples_per_ray', float('nan')):.1f} | {last.get('step', '')} | "
+                    + " | ".join(reached) + " |")
     ax.set(xlabel="training time (s)", ylabel="val PSNR (dB)", title=records[0]["data"] if records else "")
     ax.grid(alpha=0.3)
     ax.legend()
