@@ -3,6 +3,7 @@
 # Usage on the GPU machine: bash tools/gpu_check.sh [STAGE ...]   (default: every stage)
 #   pytest[:PATH] the whole test suite, or one test file
 #   sanitizer     compute-sanitizer memcheck over the CUDA sample_pdf/composite tests
+#   racecheck     compute-sanitizer racecheck (shared-memory hazards) over the same tests
 #   error_budget  python benchmarks/error_budget.py --device cuda
 #   bench[:OPS]   python -m benchmarks.bench_ops --device cuda [--ops OPS]
 #   long_run      python benchmarks/long_run_stability.py (--budget $LONG_RUN_BUDGET, default 400 s)
@@ -24,11 +25,13 @@ step() {  # step NAME SECONDS CMD...: run with a time limit, keep the log, recor
 step build 300 python -c "from mixer_nerf import _extension as e; assert e.has_cuda_kernels(); print('CUDA kernels loaded')"
 (cd "$MIXER_NERF_CACHE" && tar cf "$OUT/jit_cache.tar" $(find build -name mixer_nerf_C.so))
 stages=("$@")
-[ ${#stages[@]} -eq 0 ] && stages=(crash pytest sanitizer error_budget bench)
+[ ${#stages[@]} -eq 0 ] && stages=(crash pytest sanitizer racecheck error_budget bench)
 for stage in "${stages[@]}"; do
   case $stage in
     pytest*) paths=${stage#pytest}; step pytest 240 python -m pytest -q -p no:cacheprovider -rs ${paths#:} ;;
     sanitizer) step sanitizer 240 compute-sanitizer --tool memcheck --error-exitcode 1 python -m pytest -q \
+      -p no:cacheprovider tests/test_sample_pdf.py tests/test_composite.py -m cuda -k "not opcheck" ;;
+    racecheck) step racecheck 300 compute-sanitizer --tool racecheck --error-exitcode 1 python -m pytest -q \
       -p no:cacheprovider tests/test_sample_pdf.py tests/test_composite.py -m cuda -k "not opcheck" ;;
     error_budget) step error_budget 150 python benchmarks/error_budget.py --device cuda --out "$OUT/results" ;;
     bench*) ops=${stage#bench}; step bench_ops 420 python -m benchmarks.bench_ops --device cuda --repeats 30 \
