@@ -10,7 +10,8 @@ Methods:
   ours      our trainer (``mixer_nerf.train``), any preset, every skip switchable.
 The clock counts training only: it stops for validation, and JIT builds (nerfacc's and ours) and
 data loading happen before it starts. Validation renders every view of the val split.
-Writes ``<out>/<label>.json`` with the curve; ``benchmarks/plot_time_to_quality.py`` plots them.
+Writes ``<out>/<label>.json`` with the curve after every checkpoint (a run cut short keeps its points);
+``benchmarks/plot_time_to_quality.py`` plots them.
 """
 
 from __future__ import annotations
@@ -207,11 +208,17 @@ def main() -> None:
     method = nerfacc_method if args.method == "nerfacc" else ours_method
     step_fn, render, trainer = method(args, train, val, device)
 
-    curve = run_curve(step_fn, render, val, checkpoints, log=lambda p: print(label, json.dumps(p), flush=True))
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     record = {"label": label, "method": args.method, "data": args.data, "device": torch.cuda.get_device_name(),
-              "val_views": len(val), "curve": curve}
+              "val_views": len(val), "curve": []}
+
+    def log(point: dict) -> None:  # the file after every checkpoint: a run cut short keeps its points
+        print(label, json.dumps(point), flush=True)
+        record["curve"].append(point)
+        (out / f"{label}.json").write_text(json.dumps(record, indent=1))
+
+    run_curve(step_fn, render, val, checkpoints, log=log)
     if args.skip_report:
         from benchmarks.skip_report import skip_report
 
