@@ -37,8 +37,7 @@
 // float64 ulps of G. exp(-tau_j) comes from the expm1 that alpha needs, as 1 + expm1(-tau_j)
 // where that is >= 1/2 (within an ulp; no second transcendental on thin samples), else from exp
 // (the sum would keep only an absolute ulp of a tiny exp(-tau); tau = 1e18 still gives exactly
-// 0). The CUDA kernel (csrc/cuda/composite.cu) carries the backward's recurrence in double the
-// same way; its forward and its transcendentals stay in the accumulation type.
+// 0). The CUDA kernel (csrc/cuda/composite.cu) computes both passes in double the same way.
 #include <torch/library.h>
 
 #include <ATen/ATen.h>

@@ -261,7 +261,9 @@ C10_HOST_DEVICE inline acc_t sample_uniform(acc_t u, int num_bins, Edges edges) 
 // the three float32 roundings of a_n alone would still leave ~1e-4 there. In double, float32
 // gradients of weights and edges are the float64 ones rounded once (benchmarks/error_budget.py:
 // within half an ulp on typical PDFs), at no measurable cost. Only the CPU kernel calls this function;
-// the CUDA backward (cuda/sample_pdf.cu) computes the same sums with warp scans, also in double.
+// the CUDA backward (cuda/sample_pdf.cu) computes the same sums with warp scans, in the same grad_t.
+using grad_t = cdf_t;
+
 template <typename acc_t, typename scalar_t>
 C10_HOST_DEVICE inline void sample_pdf_ray_backward(
     const scalar_t* grad, const scalar_t* bins, const scalar_t* weights, const acc_t* u, int num_bins,
@@ -275,7 +277,6 @@ C10_HOST_DEVICE inline void sample_pdf_ray_backward(
     for (int k = 0; k <= num_bins; ++k) grad_bins[k] = static_cast<scalar_t>(not_a_number<acc_t>());
     return;
   }
-  using grad_t = cdf_t;  // double: see above
   if (no_pdf<acc_t>(total)) {
     grad_t first = 0, last = 0;
     for (int n = 0; n < num_samples; ++n) {

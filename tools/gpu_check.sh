@@ -2,7 +2,7 @@
 # GPU checks in one device call: JIT-build the kernels, then the named stages in order.
 # Usage on the GPU machine: bash tools/gpu_check.sh [STAGE ...]   (default: every stage)
 #   pytest[:PATH] the whole test suite, or one test file
-#   sanitizer     compute-sanitizer memcheck over the CUDA sample_pdf/composite tests
+#   memcheck      compute-sanitizer memcheck over the CUDA sample_pdf/composite tests
 #   racecheck     compute-sanitizer racecheck (shared-memory hazards) over the same tests
 #   error_budget  python benchmarks/error_budget.py --device cuda
 #   bench[:OPS]   python -m benchmarks.bench_ops --device cuda [--ops OPS]
@@ -25,13 +25,11 @@ step() {  # step NAME SECONDS CMD...: run with a time limit, keep the log, recor
 step build 300 python -c "from mixer_nerf import _extension as e; assert e.has_cuda_kernels(); print('CUDA kernels loaded')"
 (cd "$MIXER_NERF_CACHE" && tar cf "$OUT/jit_cache.tar" $(find build -name mixer_nerf_C.so))
 stages=("$@")
-[ ${#stages[@]} -eq 0 ] && stages=(crash pytest sanitizer racecheck error_budget bench)
+[ ${#stages[@]} -eq 0 ] && stages=(crash pytest memcheck racecheck error_budget bench)
 for stage in "${stages[@]}"; do
   case $stage in
     pytest*) paths=${stage#pytest}; step pytest 240 python -m pytest -q -p no:cacheprovider -rs ${paths#:} ;;
-    sanitizer) step sanitizer 240 compute-sanitizer --tool memcheck --error-exitcode 1 python -m pytest -q \
-      -p no:cacheprovider tests/test_sample_pdf.py tests/test_composite.py -m cuda -k "not opcheck" ;;
-    racecheck) step racecheck 300 compute-sanitizer --tool racecheck --error-exitcode 1 python -m pytest -q \
+    memcheck|racecheck) step "$stage" 300 compute-sanitizer --tool "$stage" --error-exitcode 1 python -m pytest -q \
       -p no:cacheprovider tests/test_sample_pdf.py tests/test_composite.py -m cuda -k "not opcheck" ;;
     error_budget) step error_budget 150 python benchmarks/error_budget.py --device cuda --out "$OUT/results" ;;
     bench*) ops=${stage#bench}; step bench_ops 420 python -m benchmarks.bench_ops --device cuda --repeats 30 \

@@ -40,7 +40,6 @@ constexpr int kWarpSize = 32;
 constexpr unsigned kFullMask = 0xffffffffu;
 constexpr int kMaxWarpsPerBlock = 8;
 constexpr size_t kDefaultSharedBytes = 48 * 1024;
-using grad_t = cdf_t;  // the backward's sums: double for every input dtype
 
 // #{i < n : a[i] <= x} (kInclusive) or #{i < n : a[i] < x}, for sorted a.
 template <bool kInclusive, typename acc_t>
