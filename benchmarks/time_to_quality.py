@@ -160,7 +160,8 @@ def ours_method(args, train, val, device) -> tuple[Callable, Callable, object]:
         data=args.data, preset=args.preset, sampler=args.sampler, steps=args.nominal_steps,
         target_samples=args.target_samples, precision=args.precision, device="cuda", seed=args.seed,
         val_every=10**9, ckpt_every=10**9, log_every=10**9, progress=False,
-        out=tempfile.mkdtemp(prefix="ttq_"), lr=args.lr, backend=args.backend,
+        out=tempfile.mkdtemp(prefix="ttq_"), lr=args.lr, lr_final=args.lr_final or args.lr / 10,
+        adam_eps=args.adam_eps, backend=args.backend,
         **({} if args.batch_rays is None else {"batch_rays": args.batch_rays}))
     trainer = Trainer(cfg, log=lambda _: None)
 
@@ -187,8 +188,11 @@ def main() -> None:
     parser.add_argument("--target-samples", type=int, default=65536, help="ours: MLP samples per step")
     parser.add_argument("--batch-rays", type=int, default=None,
                         help="ours, hierarchical sampler: rays per step (default: the trainer's)")
-    parser.add_argument("--precision", default="bf16", help="ours: bf16 | tf32 | fp32")
+    parser.add_argument("--precision", default="tf32", help="ours: bf16 | tf32 | fp32")
     parser.add_argument("--lr", type=float, default=5e-4, help="ours: initial learning rate")
+    parser.add_argument("--lr-final", type=float, default=None,
+                        help="ours: learning rate at --nominal-steps (exponential decay; default lr/10)")
+    parser.add_argument("--adam-eps", type=float, default=1e-15, help="ours: Adam's epsilon")
     parser.add_argument("--backend", default="auto", help="ours: auto | kernel | torch (the pure-PyTorch path)")
     parser.add_argument("--skip-report", action="store_true",
                         help="ours, occupancy sampler: after training, time one val render under each skip")

@@ -30,7 +30,7 @@ TRAIN_OPTIONS: dict[str, dict[str, Any]] = {
     "--num-coarse": {"type": int, "help": "coarse samples per ray"},
     "--num-fine": {"type": int, "help": "fine samples per ray (0: no fine pass)"},
     "--lr": {"type": float, "help": "initial learning rate (decays exponentially to lr/10)"},
-    "--precision": {"choices": PRECISIONS, "help": "MLP precision (default: bf16 on CUDA, fp32 on CPU)"},
+    "--precision": {"choices": PRECISIONS, "help": "MLP precision (default: tf32 on CUDA, fp32 on CPU)"},
     "--seed": {"type": int, "help": "random seed"},
     "--val-every": {"type": int, "help": "validate every N steps"},
     "--ckpt-every": {"type": int, "help": "checkpoint every N steps (a killed run loses at most N)"},

@@ -99,6 +99,7 @@ def params_of(trainer: Trainer) -> dict[str, torch.Tensor]:
         ("precision", "fp8"),
         ("backend", "cuda"),
         ("lr", 0.0),
+        ("adam_eps", 0.0),
         ("time_budget", -1.0),
         ("device", "tpu"),
         ("num_fine", -1),
@@ -117,7 +118,7 @@ def test_config_round_trips_and_resolves_for_the_machine():
     cpu = cfg.resolved(cuda_available=False)
     assert (cpu.device, cpu.precision) == ("cpu", "fp32")
     gpu = cfg.resolved(cuda_available=True)
-    assert (gpu.device, gpu.precision) == ("cuda", "bf16")
+    assert (gpu.device, gpu.precision) == ("cuda", "tf32")
     with pytest.raises(ValueError, match="cuda"):
         TrainConfig(device="cuda").resolved(cuda_available=False)
 

@@ -4,9 +4,12 @@
 #   pytest[:PATH] the whole test suite, or one test file
 #   memcheck      compute-sanitizer memcheck over the CUDA sample_pdf/composite tests
 #   racecheck     compute-sanitizer racecheck (shared-memory hazards) over the same tests
+#                 (both in the background, side by side with later stages: name them last)
 #   error_budget  python benchmarks/error_budget.py --device cuda
 #   bench[:OPS]   python -m benchmarks.bench_ops --device cuda [--ops OPS]
 #   long_run      python benchmarks/long_run_stability.py (--budget $LONG_RUN_BUDGET, default 400 s)
+#   ncu           Nsight Compute sections of the composite forward and backward kernels
+#   field         python -m benchmarks.bench_field (the MLP's cost per preset and precision)
 #   crash         tools/diagnose_exception_crash.py (in the background, alongside later stages)
 # Logs and results are packed into $OUT/gpu_check.tgz (the device returns at most 8 files), the
 # built library into $OUT/jit_cache.tar (unpack it into .gpu_cache and carry that to skip the build
@@ -14,13 +17,13 @@
 source tools/gpu_env.sh >/dev/null
 export MIXER_NERF_CACHE=${MIXER_NERF_CACHE:-$PWD/.gpu_cache}
 OUT=${OUT:-/tmp/gpu_check}; mkdir -p "$OUT/results"
-summary=()
+summary=$(mktemp)
 step() {  # step NAME SECONDS CMD...: run with a time limit, keep the log, record the exit status
   local name=$1 limit=$2; shift 2
   local t0=$SECONDS
   timeout "$limit" "$@" >"$OUT/$name.log" 2>&1
   local rc=$?
-  summary+=("$name rc=$rc $((SECONDS - t0))s: $(grep -E 'passed|failed|ERROR SUMMARY|error' "$OUT/$name.log" | tail -1)")
+  echo "$name rc=$rc $((SECONDS - t0))s: $(grep -E 'passed|failed|ERROR SUMMARY|error' "$OUT/$name.log" | tail -1)" >>"$summary"
 }
 step build 300 python -c "from mixer_nerf import _extension as e; assert e.has_cuda_kernels(); print('CUDA kernels loaded')"
 (cd "$MIXER_NERF_CACHE" && tar cf "$OUT/jit_cache.tar" $(find build -name mixer_nerf_C.so))
@@ -30,19 +33,25 @@ for stage in "${stages[@]}"; do
   case $stage in
     pytest*) paths=${stage#pytest}; step pytest 240 python -m pytest -q -p no:cacheprovider -rs ${paths#:} ;;
     memcheck|racecheck) step "$stage" 300 compute-sanitizer --tool "$stage" --error-exitcode 1 python -m pytest -q \
-      -p no:cacheprovider tests/test_sample_pdf.py tests/test_composite.py -m cuda -k "not opcheck" ;;
+      -p no:cacheprovider tests/test_sample_pdf.py tests/test_composite.py -m cuda -k "not opcheck" & ;;
     error_budget) step error_budget 150 python benchmarks/error_budget.py --device cuda --out "$OUT/results" ;;
     bench*) ops=${stage#bench}; step bench_ops 420 python -m benchmarks.bench_ops --device cuda --repeats 30 \
       --out "$OUT/results" ${ops:+--ops ${ops#:}} ;;
     long_run) step long_run 560 python benchmarks/long_run_stability.py --out "$OUT/results" \
       --budget "${LONG_RUN_BUDGET:-400}" ;;
+    ncu) step ncu 240 ncu --kernel-name regex:composite --launch-skip 4 --launch-count 2 \
+      --section SpeedOfLight --section ComputeWorkloadAnalysis --section Occupancy --section WarpStateStats \
+      --section MemoryWorkloadAnalysis python tools/profile_composite.py
+      cp "$OUT/ncu.log" "$OUT/results/ncu_composite.txt" ;;
+    field) step field 200 python -m benchmarks.bench_field --out "$OUT/results" ;;
     crash) timeout 400 python tools/diagnose_exception_crash.py >"$OUT/crash.log" 2>&1 & ;;
     *) echo "unknown stage $stage"; exit 2 ;;
   esac
 done
 wait
 tail -n 40 "$OUT/bench_ops.log" 2>/dev/null
+tail -n 45 "$OUT/field.log" 2>/dev/null
 tail -n 16 "$OUT/long_run.log" 2>/dev/null
 cat "$OUT/crash.log" 2>/dev/null
 (cd "$OUT" && tar czf gpu_check.tgz results *.log && rm -r results *.log)
-printf '%s\n' "${summary[@]}"
+cat "$summary"

@@ -105,7 +105,9 @@ class Trainer:
         self.coarse_field, self.fine_field = self.fields.runners(cfg.precision, self.device)
         self.params = [p for p in self.fields.parameters() if p.requires_grad]
         self.param_names = [n for n, p in self.fields.named_parameters() if p.requires_grad]
-        self.optimizer = torch.optim.Adam(self.params, lr=cfg.lr, fused=self.device.type == "cuda")
+        self.optimizer = torch.optim.Adam(
+            self.params, lr=cfg.lr, eps=cfg.adam_eps, fused=self.device.type == "cuda"
+        )
         decay = cfg.lr_final / cfg.lr
         self.scheduler = torch.optim.lr_scheduler.LambdaLR(
             self.optimizer, lambda s: decay ** (min(s, cfg.steps) / cfg.steps)

@@ -1,0 +1,89 @@
+"""What one training step's MLP costs: forward+backward of the Mixer-NeRF field per preset and
+precision, on packed samples as the occupancy sampler feeds them.
+
+    python -m benchmarks.bench_field [--samples 65536] [--rays 3000] [--profile D] [--out DIR]
+
+Each row times ``field(x, d, ray_indices)`` then ``backward`` of a loss on sigma and rgb (median of
+CUDA-event timings). ``--profile P`` adds a torch.profiler table of preset P's step (bf16), the
+ops sorted by their CUDA time, to find what a preset adds over NeRF (A).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import torch
+
+from benchmarks.harness import time_ms
+from mixer_nerf.model import MixerNeRF, preset_config
+
+PRECISIONS = {"bf16": torch.bfloat16, "tf32": None}
+
+
+def packed_batch(samples: int, rays: int, device: torch.device, seed: int = 0):
+    """Points in the unit box with sorted ray indices (every ray gets about samples/rays points)."""
+    gen = torch.Generator(device=device).manual_seed(seed)
+    x = torch.rand(samples, 3, generator=gen, device=device) * 2 - 1
+    d = torch.nn.functional.normalize(torch.randn(samples, 3, generator=gen, device=device), dim=-1)
+    ray_indices = torch.randint(rays, (samples,), generator=gen, device=device).sort().values
+    return x, d, ray_indices
+
+
+def step_fn(field: MixerNeRF, batch, rays: int, dtype: torch.dtype | None):
+    x, d, ray_indices = batch
+
+    def step():
+        with torch.autocast("cuda", dtype=dtype or torch.float32, enabled=dtype is not None):
+            sigma, rgb = field(x, d, ray_indices=ray_indices, num_rays=rays)
+        (sigma.float().mean() + rgb.float().mean()).backward()
+
+    return step
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--samples", type=int, default=65536)
+    parser.add_argument("--rays", type=int, default=3000)
+    parser.add_argument("--repeats", type=int, default=50)
+    parser.add_argument("--profile", default="D", help="preset to profile ('' for none)")
+    parser.add_argument("--out", default="benchmarks/results")
+    args = parser.parse_args()
+
+    torch.backends.cuda.matmul.allow_tf32 = True
+    device = torch.device("cuda")
+    batch = packed_batch(args.samples, args.rays, device)
+    rows = []
+    for preset in "ABCD":
+        field = MixerNeRF(preset_config(preset)).to(device)
+        for name, dtype in PRECISIONS.items():
+            ms = time_ms(step_fn(field, batch, args.rays, dtype), device, args.repeats, warmup=5)
+            rows.append({"preset": preset, "precision": name, "ms": round(ms, 3)})
+            print(json.dumps(rows[-1]), flush=True)
+    base = {r["precision"]: r["ms"] for r in rows if r["preset"] == "A"}
+    lines = [f"MLP forward+backward, {args.samples} packed samples over {args.rays} rays, "
+             f"{torch.cuda.get_device_name()}", "",
+             "| preset | precision | ms | vs A |", "|---|---|---:|---:|"]
+    lines += [f"| {r['preset']} | {r['precision']} | {r['ms']:.3f} | {r['ms'] / base[r['precision']]:.2f}x |"
+              for r in rows]
+    if args.profile:
+        field = MixerNeRF(preset_config(args.profile)).to(device)
+        step = step_fn(field, batch, args.rays, torch.bfloat16)
+        for _ in range(5):
+            step()
+        with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CUDA]) as prof:
+            for _ in range(10):
+                step()
+            torch.cuda.synchronize()
+        lines += ["", f"Preset {args.profile}, bf16, 10 steps:", "",
+                  prof.key_averages().table(sort_by="cuda_time_total", row_limit=25)]
+    text = "\n".join(lines)
+    print(text)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "field_cuda.md").write_text(text + "\n")
+
+
+if __name__ == "__main__":
+    main()

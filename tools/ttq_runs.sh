@@ -1,0 +1,17 @@
+#!/usr/bin/env bash
+# Several time-to-quality runs in one device call, one after another (never side by side: they
+# would share the GPU). Usage on the GPU machine:
+#   CHECKPOINTS=30,60 bash tools/ttq_runs.sh "LABEL ARGS..." ["LABEL ARGS..." ...]
+# Each argument is a label then benchmarks.time_to_quality options (--method defaults to ours).
+# Curves go to $OUT/ttq/LABEL.json, logs to $OUT/ttq/LABEL.log; a summary line per run is printed.
+source tools/gpu_env.sh >/dev/null
+export MIXER_NERF_CACHE=${MIXER_NERF_CACHE:-$PWD/.gpu_cache}
+OUT=${OUT:-/tmp/ttq_runs}; mkdir -p "$OUT/ttq"
+for spec in "$@"; do
+  read -r label args <<<"$spec"
+  [[ $args == *--method* ]] || args="--method ours $args"
+  # shellcheck disable=SC2086
+  python -m benchmarks.time_to_quality --label "$label" --checkpoints "${CHECKPOINTS:-30,60,120,240}" \
+    --out "$OUT/ttq" $args >"$OUT/ttq/$label.log" 2>&1
+  echo "$label rc=$? $(grep -o '"seconds": [0-9.]*\|"val_psnr": [0-9.]*\|"rays": [0-9]*' "$OUT/ttq/$label.log" | tr '\n' ' ')"
+done
