@@ -11,6 +11,7 @@ ops sorted by their CUDA time, to find what a preset adds over NeRF (A).
 from __future__ import annotations
 
 import argparse
+import datetime
 import json
 from pathlib import Path
 
@@ -63,7 +64,8 @@ def main() -> None:
             print(json.dumps(rows[-1]), flush=True)
     base = {r["precision"]: r["ms"] for r in rows if r["preset"] == "A"}
     lines = [f"MLP forward+backward, {args.samples} packed samples over {args.rays} rays, "
-             f"{torch.cuda.get_device_name()}", "",
+             f"{torch.cuda.get_device_name()}, {datetime.date.today()}, torch {torch.__version__} "
+             f"(python -m benchmarks.bench_field --samples {args.samples} --rays {args.rays})", "",
              "| preset | precision | ms | vs A |", "|---|---|---:|---:|"]
     lines += [f"| {r['preset']} | {r['precision']} | {r['ms']:.3f} | {r['ms'] / base[r['precision']]:.2f}x |"
               for r in rows]
