@@ -161,15 +161,17 @@ def ours_method(args, train, val, device) -> tuple[Callable, Callable, object]:
         target_samples=args.target_samples, precision=args.precision, device="cuda", seed=args.seed,
         val_every=10**9, ckpt_every=10**9, log_every=10**9, progress=False,
         out=tempfile.mkdtemp(prefix="ttq_"), lr=args.lr, lr_final=args.lr_final or args.lr / 10,
-        adam_eps=args.adam_eps, backend=args.backend,
+        adam_eps=args.adam_eps, backend=args.backend, early_stop_eps=args.early_stop_eps,
+        grid_warmup=args.grid_warmup,
         **({} if args.batch_rays is None else {"batch_rays": args.batch_rays}))
     trainer = Trainer(cfg, log=lambda _: None)
 
     def step_fn(step: int) -> dict:
         trainer.fields.train()
+        samples_before, rays = trainer.samples_seen, trainer.sampler.batch_rays
         trainer.train_step()
         return {"samples_per_ray": trainer.samples_seen / max(trainer.rays_seen, 1),
-                "rays": trainer.sampler.batch_rays}
+                "samples_per_step": trainer.samples_seen - samples_before, "rays": rays}
 
     return step_fn, trainer.render_rgb, trainer
 
@@ -193,6 +195,11 @@ def main() -> None:
     parser.add_argument("--lr-final", type=float, default=None,
                         help="ours: learning rate at --nominal-steps (exponential decay; default lr/10)")
     parser.add_argument("--adam-eps", type=float, default=1e-15, help="ours: Adam's epsilon")
+    parser.add_argument("--early-stop-eps", type=float, default=1e-4,
+                        help="ours, occupancy sampler: early ray termination (0: off)")
+    parser.add_argument("--grid-warmup", type=int, default=256,
+                        help="ours, occupancy sampler: steps of a fully occupied grid (a huge value: "
+                             "no empty-space skipping, box clipping only)")
     parser.add_argument("--backend", default="auto", help="ours: auto | kernel | torch (the pure-PyTorch path)")
     parser.add_argument("--skip-report", action="store_true",
                         help="ours, occupancy sampler: after training, time one val render under each skip")
