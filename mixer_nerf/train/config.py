@@ -39,7 +39,9 @@ class TrainConfig:
     num_fine: int = 128
     lr: float = 5e-4
     lr_final: float = 5e-5
-    adam_eps: float = 1e-15  # PyTorch's 1e-8 damps the small gradients of the deep MLP's weights
+    # nerfacc's value; with a constant lr it beat PyTorch's 1e-8 with decay by 0.6-0.9 dB at 30-60 s
+    # on Lego (benchmarks/results/ttq/README.md)
+    adam_eps: float = 1e-15
     seed: int = 0
     precision: str | None = None  # bf16 / tf32 / fp32; None: tf32 on CUDA, fp32 on CPU
     device: str | None = None  # cpu / cuda; None: cuda when available
