@@ -15,7 +15,6 @@
 # built library into $OUT/jit_cache.tar (unpack it into .gpu_cache and carry that to skip the build
 # next time); a summary is printed last.
 source tools/gpu_env.sh >/dev/null
-export MIXER_NERF_CACHE=${MIXER_NERF_CACHE:-$PWD/.gpu_cache}
 OUT=${OUT:-/tmp/gpu_check}; mkdir -p "$OUT/results"
 summary=$(mktemp)
 step() {  # step NAME SECONDS CMD...: run with a time limit, keep the log, record the exit status
@@ -28,7 +27,7 @@ step() {  # step NAME SECONDS CMD...: run with a time limit, keep the log, recor
 step build 300 python -c "from mixer_nerf import _extension as e; assert e.has_cuda_kernels(); print('CUDA kernels loaded')"
 (cd "$MIXER_NERF_CACHE" && tar cf "$OUT/jit_cache.tar" $(find build -name mixer_nerf_C.so))
 stages=("$@")
-[ ${#stages[@]} -eq 0 ] && stages=(crash pytest memcheck racecheck error_budget bench)
+[ ${#stages[@]} -eq 0 ] && stages=(crash pytest error_budget bench memcheck racecheck)
 for stage in "${stages[@]}"; do
   case $stage in
     pytest*) paths=${stage#pytest}; step pytest 240 python -m pytest -q -p no:cacheprovider -rs ${paths#:} ;;

@@ -5,7 +5,6 @@
 # Each argument is a label then benchmarks.time_to_quality options (--method defaults to ours).
 # Curves go to $OUT/ttq/LABEL.json, logs to $OUT/ttq/LABEL.log; a summary line per run is printed.
 source tools/gpu_env.sh >/dev/null
-export MIXER_NERF_CACHE=${MIXER_NERF_CACHE:-$PWD/.gpu_cache}
 OUT=${OUT:-/tmp/ttq_runs}; mkdir -p "$OUT/ttq"
 for spec in "$@"; do
   read -r label args <<<"$spec"
