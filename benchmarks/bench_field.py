@@ -1,11 +1,13 @@
 """What one training step's MLP costs: forward+backward of the Mixer-NeRF field per preset and
 precision, on packed samples as the occupancy sampler feeds them.
 
-    python -m benchmarks.bench_field [--samples 65536] [--rays 3000] [--profile D] [--out DIR]
+    python -m benchmarks.bench_field [--samples 65536] [--rays 3000] [--profile D] [--compile] [--out DIR]
 
 Each row times ``field(x, d, ray_indices)`` then ``backward`` of a loss on sigma and rgb (median of
 CUDA-event timings). ``--profile P`` adds a torch.profiler table of preset P's step (bf16), the
-ops sorted by their CUDA time, to find what a preset adds over NeRF (A).
+ops sorted by their CUDA time, to find what a preset adds over NeRF (A). ``--compile`` adds rows
+for the field under ``torch.compile(dynamic=True)`` (training feeds a different sample count each
+step), with the first call's compile time.
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ from __future__ import annotations
 import argparse
 import datetime
 import json
+import time
 from pathlib import Path
 
 import torch
@@ -49,6 +52,8 @@ def main() -> None:
     parser.add_argument("--rays", type=int, default=3000)
     parser.add_argument("--repeats", type=int, default=50)
     parser.add_argument("--profile", default="D", help="preset to profile ('' for none)")
+    parser.add_argument("--presets", default="ABCD", help="presets to time (the first is the baseline)")
+    parser.add_argument("--compile", action="store_true", help="also time torch.compile'd fields")
     parser.add_argument("--out", default="benchmarks/results")
     args = parser.parse_args()
 
@@ -56,19 +61,30 @@ def main() -> None:
     device = torch.device("cuda")
     batch = packed_batch(args.samples, args.rays, device)
     rows = []
-    for preset in "ABCD":
-        field = MixerNeRF(preset_config(preset)).to(device)
-        for name, dtype in PRECISIONS.items():
-            ms = time_ms(step_fn(field, batch, args.rays, dtype), device, args.repeats, warmup=5)
-            rows.append({"preset": preset, "precision": name, "ms": round(ms, 3)})
-            print(json.dumps(rows[-1]), flush=True)
-    base = {r["precision"]: r["ms"] for r in rows if r["preset"] == "A"}
+    for preset in args.presets:
+        eager = MixerNeRF(preset_config(preset)).to(device)
+        variants = {"eager": eager}
+        if args.compile:
+            variants["compiled"] = torch.compile(eager, dynamic=True)
+        for mode, field in variants.items():
+            for name, dtype in PRECISIONS.items():
+                step = step_fn(field, batch, args.rays, dtype)
+                start = time.perf_counter()
+                step()
+                torch.cuda.synchronize()
+                first_s = time.perf_counter() - start
+                ms = time_ms(step, device, args.repeats, warmup=5)
+                rows.append({"preset": preset, "mode": mode, "precision": name, "ms": round(ms, 3),
+                             "first_call_s": round(first_s, 1)})
+                print(json.dumps(rows[-1]), flush=True)
+    base = {(r["mode"], r["precision"]): r["ms"] for r in rows if r["preset"] == args.presets[0]}
     lines = [f"MLP forward+backward, {args.samples} packed samples over {args.rays} rays, "
              f"{torch.cuda.get_device_name()}, {datetime.date.today()}, torch {torch.__version__} "
-             f"(python -m benchmarks.bench_field --samples {args.samples} --rays {args.rays})", "",
-             "| preset | precision | ms | vs A |", "|---|---|---:|---:|"]
-    lines += [f"| {r['preset']} | {r['precision']} | {r['ms']:.3f} | {r['ms'] / base[r['precision']]:.2f}x |"
-              for r in rows]
+             f"(python -m benchmarks.bench_field --samples {args.samples} --rays {args.rays}"
+             f"{' --compile' if args.compile else ''})", "",
+             f"| preset | mode | precision | ms | vs {args.presets[0]} | first call (s) |", "|---|---|---|---:|---:|---:|"]
+    lines += [f"| {r['preset']} | {r['mode']} | {r['precision']} | {r['ms']:.3f} | "
+              f"{r['ms'] / base[r['mode'], r['precision']]:.2f}x | {r['first_call_s']} |" for r in rows]
     if args.profile:
         field = MixerNeRF(preset_config(args.profile)).to(device)
         step = step_fn(field, batch, args.rays, torch.bfloat16)

@@ -9,7 +9,7 @@
 #   bench[:OPS]   python -m benchmarks.bench_ops --device cuda [--ops OPS]
 #   long_run      python benchmarks/long_run_stability.py (--budget $LONG_RUN_BUDGET, default 400 s)
 #   ncu           Nsight Compute sections of the composite forward and backward kernels
-#   field         python -m benchmarks.bench_field (the MLP's cost per preset and precision)
+#   field         python -m benchmarks.bench_field $FIELD_ARGS (the MLP's cost per preset and precision)
 #   crash         tools/diagnose_exception_crash.py (in the background, alongside later stages)
 # Logs and results are packed into $OUT/gpu_check.tgz (the device returns at most 8 files), the
 # built library into $OUT/jit_cache.tar (unpack it into .gpu_cache and carry that to skip the build
@@ -48,7 +48,7 @@ for stage in "${stages[@]}"; do
       --section SpeedOfLight --section ComputeWorkloadAnalysis --section Occupancy --section WarpStateStats \
       --section MemoryWorkloadAnalysis python tools/profile_composite.py
       cp "$OUT/ncu.log" "$OUT/results/ncu_composite.txt" ;;
-    field) step field 200 python -m benchmarks.bench_field --out "$OUT/results" ;;
+    field) step field 400 python -m benchmarks.bench_field --out "$OUT/results" $FIELD_ARGS ;;
     crash) timeout 400 python tools/diagnose_exception_crash.py >"$OUT/crash.log" 2>&1 & ;;
     *) echo "unknown stage $stage"; exit 2 ;;
   esac
