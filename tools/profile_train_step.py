@@ -1,0 +1,66 @@
+"""Where a training step's time goes: wall time per step against GPU busy time, and the kernels.
+
+    python tools/profile_train_step.py [--data .data/lego_400] [--preset D] [--precision tf32]
+        [--warmup 400] [--steps 30] [--out DIR]
+
+Trains ``--warmup`` steps (past the occupancy grid's dense warm-up, so the batch has its steady
+size), then profiles ``--steps`` steps with torch.profiler. Prints ms per step (wall), the GPU's
+busy ms per step (sum of kernel times), and the kernels sorted by CUDA time; a wall time well
+above the busy time means the step waits on the host (Python, launches, synchronisations).
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+from mixer_nerf.train import TrainConfig, Trainer
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--data", default=".data/lego_400")
+    parser.add_argument("--preset", default="D")
+    parser.add_argument("--precision", default="tf32")
+    parser.add_argument("--warmup", type=int, default=400)
+    parser.add_argument("--steps", type=int, default=30)
+    parser.add_argument("--out", default=None, help="write the table to DIR/train_step_<preset>_<precision>.txt")
+    args = parser.parse_args()
+
+    cfg = TrainConfig(data=args.data, preset=args.preset, precision=args.precision, device="cuda",
+                      val_every=10**9, ckpt_every=10**9, log_every=10**9, progress=False,
+                      out=tempfile.mkdtemp(prefix="profile_"))
+    trainer = Trainer(cfg, log=lambda _: None)
+    trainer.fields.train()
+    for _ in range(args.warmup):
+        trainer.train_step()
+    torch.cuda.synchronize()
+    start = time.perf_counter()
+    for _ in range(args.steps):
+        trainer.train_step()
+    torch.cuda.synchronize()
+    wall_ms = (time.perf_counter() - start) * 1e3 / args.steps
+    with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CUDA]) as prof:
+        for _ in range(args.steps):
+            trainer.train_step()
+        torch.cuda.synchronize()
+    events = prof.key_averages()
+    busy_ms = sum(e.self_device_time_total for e in events) / 1e3 / args.steps
+    header = (f"preset {args.preset}, {args.precision}, {args.data}, {torch.cuda.get_device_name()}: "
+              f"{wall_ms:.2f} ms per step (wall, unprofiled), GPU busy {busy_ms:.2f} ms per step, "
+              f"batch {trainer.sampler.batch_rays} rays, step {trainer.step}")
+    table = events.table(sort_by="self_cuda_time_total", row_limit=30, max_name_column_width=70)
+    print(header)
+    print(table)
+    if args.out:
+        path = Path(args.out) / f"train_step_{args.preset}_{args.precision}.txt"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(header + "\n" + table + "\n")
+
+
+if __name__ == "__main__":
+    main()
