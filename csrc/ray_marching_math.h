@@ -230,9 +230,10 @@ struct MarchInputs {
   T step, cone_angle;
   int64_t max_samples;
 
-  // Marches ray r; see march_ray.
-  template <typename Emit>
-  C10_HOST_DEVICE int64_t march(int64_t r, Emit& emit) const {
+  // Clips ray r to the box and returns march(grid, o, d, t_hi, lattice), or 0 for a ray that
+  // misses it. `march` walks the lattice: march_ray on the host, a warp per ray on the GPU.
+  template <typename March>
+  C10_HOST_DEVICE int64_t clip_and(int64_t r, March&& march) const {
     const Grid<T> grid(bits, aabb, res);
     T o[3], d[3];
     for (int a = 0; a < 3; ++a) {
@@ -242,7 +243,15 @@ struct MarchInputs {
     T t_lo, t_hi;
     if (!clip_to_box(o, d, T(near[r]), T(far[r]), grid, t_lo, t_hi)) return 0;
     const Lattice<T> lattice(t_lo, jitter ? T(jitter[r]) : T(0), step, cone_angle);
-    return march_ray(grid, o, d, t_hi, lattice, max_samples, emit);
+    return march(grid, o, d, t_hi, lattice);
+  }
+
+  // Marches ray r sample by sample; see march_ray.
+  template <typename Emit>
+  C10_HOST_DEVICE int64_t march(int64_t r, Emit& emit) const {
+    return clip_and(r, [&](const Grid<T>& grid, const T* o, const T* d, T t_hi, const Lattice<T>& lattice) {
+      return march_ray(grid, o, d, t_hi, lattice, max_samples, emit);
+    });
   }
 };
 
