@@ -70,8 +70,8 @@ def ray_scale(
 
     Args:
         features: (N, C) floating rows.
-        scale: (R, C), of features' dtype (cast it first; a float32 gate on bfloat16 features
-            would otherwise promote the (N, C) output).
+        scale: (R, C) in features' dtype, else a TypeError (the (N, C) output keeps features'
+            dtype: cast a float32 gate to bfloat16 features' dtype first, as SE does).
         offsets: (R+1,) int64, non-decreasing from 0 to N.
         backend, check_values: as for :func:`segment_mean`.
 
