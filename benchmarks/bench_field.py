@@ -3,11 +3,12 @@ precision, on packed samples as the occupancy sampler feeds them.
 
     python -m benchmarks.bench_field [--samples 65536] [--rays 3000] [--profile D] [--compile] [--out DIR]
 
-Each row times ``field(x, d, ray_indices)`` then ``backward`` of a loss on sigma and rgb (median of
-CUDA-event timings). ``--profile P`` adds a torch.profiler table of preset P's step (bf16), the
-ops sorted by their CUDA time, to find what a preset adds over NeRF (A). ``--compile`` adds rows
-for the field under ``torch.compile(dynamic=True)`` (training feeds a different sample count each
-step), with the first call's compile time.
+Each row times ``field(x, d, ray_indices, offsets)`` (SE's fused packed path, as in training)
+then ``backward`` of a loss on sigma and rgb (median of CUDA-event timings). ``--profile P`` adds
+a torch.profiler table of preset P's step (bf16), the ops sorted by their CUDA time, to find what
+a preset adds over NeRF (A). ``--compile`` adds rows for the field under
+``torch.compile(dynamic=True)`` (training feeds a different sample count each step), with the
+first call's compile time.
 """
 
 from __future__ import annotations
@@ -27,20 +28,22 @@ PRECISIONS = {"bf16": torch.bfloat16, "tf32": None}
 
 
 def packed_batch(samples: int, rays: int, device: torch.device, seed: int = 0):
-    """Points in the unit box with sorted ray indices (every ray gets about samples/rays points)."""
+    """Points in the unit box with sorted ray indices and their CSR offsets (every ray gets about
+    samples/rays points)."""
     gen = torch.Generator(device=device).manual_seed(seed)
     x = torch.rand(samples, 3, generator=gen, device=device) * 2 - 1
     d = torch.nn.functional.normalize(torch.randn(samples, 3, generator=gen, device=device), dim=-1)
     ray_indices = torch.randint(rays, (samples,), generator=gen, device=device).sort().values
-    return x, d, ray_indices
+    offsets = torch.searchsorted(ray_indices, torch.arange(rays + 1, device=device))
+    return x, d, ray_indices, offsets
 
 
 def step_fn(field: MixerNeRF, batch, rays: int, dtype: torch.dtype | None):
-    x, d, ray_indices = batch
+    x, d, ray_indices, offsets = batch
 
     def step():
         with torch.autocast("cuda", dtype=dtype or torch.float32, enabled=dtype is not None):
-            sigma, rgb = field(x, d, ray_indices=ray_indices, num_rays=rays)
+            sigma, rgb = field(x, d, ray_indices=ray_indices, num_rays=rays, offsets=offsets)
         (sigma.float().mean() + rgb.float().mean()).backward()
 
     return step

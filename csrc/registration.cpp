@@ -28,6 +28,14 @@ TORCH_LIBRARY(mixer_nerf, m) {
   // ray_marching: rays_o/rays_d (R, 3), near/far (R), jitter (R) or None, occupancy bitfield uint8 (one bit
   //   per cell), aabb (2, 3) -> t_starts (N), t_ends (N), ray_indices (N) int64, offsets (R+1) int64. No backward.
   m.def("ray_marching_fwd(Tensor rays_o, Tensor rays_d, Tensor near, Tensor far, Tensor? jitter, Tensor bitfield, Tensor aabb, int[] resolution, float step_size, float cone_angle, int? max_samples_per_ray) -> (Tensor, Tensor, Tensor, Tensor)");
+  // segment_mean / ray_scale (squeeze-and-excitation on packed samples), offsets (R+1) int64 (ray r
+  //   owns rows offsets[r]:offsets[r+1]): segment_mean: values (N, C) -> per-ray mean (R, C), 0 for
+  //   an empty ray; ray_scale: features (N, C), scale (R, C) -> features[i] * scale[ray(i)] (N, C)
+  m.def("segment_mean_fwd(Tensor values, Tensor offsets) -> Tensor");
+  m.def("segment_mean_bwd(Tensor grad, Tensor offsets, int num_rows) -> Tensor");
+  m.def("ray_scale_fwd(Tensor features, Tensor scale, Tensor offsets) -> Tensor");
+  //   backward -> (grad_features (N, C), grad_scale (R, C))
+  m.def("ray_scale_bwd(Tensor grad_out, Tensor features, Tensor scale, Tensor offsets) -> (Tensor, Tensor)");
 }
 
 // The ahead-of-time build imports this library as the Python module mixer_nerf._C; the JIT

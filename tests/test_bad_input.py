@@ -32,8 +32,10 @@ from mixer_nerf.ops import (
     hierarchical_samples_packed,
     positional_encoding,
     ray_marching,
+    ray_scale,
     sample_pdf,
     sample_pdf_packed,
+    segment_mean,
 )
 from mixer_nerf.render import render_image, render_rays
 from mixer_nerf.train import CheckpointError, OutputError, TrainConfig, Trainer, load_checkpoint, load_trained
@@ -390,6 +392,32 @@ OP_CASES = {
         TypeError,
         "include_input",
     ),
+    # segment_mean, ray_scale: rows (5, 3) of the rays of OFFSETS
+    "segment_mean int values": (
+        lambda b: segment_mean(torch.ones(5, 3, dtype=torch.int64), OFFSETS, backend=b),
+        TypeError,
+        "values must",
+    ),
+    "segment_mean rows beyond offsets": (
+        lambda b: segment_mean(torch.rand(6, 3), OFFSETS, backend=b),
+        ValueError,
+        "offsets must start at 0 and end at 6",
+    ),
+    "ray_scale float64 scale": (
+        lambda b: ray_scale(torch.rand(5, 3), torch.rand(3, 3).double(), OFFSETS, backend=b),
+        TypeError,
+        "scale is torch.float64",
+    ),
+    "ray_scale scale (R+1, C)": (
+        lambda b: ray_scale(torch.rand(5, 3), torch.rand(4, 3), OFFSETS, backend=b),
+        ValueError,
+        "scale must have shape",
+    ),
+    "ray_scale scale on meta": (
+        lambda b: ray_scale(torch.rand(5, 3), torch.rand(3, 3, device=META), OFFSETS, backend=b),
+        ValueError,
+        "scale on meta",
+    ),
     # ray_marching
     "marching rays_o (R, 2)": (
         lambda b: ray_marching(**marching_args(rays_o=torch.zeros(2, 2)), backend=b),
@@ -442,6 +470,10 @@ def test_ops_reject_cpu_cuda_mixes(backend):
         )
     with pytest.raises(ValueError, match="rays_d on cuda"):
         ray_marching(**marching_args(rays_d=torch.ones(2, 3, device=cuda)), backend=backend)
+    with pytest.raises(ValueError, match="offsets on cpu"):
+        segment_mean(torch.rand(5, 3, device=cuda), OFFSETS, backend=backend)
+    with pytest.raises(ValueError, match="scale on cuda"):
+        ray_scale(torch.rand(5, 3), torch.rand(3, 3, device=cuda), OFFSETS, backend=backend)
     field = ConstantField()
     with pytest.raises(ValueError, match="rays_d on cuda"):
         render_rays(field, torch.zeros(2, 3), torch.ones(2, 3, device=cuda), 2.0, 6.0, backend=backend)

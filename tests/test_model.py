@@ -10,6 +10,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
+from mixer_nerf import _extension
 from mixer_nerf.model import MLCA, MixerNeRF, ModelConfig, SqueezeExcitation, preset_config, segment_mean
 
 # Small networks keep the file fast; the structure (skips, SE, MLCA, heads) is the full one.
@@ -143,6 +144,68 @@ def test_se_gradcheck_dense_and_packed():
     assert torch.autograd.gradcheck(lambda f: se(f, ray_indices, 3), (packed,))
 
 
+SE_BACKENDS = ["torch"] + (["kernel"] if _extension.available() else [])
+
+
+def ragged_layout(counts):
+    """ray_indices (N,) and CSR offsets (R+1,) of rays with ``counts`` samples each, in ray order."""
+    counts = torch.tensor(counts)
+    return torch.arange(counts.numel()).repeat_interleave(counts), F.pad(counts.cumsum(0), (1, 0))
+
+
+@pytest.mark.parametrize("backend", SE_BACKENDS)
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_se_offsets_equals_ray_indices(backend, dtype):
+    """The fused ops (offsets) and index_add + gather (ray_indices): same outputs and gradients,
+    on rays of 0, 1 and many samples."""
+    se = randomize_(SqueezeExcitation(16, reduction=4, backend=backend)).to(dtype)
+    ray_indices, offsets = ragged_layout([3, 0, 1, 40, 0, 7])
+    features = torch.randn(ray_indices.numel(), 16, dtype=dtype, requires_grad=True)
+    upstream = torch.randn_like(features)
+    results = []
+    for kwargs in ({"offsets": offsets}, {"ray_indices": ray_indices, "num_rays": 6}):
+        out = se(features, **kwargs)
+        results.append((out, *torch.autograd.grad(out, (features, *se.parameters()), upstream)))
+    torch.testing.assert_close(results[0], results[1])
+
+
+@pytest.mark.parametrize("backend", SE_BACKENDS)
+def test_se_offsets_equals_dense_for_full_rays(backend):
+    se = randomize_(SqueezeExcitation(16, reduction=4, backend=backend))
+    R, S = 4, 6
+    dense = torch.randn(R, S, 16)
+    _, offsets = ragged_layout([S] * R)
+    torch.testing.assert_close(se(dense.reshape(-1, 16), offsets=offsets), se(dense).reshape(-1, 16))
+
+
+@pytest.mark.parametrize("backend", SE_BACKENDS)
+def test_se_offsets_under_bf16_autocast(backend):
+    """Under autocast the trunk features are bfloat16: the fused path keeps them so, like the
+    ray_indices path, and agrees with it."""
+    se = randomize_(SqueezeExcitation(16, reduction=4, backend=backend))
+    ray_indices, offsets = ragged_layout([5, 0, 9, 2])
+    features = torch.randn(ray_indices.numel(), 16).bfloat16().requires_grad_()
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        fused = se(features, offsets=offsets)
+        indexed = se(features, ray_indices, 4)
+    assert fused.dtype == indexed.dtype == torch.bfloat16
+    torch.testing.assert_close(fused, indexed, rtol=2e-2, atol=1e-2)
+    fused.float().sum().backward()
+    assert torch.isfinite(features.grad).all() and features.grad.dtype == torch.bfloat16
+
+
+def test_se_gradcheck_offsets():
+    se = randomize_(SqueezeExcitation(8, reduction=2, backend=SE_BACKENDS[-1])).double()
+    _, offsets = ragged_layout([2, 0, 1, 4])
+    packed = torch.randn(7, 8, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda f: se(f, offsets=offsets), (packed,))
+
+
+def test_se_rejects_an_unknown_backend():
+    with pytest.raises(ValueError, match="backend"):
+        SqueezeExcitation(16, reduction=4, backend="cuda")
+
+
 # ---------------------------------------------------------------- the field
 
 
@@ -211,6 +274,18 @@ def test_packed_layout_equals_dense_for_full_rays():
     sigma, rgb = model(packed_x, packed_d, ray_indices=ray_indices, num_rays=R)
     torch.testing.assert_close(sigma, dense_sigma.reshape(-1)[order], rtol=1e-5, atol=1e-6)
     torch.testing.assert_close(rgb, dense_rgb.reshape(-1, 3)[order], rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("backend", SE_BACKENDS)
+def test_packed_offsets_equal_ray_indices_in_forward_and_density(backend):
+    model = randomize_(small_model("D", backend=backend))
+    ray_indices, offsets = ragged_layout([6, 0, 3, 11, 1])
+    N = ray_indices.numel()
+    x, d = torch.rand(N, 3) * 3 - 1.5, F.normalize(torch.randn(N, 3), dim=-1)
+    by_offsets = model(x, d, offsets=offsets)
+    by_indices = model(x, d, ray_indices=ray_indices, num_rays=5)
+    torch.testing.assert_close(by_offsets, by_indices)
+    torch.testing.assert_close(model.density(x, offsets=offsets), by_indices[0])
 
 
 def test_packed_without_ray_indices_gates_per_point():
@@ -329,6 +404,17 @@ def test_kernel_positional_encoding_backend_matches_reference():
             {"ray_indices": torch.zeros(4, dtype=torch.long)},
             ValueError,
             "ray_indices",
+        ),
+        (torch.zeros(2, 4, 3), torch.zeros(2, 1, 3), {"offsets": torch.tensor([0, 4])}, ValueError, "packed"),
+        (torch.zeros(5, 3), torch.zeros(5, 3), {"offsets": torch.tensor([0, 5.0])}, TypeError, "offsets"),
+        (torch.zeros(5, 3), torch.zeros(5, 3), {"offsets": torch.tensor([[0, 5]])}, ValueError, "offsets"),
+        (torch.zeros(5, 3), torch.zeros(5, 3), {"offsets": [0, 5]}, TypeError, "offsets"),
+        (
+            torch.zeros(5, 3),
+            torch.zeros(5, 3),
+            {"offsets": torch.tensor([0, 5], device="meta")},
+            ValueError,
+            "offsets on meta",
         ),
     ],
 )

@@ -90,6 +90,66 @@ def test_gradients_reach_the_field_and_packed_model_gets_ray_indices():
     assert any(g.abs().sum() > 0 for g in grads)
 
 
+class RecordingBall(BallField):
+    """An opaque ball that records the packed layout each call of it gets."""
+
+    def __init__(self) -> None:
+        super().__init__(200.0)
+        self.calls = []
+
+    def forward(self, x, d, ray_indices=None, num_rays=None, offsets=None):
+        self.calls.append((x.shape[0], ray_indices, num_rays, offsets))
+        return super().forward(x, d)
+
+    def density(self, x, ray_indices=None, num_rays=None, offsets=None):
+        self.calls.append((x.shape[0], ray_indices, num_rays, offsets))
+        return super().forward(x, torch.zeros_like(x))[0]
+
+
+def test_packed_field_gets_the_layout_of_exactly_the_samples_it_evaluates():
+    """The pre-pass sees every marched sample, the second pass the survivors of early termination:
+    each with its own offsets (recomputed by select), consistent with its ray_indices."""
+    rays_o, rays_d = rays_towards_ball(64, spread=0.6)
+    field = RecordingBall()
+    render_rays_marched(field, rays_o, rays_d, ball_grid(), stratified=False, early_stop_eps=1e-4,
+                        backend="torch")
+    assert len(field.calls) == 2 and field.calls[1][0] < field.calls[0][0]
+    for rows, ray_indices, num_rays, offsets in field.calls:
+        assert num_rays == 64 and offsets.shape == (65,) and offsets[0] == 0 and offsets[-1] == rows
+        torch.testing.assert_close(torch.repeat_interleave(torch.arange(64), offsets.diff()), ray_indices)
+
+
+class IndicesOnly(nn.Module):
+    """A field without the offsets argument: the renderer passes it only ray_indices."""
+
+    def __init__(self, field: nn.Module) -> None:
+        super().__init__()
+        self.field = field
+
+    def forward(self, x, d, ray_indices=None, num_rays=None):
+        return self.field(x, d, ray_indices=ray_indices, num_rays=num_rays)
+
+    def density(self, x, ray_indices=None, num_rays=None):
+        return self.field.density(x, ray_indices=ray_indices, num_rays=num_rays)
+
+
+@pytest.mark.parametrize("backend", ["torch", "auto"])
+def test_model_renders_the_same_through_offsets_and_ray_indices(backend):
+    """MixerNeRF's SE takes the fused ops given offsets, index_add and a gather given ray_indices."""
+    torch.manual_seed(0)
+    cfg = preset_config("B", depth=3, width=32, skips=(2,), view_width=16, pos_freqs=4, dir_freqs=2,
+                        se_reduction=4, backend=backend)
+    field = MixerNeRF(cfg)
+    rays_o, rays_d = rays_towards_ball(64)
+    images = []
+    for f in (field, IndicesOnly(field)):
+        out = render_rays_marched(f, rays_o, rays_d, ball_grid(16), stratified=False,
+                                  background=torch.ones(3), backend=backend)
+        (grad,) = torch.autograd.grad(out.color.sum(), field.se.reduce.weight)
+        images.append((out.color, grad))
+    torch.testing.assert_close(images[0], images[1], rtol=1e-5, atol=1e-6)
+
+
 @pytest.mark.skipif(not __import__("mixer_nerf._extension", fromlist=["x"]).available(), reason="no kernels")
 def test_kernel_and_torch_backends_render_the_same_image():
     rays_o, rays_d = rays_towards_ball(300)

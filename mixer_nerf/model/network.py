@@ -23,7 +23,8 @@ original recipe for comparison.
 Layouts: dense samples ``x (R, S, 3)`` with ``d (R, S, 3)`` or per-ray ``(R, 1, 3)`` (an expanded
 ``(R, S, 3)`` view of a per-ray tensor is recognised by its zero stride and treated as per-ray, so
 the view branch's direction term is computed once per ray), or packed ``x (N, 3)`` with ``d (N, 3)``
-and optional ``ray_indices (N,)`` for the SE squeeze (without them every point is its own ray).
+and, for the SE squeeze, optional CSR ``offsets (R+1,)`` (rows of a ray contiguous: the fused SE
+ops) or ``ray_indices (N,)`` (rows in any order); without either every point is its own ray.
 """
 
 from __future__ import annotations
@@ -33,7 +34,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from ..ops import positional_encoding
-from ..ops._checks import check_floating, check_same_device
+from ..ops._checks import check_floating, check_offsets, check_same_device, check_tensor
 from .config import ModelConfig
 from .mlca import MLCA
 from .squeeze_excitation import SqueezeExcitation
@@ -56,7 +57,9 @@ class MixerNeRF(nn.Module):
         self.trunk = nn.ModuleList(
             nn.Linear(widths[i] + (trunk_in if i in cfg.skips else 0), cfg.width) for i in range(cfg.depth)
         )
-        self.se = SqueezeExcitation(cfg.width, cfg.se_reduction, cfg.se_per_point) if cfg.use_se else None
+        self.se = None
+        if cfg.use_se:
+            self.se = SqueezeExcitation(cfg.width, cfg.se_reduction, cfg.se_per_point, cfg.backend)
         self.head = nn.Linear(cfg.width, 1 + cfg.width)  # density pre-activation, then the feature
         self.view_feature = nn.Linear(cfg.width, cfg.view_width)
         self.view_direction = nn.Linear(dir_in, cfg.view_width, bias=False)
@@ -76,6 +79,7 @@ class MixerNeRF(nn.Module):
         d: torch.Tensor,
         ray_indices: torch.Tensor | None = None,
         num_rays: int | None = None,
+        offsets: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Density and colour at sample points.
 
@@ -84,15 +88,18 @@ class MixerNeRF(nn.Module):
             d: unit view directions ``(R, S, 3)`` or ``(R, 1, 3)``; ``(N, 3)`` when packed.
             ray_indices: packed layout only, ``(N,)`` int64 ray of each sample (SE's squeeze).
             num_rays: number of rays ``ray_indices`` index (default: its max + 1, a GPU sync).
+            offsets: packed layout only, ``(R+1,)`` int64 CSR offsets: ray r owns samples
+                ``offsets[r]:offsets[r+1]`` (SE's squeeze by the fused ops; used instead of
+                ``ray_indices`` when both are given). Values are not checked (a GPU sync).
 
         Returns:
             sigma ``x.shape[:-1]`` non-negative, rgb ``(*x.shape[:-1], 3)`` in [0, 1], in ``x``'s dtype
             (float32 under autocast, whose low precision stays inside the MLP).
         """
-        d = _check_inputs(x, d, ray_indices)
+        d = _check_inputs(x, d, ray_indices, offsets)
         self._check_matches_parameters(x)
         direction = self._encode_direction(d)
-        features = self._trunk_features(x, direction, ray_indices, num_rays)
+        features = self._trunk_features(x, direction, ray_indices, num_rays, offsets)
         out = self.head(features)
         sigma = self._activate_density(out[..., 0], x.dtype)
         view_term = self.view_direction(self.direction_mixer(direction))  # per ray when d is
@@ -106,13 +113,15 @@ class MixerNeRF(nn.Module):
         d: torch.Tensor | None = None,
         ray_indices: torch.Tensor | None = None,
         num_rays: int | None = None,
+        offsets: torch.Tensor | None = None,
     ) -> torch.Tensor:
         """Only ``sigma`` (skips the colour branch), e.g. for occupancy-grid updates. ``d`` is needed
-        only when ``cfg.mlca_concat_direction`` makes the density view-dependent."""
-        d = _check_inputs(x, d, ray_indices)
+        only when ``cfg.mlca_concat_direction`` makes the density view-dependent; the other
+        arguments are those of :meth:`forward`."""
+        d = _check_inputs(x, d, ray_indices, offsets)
         self._check_matches_parameters(x)
         direction = None if d is None else self._encode_direction(d)
-        features = self._trunk_features(x, direction, ray_indices, num_rays)
+        features = self._trunk_features(x, direction, ray_indices, num_rays, offsets)
         return self._activate_density(
             F.linear(features, self.head.weight[:1], self.head.bias[:1])[..., 0], x.dtype
         )
@@ -135,6 +144,7 @@ class MixerNeRF(nn.Module):
         direction: torch.Tensor | None,
         ray_indices: torch.Tensor | None,
         num_rays: int | None,
+        offsets: torch.Tensor | None = None,
     ) -> torch.Tensor:
         cfg = self.cfg
         normalised = (x - self.scene_center.to(x.dtype)) / cfg.scene_scale
@@ -150,7 +160,7 @@ class MixerNeRF(nn.Module):
                 h = torch.cat([encoded.to(h.dtype), h], dim=-1)
             h = torch.relu(layer(h))
         if self.se is not None:
-            h = self.se(h, ray_indices, num_rays)
+            h = self.se(h, ray_indices, num_rays, offsets)
         return h
 
     def _activate_density(self, raw: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
@@ -171,7 +181,10 @@ def _init_relu_layer(layer: nn.Linear) -> None:
 
 
 def _check_inputs(
-    x: torch.Tensor, d: torch.Tensor | None, ray_indices: torch.Tensor | None
+    x: torch.Tensor,
+    d: torch.Tensor | None,
+    ray_indices: torch.Tensor | None,
+    offsets: torch.Tensor | None,
 ) -> torch.Tensor | None:
     """Validate the layouts (ValueError/TypeError naming the argument); returns ``d``, with an
     expanded per-ray view ``(R, S, 3)`` (stride 0 along S) narrowed to ``(R, 1, 3)``."""
@@ -187,6 +200,12 @@ def _check_inputs(
                 f"ray_indices must be an int64 tensor of shape {(x.shape[0],)}, "
                 f"got {ray_indices.dtype} {tuple(ray_indices.shape)}"
             )
+    if offsets is not None:
+        check_tensor("offsets", offsets)
+        check_same_device(x=x, offsets=offsets)
+        if x.dim() != 2:
+            raise ValueError("offsets is only for packed samples x (N, 3)")
+        check_offsets("offsets", offsets, x.shape[0], check_values=False)
     if d is None:
         return None
     check_floating("d", d)

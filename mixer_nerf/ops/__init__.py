@@ -9,6 +9,7 @@ from .composite import composite, composite_packed
 from .positional_encoding import positional_encoding
 from .ray_marching import PackedSamples, filter_by_transmittance, ray_marching
 from .sample_pdf import hierarchical_samples, hierarchical_samples_packed, sample_pdf, sample_pdf_packed
+from .segment_ops import ray_scale, segment_mean
 
 __all__ = [
     "PackedSamples",
@@ -19,6 +20,8 @@ __all__ = [
     "hierarchical_samples_packed",
     "positional_encoding",
     "ray_marching",
+    "ray_scale",
     "sample_pdf",
     "sample_pdf_packed",
+    "segment_mean",
 ]

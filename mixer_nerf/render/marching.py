@@ -32,8 +32,17 @@ class MarchedResult(NamedTuple):
     weights: torch.Tensor  # (N,)
 
 
-def _takes_ray_indices(field: nn.Module) -> bool:
-    return "ray_indices" in inspect.signature(field.forward).parameters
+def _layout_arguments(field: nn.Module, num_rays: int):
+    """``samples -> kwargs``: the packed layout of the samples, as far as ``field`` takes it
+    (``ray_indices`` with ``num_rays``, and the CSR ``offsets`` of its fused SE path)."""
+    parameters = inspect.signature(field.forward).parameters
+    with_indices, with_offsets = "ray_indices" in parameters, "offsets" in parameters
+
+    def arguments(samples: PackedSamples) -> dict:
+        kwargs = {"ray_indices": samples.ray_indices, "num_rays": num_rays} if with_indices else {}
+        return {**kwargs, "offsets": samples.offsets} if with_offsets else kwargs
+
+    return arguments
 
 
 def _sample_points(rays_o, rays_d, samples: PackedSamples) -> torch.Tensor:
@@ -62,7 +71,8 @@ def render_rays_marched(
     Args:
         field: ``field(x (N, 3), d (N, 3) unit) -> (sigma (N,), rgb (N, 3))``; a field whose forward
             takes ``ray_indices`` (e.g. :class:`~mixer_nerf.model.MixerNeRF`, for its per-ray SE
-            squeeze) gets them with ``num_rays``. ``field.density(x)`` is used for the no-grad
+            squeeze) gets them with ``num_rays``, and one that takes ``offsets`` the samples' CSR
+            offsets ``(R+1,)``. ``field.density(x)`` is used for the no-grad
             pre-pass when it exists (skips the colour branch).
         rays_o, rays_d: ``(R, 3)``; depths are in units of ``|rays_d|``.
         grid: the occupancy grid (its box clips the rays).
@@ -82,8 +92,9 @@ def render_rays_marched(
                            generator=generator, cone_angle=cone_angle, backend=backend)
     norm = torch.linalg.vector_norm(rays_d, dim=-1)
     viewdirs = rays_d / norm.clamp_min(torch.finfo(rays_d.dtype).tiny)[:, None]
-    num_rays = rays_o.shape[0]
-    extra = (lambda s: {"ray_indices": s.ray_indices, "num_rays": num_rays}) if _takes_ray_indices(field) else (lambda s: {})
+    # Each field call gets the layout of exactly the samples it evaluates: the marched ones for
+    # the pre-pass, then the survivors, whose offsets select() recomputes.
+    extra = _layout_arguments(field, rays_o.shape[0])
 
     if (early_stop_eps > 0 or alpha_threshold > 0) and samples.t_starts.numel():
         with torch.no_grad():

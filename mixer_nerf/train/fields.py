@@ -35,20 +35,27 @@ class MixedPrecisionField(nn.Module):
         d: torch.Tensor,
         ray_indices: torch.Tensor | None = None,
         num_rays: int | None = None,
+        offsets: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor]:
+        """The field's ``(sigma, rgb)`` in float32; packed-layout arguments as for
+        :meth:`~mixer_nerf.model.MixerNeRF.forward`."""
         with torch.autocast(
             self.device_type, dtype=self.dtype or torch.float32, enabled=self.dtype is not None
         ):
-            sigma, rgb = self.field(x, d, ray_indices=ray_indices, num_rays=num_rays)
+            sigma, rgb = self.field(x, d, ray_indices=ray_indices, num_rays=num_rays, offsets=offsets)
         return sigma.float(), rgb.float()
 
     def density(
-        self, x: torch.Tensor, ray_indices: torch.Tensor | None = None, num_rays: int | None = None
+        self,
+        x: torch.Tensor,
+        ray_indices: torch.Tensor | None = None,
+        num_rays: int | None = None,
+        offsets: torch.Tensor | None = None,
     ) -> torch.Tensor:
         with torch.autocast(
             self.device_type, dtype=self.dtype or torch.float32, enabled=self.dtype is not None
         ):
-            return self.field.density(x, ray_indices=ray_indices, num_rays=num_rays).float()
+            return self.field.density(x, ray_indices=ray_indices, num_rays=num_rays, offsets=offsets).float()
 
 
 class RadianceFields(nn.Module):

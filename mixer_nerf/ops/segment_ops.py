@@ -1,0 +1,159 @@
+"""Per-ray segment mean and per-ray channel scale of packed rows: the squeeze and the excitation of
+squeeze-and-excitation (:class:`~mixer_nerf.model.SqueezeExcitation`) on ragged rays.
+
+Rows are packed ``(N, C)`` with CSR offsets ``(R+1,)`` as :func:`~mixer_nerf.ops.ray_marching`
+produces them: ray r owns rows ``offsets[r]:offsets[r+1]``. Definitions are in
+:mod:`mixer_nerf.ops.segment_ops_reference`; the kernels (``csrc/segment_ops.cpp``,
+``csrc/cuda/segment_ops.cu``) compute them with hand-written backwards that walk each ray's rows
+(deterministic, no atomics):
+
+    segment_mean:  d values_i = grad_{ray(i)} / n_{ray(i)}
+    ray_scale:     d features_i = grad_i * scale_{ray(i)},  d scale_r = sum_{i in r} grad_i * features_i
+"""
+
+from __future__ import annotations
+
+import functools
+
+import torch
+from torch.autograd.function import once_differentiable
+
+from ._checks import (
+    check_floating,
+    check_ndim,
+    check_offsets,
+    check_same_device,
+    check_same_dtype,
+    check_shape,
+    check_tensor,
+)
+from ._dispatch import use_kernel
+from .segment_ops_reference import ray_scale_reference, segment_mean_reference
+
+
+def segment_mean(
+    values: torch.Tensor, offsets: torch.Tensor, backend: str = "auto", check_values: bool = True
+) -> torch.Tensor:
+    """Mean of each ray's rows.
+
+    Args:
+        values: (N, C) floating rows (half/bfloat16 are summed in float32).
+        offsets: (R+1,) int64, non-decreasing from 0 to N.
+        backend: ``"auto"``, ``"kernel"`` or ``"torch"`` (see :mod:`mixer_nerf.ops`).
+        check_values: also check the values of ``offsets`` (a host sync on a GPU; pass False where
+            they hold by construction). The kernels clamp offsets into [0, N], so even unchecked
+            offsets never reach outside the arrays (rows outside every ray then get unspecified
+            outputs and gradients).
+
+    Returns:
+        (R, C) in values' dtype, 0 for a ray with no row; differentiable with respect to values.
+    """
+    _check_rows("values", values)
+    _check_offsets(offsets, "values", values, check_values)
+    if not use_kernel(backend, values.device):
+        return segment_mean_reference(values, offsets)
+    _register_fakes()
+    values, offsets = values.contiguous(), offsets.contiguous()
+    if torch.is_grad_enabled() and values.requires_grad:
+        return _SegmentMean.apply(values, offsets)
+    return torch.ops.mixer_nerf.segment_mean_fwd(values, offsets)
+
+
+def ray_scale(
+    features: torch.Tensor,
+    scale: torch.Tensor,
+    offsets: torch.Tensor,
+    backend: str = "auto",
+    check_values: bool = True,
+) -> torch.Tensor:
+    """Every row times its ray's scale: ``out[i] = features[i] * scale[ray(i)]``.
+
+    Args:
+        features: (N, C) floating rows.
+        scale: (R, C) in features' dtype, else a TypeError (the (N, C) output keeps features'
+            dtype: cast a float32 gate to bfloat16 features' dtype first, as SE does).
+        offsets: (R+1,) int64, non-decreasing from 0 to N.
+        backend, check_values: as for :func:`segment_mean`.
+
+    Returns:
+        (N, C) in features' dtype, differentiable with respect to features and scale.
+    """
+    _check_rows("features", features)
+    num_rays = _check_offsets(offsets, "features", features, check_values)
+    check_floating("scale", scale)
+    check_same_device(features=features, scale=scale)
+    check_same_dtype(features=features, scale=scale)
+    check_shape("scale", scale, (num_rays, features.shape[1]), " (R, C)")
+    if not use_kernel(backend, features.device):
+        return ray_scale_reference(features, scale, offsets)
+    _register_fakes()
+    features, scale, offsets = features.contiguous(), scale.contiguous(), offsets.contiguous()
+    if torch.is_grad_enabled() and (features.requires_grad or scale.requires_grad):
+        return _RayScale.apply(features, scale, offsets)
+    return torch.ops.mixer_nerf.ray_scale_fwd(features, scale, offsets)
+
+
+def _check_rows(name: str, rows: torch.Tensor) -> None:
+    check_floating(name, rows)
+    check_ndim(name, rows, 2)
+    if rows.shape[1] < 1:
+        raise ValueError(f"{name} must have at least one channel, got shape {tuple(rows.shape)}")
+
+
+def _check_offsets(offsets: torch.Tensor, name: str, rows: torch.Tensor, check_values: bool) -> int:
+    """Returns R."""
+    check_same_device(**{name: rows, "offsets": check_tensor("offsets", offsets)})
+    return check_offsets("offsets", offsets, rows.shape[0], check_values)
+
+
+class _SegmentMean(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, values, offsets):
+        ctx.save_for_backward(offsets)
+        ctx.num_rows = values.shape[0]
+        return torch.ops.mixer_nerf.segment_mean_fwd(values, offsets)
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad):
+        (offsets,) = ctx.saved_tensors
+        return torch.ops.mixer_nerf.segment_mean_bwd(grad.contiguous(), offsets, ctx.num_rows), None
+
+
+class _RayScale(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, features, scale, offsets):
+        ctx.save_for_backward(features, scale, offsets)
+        return torch.ops.mixer_nerf.ray_scale_fwd(features, scale, offsets)
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad_out):
+        features, scale, offsets = ctx.saved_tensors
+        grads = torch.ops.mixer_nerf.ray_scale_bwd(grad_out.contiguous(), features, scale, offsets)
+        return *grads, None
+
+
+@functools.cache
+def _register_fakes() -> None:
+    """Shape functions for torch.compile and opcheck; the ops exist only once the extension loaded."""
+    torch.library.register_fake("mixer_nerf::segment_mean_fwd", _segment_mean_fwd_fake)
+    torch.library.register_fake("mixer_nerf::segment_mean_bwd", _segment_mean_bwd_fake)
+    torch.library.register_fake("mixer_nerf::ray_scale_fwd", _ray_scale_fwd_fake)
+    torch.library.register_fake("mixer_nerf::ray_scale_bwd", _ray_scale_bwd_fake)
+
+
+def _segment_mean_fwd_fake(values, offsets):
+    return values.new_empty(offsets.shape[0] - 1, values.shape[1])
+
+
+def _segment_mean_bwd_fake(grad, offsets, num_rows):
+    return grad.new_empty(num_rows, grad.shape[1])
+
+
+def _ray_scale_fwd_fake(features, scale, offsets):
+    return torch.empty_like(features)
+
+
+def _ray_scale_bwd_fake(grad_out, features, scale, offsets):
+    return torch.empty_like(features), torch.empty_like(scale)
