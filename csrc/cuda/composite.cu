@@ -258,7 +258,9 @@ __device__ void composite_backward_ray(const CompositeInputs<scalar_t>& in, cons
 }
 
 template <typename scalar_t, typename Rays>
-__global__ void __launch_bounds__(kMaxWarpsPerBlock* kWarpSize)
+// 4 blocks per SM: 64 registers (80 without the bound capped occupancy at 3 blocks; the forward is
+// latency-bound, benchmarks/results/ncu_composite_cuda.txt), at the cost of <= 48 bytes of spills.
+__global__ void __launch_bounds__(kMaxWarpsPerBlock* kWarpSize, 4)
     composite_fwd_kernel(CompositeInputs<scalar_t> in, CompositeOutputs<scalar_t> out, int64_t R, Rays rays) {
   const int64_t ray = int64_t(blockIdx.x) * (blockDim.x / kWarpSize) + threadIdx.x / kWarpSize;
   if (ray >= R) return;  // whole warps leave together: the shuffles below see full warps
