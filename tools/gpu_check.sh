@@ -2,8 +2,9 @@
 # GPU checks in one device call: JIT-build the kernels, then the named stages in order.
 # Usage on the GPU machine: bash tools/gpu_check.sh [STAGE ...]   (default: every stage)
 #   pytest[:PATH] the whole test suite, or one test file
-#   memcheck      compute-sanitizer memcheck over the CUDA tests of every op
+#   memcheck      compute-sanitizer memcheck over the CUDA tests of every op ($MEMCHECK_TESTS: some)
 #   racecheck     compute-sanitizer racecheck over those of the kernels with shared memory
+#                 ($RACECHECK_TESTS: some)
 #                 (both in the background, side by side with later stages: name them last)
 #   error_budget  python benchmarks/error_budget.py --device cuda
 #   bench[:OPS]   python -m benchmarks.bench_ops --device cuda [--ops OPS]
@@ -30,15 +31,17 @@ stages=("$@")
 [ ${#stages[@]} -eq 0 ] && stages=(crash pytest error_budget bench memcheck racecheck)
 for stage in "${stages[@]}"; do
   case $stage in
-    pytest*) paths=${stage#pytest}; step pytest 240 python -m pytest -q -p no:cacheprovider -rs ${paths#:} ;;
-    # memcheck: every op's CUDA tests. racecheck (shared-memory hazards, ~10x slower): the two
-    # kernels with shared memory, without the 65536-ray cases (more blocks, no new hazards).
+    pytest*) paths=${stage#pytest}; step pytest 360 python -m pytest -q -p no:cacheprovider -rs ${paths#:} ;;
+    # memcheck: every op's CUDA tests. racecheck (shared-memory hazards, ~10x slower): the
+    # kernels with shared memory, without the largest cases (more blocks, no new hazards).
     memcheck) step memcheck 420 compute-sanitizer --tool memcheck --error-exitcode 1 python -m pytest -q \
-      -p no:cacheprovider tests/test_sample_pdf.py tests/test_composite.py tests/test_positional_encoding.py \
-      tests/test_ray_marching.py -m cuda -k "not opcheck and not 32_bit" & ;;
+      -p no:cacheprovider ${MEMCHECK_TESTS:-tests/test_sample_pdf.py tests/test_composite.py \
+      tests/test_positional_encoding.py tests/test_ray_marching.py tests/test_segment_ops.py tests/test_mlca.py} \
+      -m cuda -k "not opcheck and not 32_bit" & ;;
     racecheck) step racecheck 420 compute-sanitizer --tool racecheck --error-exitcode 1 python -m pytest -q \
-      -p no:cacheprovider tests/test_sample_pdf.py tests/test_positional_encoding.py -m cuda \
-      -k "not opcheck and not 65536 and not 32_bit" & ;;
+      -p no:cacheprovider ${RACECHECK_TESTS:-tests/test_sample_pdf.py tests/test_positional_encoding.py \
+      tests/test_segment_ops.py tests/test_mlca.py} -m cuda \
+      -k "not opcheck and not 65536 and not 32_bit and not training_sized" & ;;
     error_budget) step error_budget 150 python benchmarks/error_budget.py --device cuda --out "$OUT/results" ;;
     bench*) ops=${stage#bench}; step bench_ops 420 python -m benchmarks.bench_ops --device cuda --repeats 30 \
       --out "$OUT/results" ${ops:+--ops ${ops#:}} ;;
