@@ -28,6 +28,11 @@ TORCH_LIBRARY(mixer_nerf, m) {
   // ray_marching: rays_o/rays_d (R, 3), near/far (R), jitter (R) or None, occupancy bitfield uint8 (one bit
   //   per cell), aabb (2, 3) -> t_starts (N), t_ends (N), ray_indices (N) int64, offsets (R+1) int64. No backward.
   m.def("ray_marching_fwd(Tensor rays_o, Tensor rays_d, Tensor near, Tensor far, Tensor? jitter, Tensor bitfield, Tensor aabb, int[] resolution, float step_size, float cone_angle, int? max_samples_per_ray) -> (Tensor, Tensor, Tensor, Tensor)");
+  // mlca: encoded (N, T*D) token-major, lift (C, D), token_weight (T, T), token_bias (T), channel_weight (C, C),
+  //   channel_bias (C) -> (N, T*C); all one dtype. Backward: grads of (encoded, lift, token_weight, token_bias,
+  //   channel_weight, channel_bias); input_grad=False skips grad_encoded (returned as None).
+  m.def("mlca_fwd(Tensor encoded, Tensor lift, Tensor token_weight, Tensor token_bias, Tensor channel_weight, Tensor channel_bias) -> Tensor");
+  m.def("mlca_bwd(Tensor grad_out, Tensor encoded, Tensor lift, Tensor token_weight, Tensor token_bias, Tensor channel_weight, Tensor channel_bias, bool input_grad) -> (Tensor?, Tensor, Tensor, Tensor, Tensor, Tensor)");
 }
 
 // The ahead-of-time build imports this library as the Python module mixer_nerf._C; the JIT
