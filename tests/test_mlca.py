@@ -14,6 +14,7 @@ import pytest
 import torch
 
 from mixer_nerf import _extension
+from mixer_nerf.model import MLCA
 from mixer_nerf.ops import mlca
 from mixer_nerf.ops.mlca import MAX_TOKENS
 from mixer_nerf.ops.mlca_reference import mlca_reference
@@ -231,6 +232,72 @@ def test_bad_input(changes, error, match, backend):
 def test_bad_backend():
     with pytest.raises(ValueError, match="backend"):
         mlca(**valid(), backend="cuda")
+    with pytest.raises(ValueError, match="backend"):
+        MLCA(5, 3, 4, backend="fast")
+
+
+# ------------------------------------------------------------------------------------- module
+
+
+def randomized(module, gen):
+    with torch.no_grad():
+        for p in module.parameters():
+            p.copy_(torch.randn(p.shape, generator=gen) * 0.3)
+    return module
+
+
+@needs_kernels
+def test_module_kernel_matches_torch_backend(gen):
+    kernel = randomized(MLCA(21, 3, 8, backend="kernel"), gen)
+    torch_ = MLCA(21, 3, 8, backend="torch")
+    torch_.load_state_dict(kernel.state_dict())
+    x = torch.randn(3, 11, 63, generator=gen)
+    outs = []
+    for module in (kernel, torch_):
+        module.zero_grad()
+        out = module(x)
+        out.pow(2).sum().backward()
+        outs.append((out, [p.grad for p in module.parameters()]))
+    torch.testing.assert_close(outs[0][0], outs[1][0], rtol=1e-5, atol=1e-5)
+    for a, b in zip(outs[0][1], outs[1][1], strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-4)
+
+
+def test_module_keeps_its_checkpoint_layout():
+    """Same parameter names, shapes and init as before the fused op: old checkpoints load."""
+    module = MLCA(21, 3, 8)
+    shapes = {name: tuple(t.shape) for name, t in module.state_dict().items()}
+    assert shapes == {
+        "lift": (8, 3),
+        "token_weight": (21, 21),
+        "token_bias": (21,),
+        "channel_weight": (8, 8),
+        "channel_bias": (8,),
+    }
+    assert torch.equal(module.lift, torch.eye(8, 3))
+    assert all(bool((getattr(module, n) == 0).all()) for n in shapes if n != "lift")
+
+
+@needs_kernels
+@pytest.mark.parametrize("dtype, tol", [(torch.float64, 1e-5), (torch.bfloat16, 5e-2)])
+def test_module_casts_its_parameters_to_the_input_dtype(dtype, tol, gen):
+    module = randomized(MLCA(9, 3, 8, backend="kernel"), gen)
+    x = torch.randn(20, 27, generator=gen)
+    out = module(x.to(dtype))
+    assert out.dtype == dtype
+    torch.testing.assert_close(out.float(), module(x), rtol=tol, atol=tol)
+    out.float().sum().backward()
+    assert module.token_weight.grad.dtype == torch.float32
+
+
+@needs_kernels
+def test_module_under_autocast_computes_in_float32(gen):
+    module = randomized(MLCA(21, 3, 8, backend="kernel"), gen)
+    x = torch.randn(30, 63, generator=gen)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        out = module(x)
+    assert out.dtype == torch.float32
+    assert torch.equal(out, module(x))
 
 
 # --------------------------------------------------------------------------------------- CUDA
