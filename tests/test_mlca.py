@@ -16,7 +16,7 @@ import torch
 from mixer_nerf import _extension
 from mixer_nerf.model import MLCA
 from mixer_nerf.ops import mlca
-from mixer_nerf.ops.mlca import MAX_TOKENS
+from mixer_nerf.ops.mlca import MAX_CHANNELS, MAX_TOKEN_DIM, MAX_TOKENS
 from mixer_nerf.ops.mlca_reference import mlca_reference
 
 needs_kernels = pytest.mark.skipif(not _extension.available(), reason="mixer_nerf kernels not built")
@@ -212,6 +212,8 @@ def valid(**changes):
         ({"token_weight": torch.zeros(0, 0), "encoded": torch.zeros(6, 0)}, ValueError, "token_weight"),
         ({"token_weight": torch.zeros(MAX_TOKENS + 1, MAX_TOKENS + 1), "encoded": torch.zeros(1, 3 * MAX_TOKENS + 3)},
          ValueError, "token_weight"),
+        ({"lift": torch.zeros(MAX_CHANNELS + 1, 3)}, ValueError, "lift"),
+        ({"lift": torch.zeros(4, MAX_TOKEN_DIM + 1)}, ValueError, "lift"),
         ({"token_bias": torch.zeros(4)}, ValueError, "token_bias"),
         ({"token_bias": torch.zeros(5, 1)}, ValueError, "token_bias"),
         ({"channel_weight": torch.zeros(4, 3)}, ValueError, "channel_weight"),
@@ -330,7 +332,7 @@ CUDA_SHAPES = [
     ((333,), 30, 16, 3),
     ((129,), 32, 4, 3),
     ((50,), 5, 3, 3),
-    ((41,), 64, 6, 2),
+    ((41,), 25, 6, 2),
     ((7, 3), 13, 24, 5),
     ((0,), 21, 8, 3),
 ]

@@ -10,7 +10,11 @@ from ._checks import check_floating, check_same_device, check_same_dtype, check_
 from ._dispatch import use_kernel
 from .mlca_reference import mlca_reference
 
-MAX_TOKENS = 64  # the CUDA kernel keeps a point's channel across all tokens in registers
+# Kernel limits: the CUDA kernel keeps a channel of all of a point's tokens in registers, and a
+# tile of points, its intermediates and the weights in shared memory.
+MAX_TOKENS = 32
+MAX_CHANNELS = 32
+MAX_TOKEN_DIM = 32
 
 
 def mlca(
@@ -41,7 +45,7 @@ def mlca(
         backend: ``"auto"``, ``"kernel"`` or ``"torch"`` (see :mod:`mixer_nerf.ops`).
 
     All tensors must share one floating dtype (float32/64, half, bfloat16; the latter two
-    compute in float32) and one device; ``T <= 64``.
+    compute in float32) and one device; ``T <= 32``, ``C <= 32``, ``D <= 32``.
 
     Returns:
         ``(..., T * C)`` token-major, dtype of ``encoded``; differentiable in every input.
@@ -63,6 +67,11 @@ def mlca(
     (channels, token_dim), num_tokens = lift.shape, token_weight.shape[0]
     if num_tokens > MAX_TOKENS:
         raise ValueError(f"token_weight: at most {MAX_TOKENS} tokens are supported, got {num_tokens}")
+    if channels > MAX_CHANNELS or token_dim > MAX_TOKEN_DIM:
+        raise ValueError(
+            f"lift: at most {MAX_CHANNELS} channels of at most {MAX_TOKEN_DIM} values per token are "
+            f"supported, got shape {tuple(lift.shape)}"
+        )
     check_shape("token_bias", token_bias, (num_tokens,), " (T from token_weight)")
     check_shape("channel_weight", channel_weight, (channels, channels), " (C from lift)")
     check_shape("channel_bias", channel_bias, (channels,), " (C from lift)")
