@@ -20,7 +20,7 @@ import torch
 
 from benchmarks.harness import Result, copy_bandwidth_gbps, run_case
 
-OPS = ("positional_encoding", "sample_pdf", "composite", "ray_marching")
+OPS = ("positional_encoding", "sample_pdf", "composite", "ray_marching", "mlca")
 
 
 def device_name(device: torch.device) -> str:

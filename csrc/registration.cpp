@@ -36,6 +36,11 @@ TORCH_LIBRARY(mixer_nerf, m) {
   m.def("ray_scale_fwd(Tensor features, Tensor scale, Tensor offsets) -> Tensor");
   //   backward -> (grad_features (N, C), grad_scale (R, C))
   m.def("ray_scale_bwd(Tensor grad_out, Tensor features, Tensor scale, Tensor offsets) -> (Tensor, Tensor)");
+  // mlca: encoded (N, T*D) token-major, lift (C, D), token_weight (T, T), token_bias (T), channel_weight (C, C),
+  //   channel_bias (C) -> (N, T*C); all one dtype. Backward: grads of (encoded, lift, token_weight, token_bias,
+  //   channel_weight, channel_bias); input_grad=False skips grad_encoded (returned as None).
+  m.def("mlca_fwd(Tensor encoded, Tensor lift, Tensor token_weight, Tensor token_bias, Tensor channel_weight, Tensor channel_bias) -> Tensor");
+  m.def("mlca_bwd(Tensor grad_out, Tensor encoded, Tensor lift, Tensor token_weight, Tensor token_bias, Tensor channel_weight, Tensor channel_bias, bool input_grad) -> (Tensor?, Tensor, Tensor, Tensor, Tensor, Tensor)");
 }
 
 // The ahead-of-time build imports this library as the Python module mixer_nerf._C; the JIT

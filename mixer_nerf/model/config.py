@@ -46,7 +46,7 @@ class ModelConfig:
     # Density
     density_activation: str = "softplus"  # "relu" reproduces the original NeRF recipe
     density_shift: float = -1.0  # sigma = softplus(raw + density_shift)
-    backend: str = "auto"  # positional encoding's and packed SE's ops ("auto" | "kernel" | "torch")
+    backend: str = "auto"  # the ops of positional encoding, MLCA and packed SE ("auto" | "kernel" | "torch")
 
     def __post_init__(self) -> None:
         self.skips = tuple(int(s) for s in self.skips)

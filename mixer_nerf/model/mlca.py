@@ -20,20 +20,20 @@ and one to PE(d) before the view branch (T = 9 for 4 octaves); with
 ``ModelConfig.mlca_concat_direction`` (the paper's Eq. 7) the tokens of PE(x) and PE(d) are mixed
 together (T = 30) and fed to the trunk.
 
-Speed: no transposes of the ``N`` points. The lift and the channel mixing are linear layers on a
-free ``(N, T, C)`` view; the token mixing is one GEMM on the flat ``(N, T * C)`` features with the
-structured weight ``kron(W_token, I_C)`` built per call (168 x 168 for positions: ~28k
-multiply-adds per point, ~5% of the 8 x 256 trunk). Measured on an H100 (262k points, forward +
-backward, bf16 autocast): NeRF 10.9 ms, NeRF + MLCA 13.1 ms. The lift and channel mixing are very
-skinny GEMMs (K = 3 and 8 over 21 rows per point) and the elementwise GELU/residual passes are
-memory-bound; they are the first candidates for a fused kernel.
+Computation: one fused op, :func:`mixer_nerf.ops.mlca` (C++ and CUDA kernels with hand-written
+backwards; ``backend`` as in :mod:`mixer_nerf.ops`). It does the lift, both mixings, GELUs and
+residuals per point without materialising intermediates, and its backward recomputes them from
+``encoded`` and reduces the weight gradients over the points in-kernel. The plain-PyTorch
+formulation (and the ``backend="torch"`` path) is in ``mixer_nerf/ops/mlca_reference.py``.
 """
 
 from __future__ import annotations
 
 import torch
-import torch.nn.functional as F
 from torch import nn
+
+from ..ops import mlca
+from ..ops._checks import check_backend
 
 
 class MLCA(nn.Module):
@@ -43,21 +43,24 @@ class MLCA(nn.Module):
         num_tokens: ``T``, tokens per point (frequency bands: ``include_input + 2 * num_freqs``).
         token_dim: ``D``, values per token in the input (the point's coordinates, 3).
         channels: ``C >= D``, channels per token after the lift.
+        backend: ``"auto"``, ``"kernel"`` or ``"torch"``, for :func:`mixer_nerf.ops.mlca`.
 
-    Shapes: ``(..., T * D)`` -> ``(..., T * C)``, both token-major.
+    Shapes: ``(..., T * D)`` -> ``(..., T * C)``, both token-major. The parameters are cast to the
+    dtype of ``encoded`` (a no-op when they match; under autocast both stay float32).
     """
 
-    def __init__(self, num_tokens: int, token_dim: int = 3, channels: int = 8) -> None:
+    def __init__(self, num_tokens: int, token_dim: int = 3, channels: int = 8, backend: str = "auto") -> None:
         super().__init__()
         if channels < token_dim:
             raise ValueError(f"channels ({channels}) must be >= token_dim ({token_dim})")
+        check_backend(backend)
         self.num_tokens, self.token_dim, self.channels = num_tokens, token_dim, channels
+        self.backend = backend
         self.lift = nn.Parameter(torch.eye(channels, token_dim))
         self.token_weight = nn.Parameter(torch.zeros(num_tokens, num_tokens))
         self.token_bias = nn.Parameter(torch.zeros(num_tokens))
         self.channel_weight = nn.Parameter(torch.zeros(channels, channels))
         self.channel_bias = nn.Parameter(torch.zeros(channels))
-        self.register_buffer("_eye_channels", torch.eye(channels), persistent=False)
 
     @property
     def out_features(self) -> int:
@@ -69,15 +72,8 @@ class MLCA(nn.Module):
                 f"encoded must have {self.num_tokens} x {self.token_dim} = "
                 f"{self.num_tokens * self.token_dim} features, got shape {tuple(encoded.shape)}"
             )
-        tokens = encoded.unflatten(-1, (self.num_tokens, self.token_dim))  # a view
-        lifted = F.linear(tokens, self.lift).flatten(-2)
-        token_bias = self.token_bias.repeat_interleave(self.channels)
-        token_mixed = lifted + F.gelu(
-            F.linear(lifted, torch.kron(self.token_weight, self._eye_channels), token_bias)
-        )
-        token_mixed = token_mixed.unflatten(-1, (self.num_tokens, self.channels))
-        mixed = token_mixed + F.gelu(F.linear(token_mixed, self.channel_weight, self.channel_bias))
-        return mixed.flatten(-2)
+        weights = (self.lift, self.token_weight, self.token_bias, self.channel_weight, self.channel_bias)
+        return mlca(encoded, *(w.to(encoded.dtype) for w in weights), backend=self.backend)
 
     def extra_repr(self) -> str:
         return f"tokens={self.num_tokens}, token_dim={self.token_dim}, channels={self.channels}"

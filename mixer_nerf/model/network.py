@@ -171,7 +171,7 @@ class MixerNeRF(nn.Module):
 
 
 def _mixer(cfg: ModelConfig, num_tokens: int) -> nn.Module:
-    return MLCA(num_tokens, 3, cfg.mlca_channels) if cfg.use_mlca else nn.Identity()
+    return MLCA(num_tokens, 3, cfg.mlca_channels, cfg.backend) if cfg.use_mlca else nn.Identity()
 
 
 def _init_relu_layer(layer: nn.Linear) -> None:

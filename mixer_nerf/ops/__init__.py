@@ -6,6 +6,7 @@
 """
 
 from .composite import composite, composite_packed
+from .mlca import mlca
 from .positional_encoding import positional_encoding
 from .ray_marching import PackedSamples, filter_by_transmittance, ray_marching
 from .sample_pdf import hierarchical_samples, hierarchical_samples_packed, sample_pdf, sample_pdf_packed
@@ -18,6 +19,7 @@ __all__ = [
     "filter_by_transmittance",
     "hierarchical_samples",
     "hierarchical_samples_packed",
+    "mlca",
     "positional_encoding",
     "ray_marching",
     "ray_scale",

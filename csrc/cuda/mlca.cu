@@ -1,0 +1,486 @@
+// CUDA kernels of mlca, per point with X = encoded row (T, D) (see mlca.cpp for the math):
+//   L = X lift^T,  Y = L + GELU(W_t L + b_t),  Z = Y + GELU(Y W_c^T + b_c)   -> (N, T*C)
+//
+// Mapping: a block takes a tile of P whole points and one thread per (point, channel), P = threads
+// / C. Token mixing is independent per channel, so a thread keeps its channel's column L[:, c] of
+// all T tokens in registers (arrays sized by a compile-time bucket kT >= T, zero-padded, fully
+// unrolled) and reads W_t from shared memory (warp-uniform addresses: broadcasts). Channel mixing
+// needs the other channels of the same token: Y goes through a shared-memory tile. The tile's
+// rows are one contiguous span of global memory, so encoded, grad_out, out and grad_encoded are
+// moved between global and shared memory with consecutive threads on consecutive addresses.
+//
+// Backward: a persistent grid loops over tiles and recomputes L, Y and the pre-activations from
+// encoded. Weight gradients are sums over points: each block accumulates its own in shared
+// memory, every partial sum owned by one thread (see accumulate), and writes one row per block
+// of a (blocks, params) buffer at the end; the rows are summed afterwards. No atomics: the result
+// is deterministic for a given grid.
+#include <torch/library.h>
+
+#include <ATen/ATen.h>
+#include <c10/cuda/CUDAException.h>
+#include <c10/cuda/CUDAGuard.h>
+#include <c10/cuda/CUDAStream.h>  // = at::cuda::getCurrentCUDAStream, without the cuSPARSE/cuBLAS headers
+
+#include <algorithm>
+#include <cstdint>
+#include <type_traits>
+#include <utility>
+
+#include "common.h"
+#include "mlca.h"
+
+namespace mixer_nerf {
+namespace {
+
+namespace mm = mlca;
+using mm::Sizes;
+
+constexpr int kForwardThreads = 256;
+constexpr int kBackwardThreads = 128;  // smaller tiles: the backward's shared memory is ~3x the forward's
+constexpr int kDefaultSharedBytes = 48 * 1024;
+
+struct Problem {
+  int64_t points;  // N
+  int T, C, D;
+  int tile;  // P, points per tile
+};
+
+// Offsets (in accumulation-type elements) of the shared-memory arrays of a block.
+struct Layout {
+  int token_stride, channel_stride, lift_stride, k_stride;
+  int token, token_bias, channel, channel_bias, lift;  // the weights
+  int x, grad, a, b;                                     // tiles; grad, a, b in the backward only
+  int slots_token, slots_channel, slots_lift;            // backward partial sums
+  int total;
+};
+
+// Thread-owned partial sums of a set of `entries` sums (see accumulate): at most max(entries, threads).
+C10_HOST_DEVICE inline int slot_count(int entries, int threads) { return entries > threads ? entries : threads; }
+
+C10_HOST_DEVICE inline Layout make_layout(int kT, const Problem& pr, int threads, bool backward) {
+  Layout l{};
+  const int T = pr.T, C = pr.C, D = pr.D, K = pr.tile * C;
+  l.token_stride = (kT + 3) / 4 * 4;  // aligned rows: 16-byte broadcasts of W_t
+  l.channel_stride = C | 1;           // odd strides: threads of different channels hit different banks
+  l.lift_stride = D | 1;
+  l.k_stride = K | 1;
+  int at = 0;
+  auto take = [&](int n) { const int start = at; at += n; return start; };
+  l.token = take(kT * l.token_stride);
+  l.token_bias = take(kT);
+  l.channel = take(C * l.channel_stride);
+  l.channel_bias = take(C);
+  l.lift = take(C * l.lift_stride);
+  l.x = take(pr.tile * T * D);
+  if (!backward) {
+    l.a = take(pr.tile * T * C);
+  } else {
+    l.grad = take(pr.tile * T * C);
+    l.a = take(T * l.k_stride);  // (P, T, C) or (T, K) layouts; P T C <= T K
+    l.b = take(T * l.k_stride);
+    l.slots_token = take(slot_count(T * T + T, threads));
+    l.slots_channel = take(slot_count(C * C + C, threads));
+    l.slots_lift = take(slot_count(C * D, threads));
+  }
+  l.total = at;
+  return l;
+}
+
+template <typename scalar_t>
+struct Weights {
+  const scalar_t* lift;            // (C, D)
+  const scalar_t* token_weight;    // (T, T)
+  const scalar_t* token_bias;      // (T)
+  const scalar_t* channel_weight;  // (C, C)
+  const scalar_t* channel_bias;    // (C)
+};
+
+template <typename acc>
+__device__ acc* shared_memory() {
+  extern __shared__ __align__(16) unsigned char shared_bytes[];
+  return reinterpret_cast<acc*>(shared_bytes);
+}
+
+// Weights into shared memory, W_t zero-padded to kT x kT (padded tokens then stay exactly zero).
+template <int kT, typename scalar_t, typename acc>
+__device__ void load_weights(acc* sm, const Layout& l, const Weights<scalar_t>& w, const Problem& pr) {
+  const int T = pr.T, C = pr.C, D = pr.D;
+  for (int i = threadIdx.x; i < kT * l.token_stride; i += blockDim.x) {
+    const int t = i / l.token_stride, s = i - t * l.token_stride;
+    sm[l.token + i] = t < T && s < T ? static_cast<acc>(w.token_weight[t * T + s]) : acc(0);
+  }
+  for (int i = threadIdx.x; i < kT; i += blockDim.x) {
+    sm[l.token_bias + i] = i < T ? static_cast<acc>(w.token_bias[i]) : acc(0);
+  }
+  for (int i = threadIdx.x; i < C * C; i += blockDim.x) {
+    sm[l.channel + i / C * l.channel_stride + i % C] = static_cast<acc>(w.channel_weight[i]);
+  }
+  for (int i = threadIdx.x; i < C; i += blockDim.x) sm[l.channel_bias + i] = static_cast<acc>(w.channel_bias[i]);
+  for (int i = threadIdx.x; i < C * D; i += blockDim.x) {
+    sm[l.lift + i / D * l.lift_stride + i % D] = static_cast<acc>(w.lift[i]);
+  }
+}
+
+// L[t] = sum_k lift[c, k] X[t, k] of this thread's point (x: its (T, D) rows) and channel c.
+template <int kT, typename acc>
+__device__ void lift_tokens(const acc* sm, const Layout& l, const acc* x, int c, const Problem& pr, acc (&L)[kT]) {
+  const acc* lift = sm + l.lift + c * l.lift_stride;
+#pragma unroll
+  for (int t = 0; t < kT; ++t) {
+    acc v = 0;
+    if (t < pr.T) {
+      for (int k = 0; k < pr.D; ++k) v += lift[k] * x[t * pr.D + k];
+    }
+    L[t] = v;
+  }
+}
+
+// The token-mixing pre-activation of token t: b_t[t] + sum_s W_t[t, s] L[s].
+template <int kT, typename acc>
+__device__ acc token_pre(const acc* sm, const Layout& l, int t, const acc (&L)[kT]) {
+  const acc* row = sm + l.token + t * l.token_stride;
+  acc pre = sm[l.token_bias + t];
+#pragma unroll
+  for (int s = 0; s < kT; ++s) pre += row[s] * L[s];
+  return pre;
+}
+
+// The channel-mixing pre-activation of channel c of one token: b_c[c] + sum_e W_c[c, e] y[e].
+template <typename acc>
+__device__ acc channel_pre(const acc* sm, const Layout& l, int c, const acc* y, int C) {
+  const acc* row = sm + l.channel + c * l.channel_stride;
+  acc pre = sm[l.channel_bias + c];
+  for (int e = 0; e < C; ++e) pre += row[e] * y[e];
+  return pre;
+}
+
+template <typename scalar_t, int kT>
+__global__ void __launch_bounds__(kForwardThreads) mlca_forward(const scalar_t* __restrict__ encoded,
+                                                                Weights<scalar_t> w, scalar_t* __restrict__ out,
+                                                                Problem pr) {
+  using acc = acc_t<scalar_t>;
+  acc* sm = shared_memory<acc>();
+  const Layout l = make_layout(kT, pr, blockDim.x, false);
+  const int T = pr.T, C = pr.C, D = pr.D;
+  const int64_t first = static_cast<int64_t>(blockIdx.x) * pr.tile;
+  const int points = static_cast<int>(pr.points - first < pr.tile ? pr.points - first : pr.tile);
+  load_weights<kT>(sm, l, w, pr);
+  acc* xs = sm + l.x;
+  acc* ys = sm + l.a;  // (P, T, C): Y, then Z
+  for (int j = threadIdx.x; j < points * T * D; j += blockDim.x) xs[j] = static_cast<acc>(encoded[first * T * D + j]);
+  __syncthreads();
+
+  const int p = threadIdx.x / C, c = threadIdx.x - p * C;
+  const bool active = p < points;
+  acc Y[kT];
+  if (active) {
+    acc L[kT];
+    lift_tokens(sm, l, xs + p * T * D, c, pr, L);
+#pragma unroll
+    for (int t = 0; t < kT; ++t) {
+      Y[t] = t < T ? L[t] + mm::gelu(token_pre(sm, l, t, L)) : acc(0);
+      if (t < T) ys[(p * T + t) * C + c] = Y[t];
+    }
+  }
+  __syncthreads();
+  if (active) {
+#pragma unroll
+    for (int t = 0; t < kT; ++t) {
+      if (t < T) Y[t] += mm::gelu(channel_pre(sm, l, c, ys + (p * T + t) * C, C));
+    }
+  }
+  __syncthreads();  // every Y read: overwrite the tile with Z
+  if (active) {
+#pragma unroll
+    for (int t = 0; t < kT; ++t) {
+      if (t < T) ys[(p * T + t) * C + c] = Y[t];
+    }
+  }
+  __syncthreads();
+  for (int j = threadIdx.x; j < points * T * C; j += blockDim.x) out[first * T * C + j] = static_cast<scalar_t>(ys[j]);
+}
+
+// Adds to this block's partial sums of `entries` sums of `terms` terms each (sum(entry, begin,
+// end) sums terms [begin, end) of one). With fewer entries than threads, each entry's terms are
+// cut into `slices` ranges so that every thread has work; slot slice * entries + entry is then
+// only ever touched by thread (slot mod blockDim.x), across all tiles: no races, fixed order.
+template <typename acc, typename Sum>
+__device__ void accumulate(acc* slots, int entries, int terms, Sum sum) {
+  const int slices = entries < static_cast<int>(blockDim.x) ? static_cast<int>(blockDim.x) / entries : 1;
+  for (int slot = threadIdx.x; slot < slices * entries; slot += blockDim.x) {
+    const int slice = slot / entries, entry = slot - slice * entries;
+    slots[slot] += sum(entry, terms * slice / slices, terms * (slice + 1) / slices);
+  }
+}
+
+// This block's totals of one set of sums (slices added in order) into its row of partials.
+template <typename acc>
+__device__ void write_totals(const acc* slots, int entries, acc* row) {
+  const int slices = entries < static_cast<int>(blockDim.x) ? static_cast<int>(blockDim.x) / entries : 1;
+  for (int entry = threadIdx.x; entry < entries; entry += blockDim.x) {
+    acc total = 0;
+    for (int slice = 0; slice < slices; ++slice) total += slots[slice * entries + entry];
+    row[entry] = total;
+  }
+}
+
+template <typename scalar_t, int kT>
+__global__ void __launch_bounds__(kBackwardThreads) mlca_backward(
+    const scalar_t* __restrict__ grad_out, const scalar_t* __restrict__ encoded, Weights<scalar_t> w,
+    scalar_t* __restrict__ grad_encoded, acc_t<scalar_t>* __restrict__ partials, Problem pr) {
+  using acc = acc_t<scalar_t>;
+  acc* sm = shared_memory<acc>();
+  const Layout l = make_layout(kT, pr, blockDim.x, true);
+  const int T = pr.T, C = pr.C, D = pr.D, P = pr.tile, K = P * C, Kp = l.k_stride;
+  load_weights<kT>(sm, l, w, pr);
+  for (int i = l.slots_token + threadIdx.x; i < l.total; i += blockDim.x) sm[i] = 0;
+  acc* xs = sm + l.x;     // (P, T, D): X
+  acc* gs = sm + l.grad;  // (P, T, C): G, then gQ, then dL
+  acc* as = sm + l.a;     // (P, T, C): Y, then (T, Kp): gP
+  acc* bs = sm + l.b;     // (T, Kp): L
+  const acc* channel = sm + l.channel;
+  const acc* lift = sm + l.lift;
+
+  const int p = threadIdx.x / C, c = threadIdx.x - p * C, k = threadIdx.x;  // k = p C + c
+  const bool active = p < P;  // rows past the last point are zero: they add nothing to the sums
+  const int64_t tiles = (pr.points + P - 1) / P;
+  for (int64_t tile = blockIdx.x; tile < tiles; tile += gridDim.x) {
+    const int64_t first = tile * P;
+    const int points = static_cast<int>(pr.points - first < P ? pr.points - first : P);
+    for (int j = threadIdx.x; j < P * T * D; j += blockDim.x) {
+      xs[j] = j < points * T * D ? static_cast<acc>(encoded[first * T * D + j]) : acc(0);
+    }
+    for (int j = threadIdx.x; j < P * T * C; j += blockDim.x) {
+      gs[j] = j < points * T * C ? static_cast<acc>(grad_out[first * T * C + j]) : acc(0);
+    }
+    __syncthreads();
+
+    // Recompute L (kept in bs for dW_t), Y (into as) and GELU'(P).
+    acc dp[kT], dy[kT];  // GELU'(P) then gP; dY then dL
+    if (active) {
+      acc L[kT];
+      lift_tokens(sm, l, xs + p * T * D, c, pr, L);
+#pragma unroll
+      for (int t = 0; t < kT; ++t) {
+        acc g = 0;
+        dp[t] = 0;
+        if (t < T) mm::gelu_and_grad(token_pre(sm, l, t, L), g, dp[t]);
+        if (t < T) {
+          as[(p * T + t) * C + c] = L[t] + g;
+          bs[t * Kp + k] = L[t];
+        }
+      }
+    }
+    __syncthreads();
+    // Channel mixing: gQ = G GELU'(Q), in place of G.
+    if (active) {
+#pragma unroll
+      for (int t = 0; t < kT; ++t) {
+        dy[t] = 0;
+        if (t < T) {
+          const int row = (p * T + t) * C;
+          dy[t] = gs[row + c];
+          gs[row + c] = dy[t] * mm::gelu_grad(channel_pre(sm, l, c, as + row, C));
+        }
+      }
+    }
+    __syncthreads();
+    accumulate(sm + l.slots_channel, C * C + C, P * T, [&](int entry, int begin, int end) {
+      acc sum = 0;
+      if (entry < C * C) {  // dW_c[i, e] = sum gQ[., i] Y[., e]
+        const int i = entry / C, e = entry - i * C;
+        for (int m = begin; m < end; ++m) sum += gs[m * C + i] * as[m * C + e];
+      } else {  // db_c[i] = sum gQ[., i]
+        for (int m = begin; m < end; ++m) sum += gs[m * C + entry - C * C];
+      }
+      return sum;
+    });
+    __syncthreads();  // Y read: as takes gP
+    // dY = G + gQ W_c, gP = dY GELU'(P), dL = dY + W_t^T gP.
+    if (active) {
+#pragma unroll
+      for (int t = 0; t < kT; ++t) {
+        if (t < T) {
+          const acc* gq = gs + (p * T + t) * C;
+          for (int i = 0; i < C; ++i) dy[t] += gq[i] * channel[i * l.channel_stride + c];
+          dp[t] *= dy[t];
+          as[t * Kp + k] = dp[t];
+        }
+      }
+#pragma unroll
+      for (int t = 0; t < kT; ++t) {
+        const acc* row = sm + l.token + t * l.token_stride;
+#pragma unroll
+        for (int s = 0; s < kT; ++s) dy[s] += row[s] * dp[t];
+      }
+    }
+    __syncthreads();  // gQ read: gs takes dL
+    if (active) {
+#pragma unroll
+      for (int t = 0; t < kT; ++t) {
+        if (t < T) gs[(p * T + t) * C + c] = dy[t];
+      }
+    }
+    __syncthreads();
+    accumulate(sm + l.slots_token, T * T + T, K, [&](int entry, int begin, int end) {
+      acc sum = 0;
+      if (entry < T * T) {  // dW_t[t, s] = sum_(p, c) gP[t] L[s]
+        const int t = entry / T, s = entry - t * T;
+        for (int m = begin; m < end; ++m) sum += as[t * Kp + m] * bs[s * Kp + m];
+      } else {  // db_t[t] = sum_(p, c) gP[t]
+        for (int m = begin; m < end; ++m) sum += as[(entry - T * T) * Kp + m];
+      }
+      return sum;
+    });
+    accumulate(sm + l.slots_lift, C * D, P * T, [&](int entry, int begin, int end) {
+      const int i = entry / D, e = entry - i * D;  // dlift[i, e] = sum dL[., i] X[., e]
+      acc sum = 0;
+      for (int m = begin; m < end; ++m) sum += gs[m * C + i] * xs[m * D + e];
+      return sum;
+    });
+    if (grad_encoded != nullptr) {  // dX = dL lift, element j of the tile's contiguous rows
+      for (int j = threadIdx.x; j < points * T * D; j += blockDim.x) {
+        const int m = j / D, e = j - m * D;
+        acc sum = 0;
+        for (int i = 0; i < C; ++i) sum += gs[m * C + i] * lift[i * l.lift_stride + e];
+        grad_encoded[first * T * D + j] = static_cast<scalar_t>(sum);
+      }
+    }
+    __syncthreads();
+  }
+
+  const Sizes s{T, C, D};
+  acc* row = partials + static_cast<int64_t>(blockIdx.x) * s.params();
+  write_totals(sm + l.slots_token, T * T + T, row);
+  write_totals(sm + l.slots_channel, C * C + C, row + s.channel_weight());
+  write_totals(sm + l.slots_lift, C * D, row + s.lift());
+}
+
+// Calls f(std::integral_constant<int, kT>) with the smallest token bucket kT >= T (T <= 32): the
+// model's T = 9 (directions) and 21 (positions) exactly, anything else up to 32 zero-padded.
+template <typename F>
+void dispatch_tokens(int64_t T, F&& f) {
+  if (T <= 9) {
+    f(std::integral_constant<int, 9>{});
+  } else if (T <= 21) {
+    f(std::integral_constant<int, 21>{});
+  } else {
+    f(std::integral_constant<int, 32>{});
+  }
+}
+
+int device_attribute(cudaDeviceAttr attribute, int device) {
+  int value = 0;
+  C10_CUDA_CHECK(cudaDeviceGetAttribute(&value, attribute, device));
+  return value;
+}
+
+// The largest tile (one point per C threads at most) whose shared memory fits the device, and
+// its size in bytes; raises if not even one point fits.
+std::pair<int, size_t> choose_tile(Problem& pr, int kT, int threads, bool backward, size_t element_bytes,
+                                   int device) {
+  const size_t limit = static_cast<size_t>(device_attribute(cudaDevAttrMaxSharedMemoryPerBlockOptin, device));
+  for (pr.tile = threads / pr.C; pr.tile > 0; --pr.tile) {
+    const size_t bytes = static_cast<size_t>(make_layout(kT, pr, threads, backward).total) * element_bytes;
+    if (bytes <= limit) return {pr.tile, bytes};
+  }
+  MIXER_NERF_CHECK(false, "mlca: T=", pr.T, ", C=", pr.C, ", D=", pr.D, " need more shared memory than the device has");
+  return {0, 0};
+}
+
+template <typename Kernel>
+void allow_shared_bytes(Kernel kernel, size_t bytes) {
+  if (bytes > kDefaultSharedBytes) {
+    C10_CUDA_CHECK(cudaFuncSetAttribute(kernel, cudaFuncAttributeMaxDynamicSharedMemorySize, static_cast<int>(bytes)));
+  }
+}
+
+template <typename scalar_t>
+Weights<scalar_t> weights_of(const at::Tensor& lift, const at::Tensor& token_weight, const at::Tensor& token_bias,
+                             const at::Tensor& channel_weight, const at::Tensor& channel_bias) {
+  return {lift.const_data_ptr<scalar_t>(), token_weight.const_data_ptr<scalar_t>(),
+          token_bias.const_data_ptr<scalar_t>(), channel_weight.const_data_ptr<scalar_t>(),
+          channel_bias.const_data_ptr<scalar_t>()};
+}
+
+Problem problem_of(const at::Tensor& encoded, const Sizes& s) {
+  MIXER_NERF_CHECK(s.T <= 32 && s.C <= 32 && s.D <= 32, "mlca: the CUDA kernel takes T <= 32, C <= 32, D <= 32, got T=",
+                   s.T, ", C=", s.C, ", D=", s.D);
+  return {encoded.size(0), static_cast<int>(s.T), static_cast<int>(s.C), static_cast<int>(s.D), 0};
+}
+
+at::Tensor mlca_fwd_cuda(const at::Tensor& encoded, const at::Tensor& lift, const at::Tensor& token_weight,
+                         const at::Tensor& token_bias, const at::Tensor& channel_weight,
+                         const at::Tensor& channel_bias) {
+  const Sizes s = mm::check_args(encoded, lift, token_weight, token_bias, channel_weight, channel_bias, at::kCUDA);
+  Problem pr = problem_of(encoded, s);
+  at::Tensor out = at::empty({pr.points, s.T * s.C}, encoded.options());
+  if (pr.points == 0) return out;
+  const c10::cuda::CUDAGuard guard(encoded.device());
+  const cudaStream_t stream = c10::cuda::getCurrentCUDAStream();
+  MIXER_NERF_DISPATCH_FLOATING(encoded.scalar_type(), "mlca_fwd_cuda", [&] {
+    const auto w = weights_of<scalar_t>(lift, token_weight, token_bias, channel_weight, channel_bias);
+    dispatch_tokens(s.T, [&](auto bucket) {
+      constexpr int kT = decltype(bucket)::value;
+      const auto kernel = mlca_forward<scalar_t, kT>;
+      const auto [tile, bytes] =
+          choose_tile(pr, kT, kForwardThreads, false, sizeof(acc_t<scalar_t>), encoded.device().index());
+      allow_shared_bytes(kernel, bytes);
+      const auto blocks = static_cast<unsigned>((pr.points + tile - 1) / tile);
+      kernel<<<blocks, kForwardThreads, bytes, stream>>>(encoded.const_data_ptr<scalar_t>(), w,
+                                                        out.mutable_data_ptr<scalar_t>(), pr);
+      C10_CUDA_KERNEL_LAUNCH_CHECK();
+    });
+  });
+  return out;
+}
+
+mm::Grads mlca_bwd_cuda(const at::Tensor& grad_out, const at::Tensor& encoded, const at::Tensor& lift,
+                        const at::Tensor& token_weight, const at::Tensor& token_bias,
+                        const at::Tensor& channel_weight, const at::Tensor& channel_bias, bool input_grad) {
+  const Sizes s = mm::check_args(encoded, lift, token_weight, token_bias, channel_weight, channel_bias, at::kCUDA);
+  mm::check_grad_out(grad_out, encoded, s);
+  Problem pr = problem_of(encoded, s);
+  const c10::cuda::CUDAGuard guard(encoded.device());
+  at::Tensor grad_encoded = input_grad ? at::empty_like(encoded) : at::Tensor();
+  std::optional<at::Tensor> maybe_grad_encoded = input_grad ? std::optional<at::Tensor>(grad_encoded) : std::nullopt;
+  const at::ScalarType acc_type = encoded.scalar_type() == at::kDouble ? at::kDouble : at::kFloat;
+  if (pr.points == 0) {
+    return mm::split_grads(at::zeros({s.params()}, encoded.options().dtype(acc_type)), maybe_grad_encoded, s,
+                           encoded.scalar_type());
+  }
+  const cudaStream_t stream = c10::cuda::getCurrentCUDAStream();
+  const int device = encoded.device().index();
+  at::Tensor partials;
+  MIXER_NERF_DISPATCH_FLOATING(encoded.scalar_type(), "mlca_bwd_cuda", [&] {
+    using acc = acc_t<scalar_t>;
+    const auto w = weights_of<scalar_t>(lift, token_weight, token_bias, channel_weight, channel_bias);
+    dispatch_tokens(s.T, [&](auto bucket) {
+      constexpr int kT = decltype(bucket)::value;
+      const auto kernel = mlca_backward<scalar_t, kT>;
+      const auto [tile, bytes] = choose_tile(pr, kT, kBackwardThreads, true, sizeof(acc), device);
+      allow_shared_bytes(kernel, bytes);
+      int per_sm = 0;
+      C10_CUDA_CHECK(cudaOccupancyMaxActiveBlocksPerMultiprocessor(&per_sm, kernel, kBackwardThreads, bytes));
+      const int64_t tiles = (pr.points + tile - 1) / tile;
+      const int64_t resident = static_cast<int64_t>(std::max(per_sm, 1)) *
+                               device_attribute(cudaDevAttrMultiProcessorCount, device);
+      const auto blocks = static_cast<unsigned>(std::min(tiles, resident));
+      partials = at::empty({static_cast<int64_t>(blocks), s.params()}, encoded.options().dtype(acc_type));
+      kernel<<<blocks, kBackwardThreads, bytes, stream>>>(
+          grad_out.const_data_ptr<scalar_t>(), encoded.const_data_ptr<scalar_t>(), w,
+          input_grad ? grad_encoded.mutable_data_ptr<scalar_t>() : nullptr, partials.mutable_data_ptr<acc>(), pr);
+      C10_CUDA_KERNEL_LAUNCH_CHECK();
+    });
+  });
+  return mm::split_grads(partials.sum(0), maybe_grad_encoded, s, encoded.scalar_type());
+}
+
+}  // namespace
+
+TORCH_LIBRARY_IMPL(mixer_nerf, CUDA, m) {
+  m.impl("mlca_fwd", &mlca_fwd_cuda);
+  m.impl("mlca_bwd", &mlca_bwd_cuda);
+}
+
+}  // namespace mixer_nerf
