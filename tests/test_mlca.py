@@ -88,7 +88,7 @@ def assert_close(got, want, rel, what):
 def random_grad(inputs, C, gen):
     encoded = inputs[0]
     T = inputs[2].shape[0]
-    return torch.randn((*encoded.shape[:-1], T * C), generator=gen, dtype=torch.float64).to(encoded.dtype)
+    return torch.randn((*encoded.shape[:-1], T * C), generator=gen, dtype=torch.float64).to(encoded.device, encoded.dtype)
 
 
 # ---------------------------------------------------------------------------------------- CPU
