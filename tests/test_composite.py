@@ -10,6 +10,7 @@ import torch
 from mixer_nerf import _extension
 from mixer_nerf.ops.composite import composite, composite_packed
 from mixer_nerf.ops.composite_reference import composite_reference
+from cuda_poison import poison_allocator
 
 needs_kernels = pytest.mark.skipif(not _extension.available(), reason="mixer_nerf kernels not built")
 cuda = [pytest.mark.cuda, pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU")]
@@ -416,26 +417,6 @@ def test_opcheck_cpu(gen):
 # CUDA kernel
 
 on_cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU")
-
-
-def poison_allocator(shapes_and_dtypes, copies=2):
-    """Leave NaN-filled blocks of exactly the sizes the op will allocate in CUDA's caching
-    allocator: its torch.empty outputs then reuse NaN memory, so any element the kernel does not
-    write stays NaN and fails the finiteness checks. The mechanism itself is asserted."""
-    torch.cuda.synchronize()
-    torch.cuda.empty_cache()
-    blocks = [
-        torch.full(shape, float("nan"), dtype=dtype, device="cuda")
-        for shape, dtype in shapes_and_dtypes
-        for _ in range(copies)
-        if torch.Size(shape).numel()
-    ]
-    if not blocks:
-        return
-    probe_shape, probe_dtype = blocks[0].shape, blocks[0].dtype
-    del blocks
-    probe = torch.empty(probe_shape, dtype=probe_dtype, device="cuda")
-    assert torch.isnan(probe).all(), "poisoning did not reach the allocator"
 
 
 def check_cuda(gen, inputs, rel=F32_REL, fn=composite, num_rays=None):

@@ -18,6 +18,7 @@ from mixer_nerf.model import MLCA
 from mixer_nerf.ops import mlca
 from mixer_nerf.ops.mlca import MAX_CHANNELS, MAX_TOKEN_DIM, MAX_TOKENS
 from mixer_nerf.ops.mlca_reference import mlca_reference
+from cuda_poison import poison_allocator
 
 needs_kernels = pytest.mark.skipif(not _extension.available(), reason="mixer_nerf kernels not built")
 on_cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU")
@@ -303,26 +304,6 @@ def test_module_under_autocast_computes_in_float32(gen):
 
 
 # --------------------------------------------------------------------------------------- CUDA
-
-
-def poison_allocator(shapes_and_dtypes, copies=2):
-    """Leave NaN-filled blocks of exactly the sizes the op will allocate in CUDA's caching
-    allocator: its torch.empty outputs then reuse NaN memory, so any element the kernel does not
-    write stays NaN and fails the finiteness checks. The mechanism itself is asserted."""
-    torch.cuda.synchronize()
-    torch.cuda.empty_cache()
-    blocks = [
-        torch.full(shape, float("nan"), dtype=dtype, device="cuda")
-        for shape, dtype in shapes_and_dtypes
-        for _ in range(copies)
-        if torch.Size(shape).numel()
-    ]
-    if not blocks:
-        return
-    probe_shape, probe_dtype = blocks[0].shape, blocks[0].dtype
-    del blocks
-    probe = torch.empty(probe_shape, dtype=probe_dtype, device="cuda")
-    assert torch.isnan(probe).all(), "poisoning did not reach the allocator"
 
 
 CUDA_SHAPES = [

@@ -9,6 +9,7 @@ import torch
 
 from mixer_nerf import _extension
 from mixer_nerf.ops import ray_scale, segment_mean
+from cuda_poison import poison_allocator
 
 needs_kernels = pytest.mark.skipif(not _extension.available(), reason="mixer_nerf kernels not built")
 on_cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU")
@@ -304,24 +305,6 @@ def test_opcheck_cpu(gen):
 
 # ---------------------------------------------------------------------------------------------
 # CUDA kernels
-
-
-def poison_allocator(shapes_and_dtypes, copies=2):
-    """Leave NaN-filled blocks of exactly the sizes the ops will allocate in CUDA's caching
-    allocator, so any output element a kernel does not write stays NaN (asserted to work)."""
-    torch.cuda.synchronize()
-    torch.cuda.empty_cache()
-    blocks = [
-        torch.full(shape, float("nan"), dtype=dtype, device="cuda")
-        for shape, dtype in shapes_and_dtypes
-        for _ in range(copies)
-        if torch.Size(shape).numel()
-    ]
-    if not blocks:
-        return
-    probe_shape, probe_dtype = blocks[0].shape, blocks[0].dtype
-    del blocks
-    assert torch.isnan(torch.empty(probe_shape, dtype=probe_dtype, device="cuda")).all(), "poisoning failed"
 
 
 def check_cuda(gen, rows, scale, offsets, rel):
