@@ -73,6 +73,12 @@ def truth(rows, scale, offsets, upstream_mean, upstream_scaled):
     return run(f64[0], f64[1], offsets.cpu(), f64[2], f64[3], backend="torch")
 
 
+def magnitudes(rows, scale, offsets, upstream_mean, upstream_scaled):
+    """The float64 truth of the same sums over |terms|: what each output's rounding error scales
+    with. A mean of cancelling rows is small, yet its float32 error is that of the |rows| sum."""
+    return truth(*(t.abs() for t in (rows, scale)), offsets, *(t.abs() for t in (upstream_mean, upstream_scaled)))
+
+
 def random_upstream(rows, scale, gen):
     """Upstream gradients of segment_mean (R, C) and ray_scale (N, C)."""
     return [
@@ -80,14 +86,15 @@ def random_upstream(rows, scale, gen):
     ]
 
 
-def assert_close(got, want, rel, what=""):
-    """max |got - want| <= rel * max |want| per tensor, and got finite, of want's shape."""
-    for k, (g, w) in enumerate(zip(got, want, strict=True)):
+def assert_close(got, want, rel, what="", magnitude=None):
+    """max |got - want| <= rel * max |magnitude| per tensor (magnitude: ``magnitudes()``'s, else
+    ``want``), and got finite, of want's shape."""
+    for k, (g, w, m) in enumerate(zip(got, want, magnitude or want, strict=True)):
         g, w = g.detach().to("cpu", torch.float64), w.detach().to("cpu", torch.float64)
         assert g.shape == w.shape, f"{what}[{k}]: shape {tuple(g.shape)} != {tuple(w.shape)}"
         assert torch.isfinite(g).all(), f"{what}[{k}]: non-finite values"
         if w.numel():
-            err, scale = (g - w).abs().max().item(), w.abs().max().item()
+            err, scale = (g - w).abs().max().item(), m.detach().abs().max().item()
             assert err <= rel * scale, f"{what}[{k}]: max err {err:.3e} vs scale {scale:.3e}"
 
 
@@ -102,12 +109,13 @@ def test_cpu_kernels_match_reference(gen, layout, C):
     rows, scale, offsets = make_inputs(counts_named(layout, gen), C, gen)
     upstream = random_upstream(rows, scale, gen)
     want_out, want_grads = truth(rows, scale, offsets, *upstream)
+    size_out, size_grads = magnitudes(rows, scale, offsets, *upstream)
     for dtype, rel in ((torch.float64, F64_REL), (torch.float32, F32_REL)):
         cast = [t.to(dtype) for t in (rows, scale, *upstream)]
         out, grads = run(cast[0], cast[1], offsets, *cast[2:], backend="kernel")
         assert all(t.dtype == dtype for t in out + grads)
-        assert_close(out, want_out, rel, f"{dtype} outputs")
-        assert_close(grads, want_grads, rel, f"{dtype} grads")
+        assert_close(out, want_out, rel, f"{dtype} outputs", size_out)
+        assert_close(grads, want_grads, rel, f"{dtype} grads", size_grads)
 
 
 @needs_kernels
@@ -136,8 +144,9 @@ def test_cpu_half_precision(gen, dtype):
     out, grads = run(rows, scale, offsets, *upstream, backend="kernel")
     assert all(t.dtype == dtype for t in out + grads)
     want_out, want_grads = truth(rows, scale, offsets, *upstream)
-    assert_close(out, want_out, HALF_REL[dtype], "outputs")
-    assert_close(grads, want_grads, HALF_REL[dtype], "grads")
+    size_out, size_grads = magnitudes(rows, scale, offsets, *upstream)
+    assert_close(out, want_out, HALF_REL[dtype], "outputs", size_out)
+    assert_close(grads, want_grads, HALF_REL[dtype], "grads", size_grads)
     assert torch.equal(out[1], ray_scale(rows, scale, offsets, backend="torch"))
     ray = torch.repeat_interleave(torch.arange(offsets.numel() - 1), offsets.diff())
     assert torch.equal(out[1], rows * scale[ray])
@@ -312,14 +321,15 @@ def check_cuda(gen, rows, scale, offsets, rel):
     upstream = random_upstream(rows, scale, gen)
     cpu_out, cpu_grads = run(rows, scale, offsets, *upstream, backend="kernel")
     want_out, want_grads = truth(rows, scale, offsets, *upstream)
+    size_out, size_grads = magnitudes(rows, scale, offsets, *upstream)
     on_gpu = [t.cuda() for t in (rows, scale, offsets, *upstream)]
     poison_allocator([(t.shape, t.dtype) for t in cpu_out + cpu_grads])
     out, grads = run(*on_gpu, backend="kernel", check_values=False)  # no value-check temporaries
     assert all(t.device.type == "cuda" and t.dtype == rows.dtype for t in out + grads)
-    assert_close(out, want_out, rel, "cuda outputs vs reference")
-    assert_close(grads, want_grads, rel, "cuda grads vs reference")
-    assert_close(out, cpu_out, rel, "cuda vs cpu outputs")
-    assert_close(grads, cpu_grads, rel, "cuda vs cpu grads")
+    assert_close(out, want_out, rel, "cuda outputs vs reference", size_out)
+    assert_close(grads, want_grads, rel, "cuda grads vs reference", size_grads)
+    assert_close(out, cpu_out, rel, "cuda vs cpu outputs", size_out)
+    assert_close(grads, cpu_grads, rel, "cuda vs cpu grads", size_grads)
 
 
 CUDA_DTYPES = {torch.float32: F32_REL, torch.float64: F64_REL, **HALF_REL}
@@ -365,7 +375,9 @@ def test_cuda_misaligned_rows_take_the_scalar_path(gen):
     # Products are exact either way; sums are taken in another order (rows per thread differ).
     assert torch.equal(scaled, want[0][1]) and torch.equal(grad_mean, want[1][0])
     assert torch.equal(grads[0], want[1][1])
-    assert_close([mean, grads[1]], [want[0][0], want[1][2]], HALF_REL[torch.bfloat16], "sums")
+    size = magnitudes(rows, scale, offsets, *upstream)
+    sums = [want[0][0], want[1][2]]
+    assert_close([mean, grads[1]], sums, HALF_REL[torch.bfloat16], "sums", [size[0][0], size[1][2]])
 
 
 @pytest.mark.cuda
