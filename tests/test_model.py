@@ -11,7 +11,7 @@ import torch
 import torch.nn.functional as F
 
 from mixer_nerf import _extension
-from mixer_nerf.model import MLCA, MixerNeRF, ModelConfig, SqueezeExcitation, preset_config, segment_mean
+from mixer_nerf.model import MLCA, MixerNeRF, ModelConfig, SqueezeExcitation, mean_over_ray_indices, preset_config
 
 # Small networks keep the file fast; the structure (skips, SE, MLCA, heads) is the full one.
 SMALL = dict(
@@ -109,19 +109,19 @@ def test_se_per_point_gates_each_sample_by_itself():
     assert not torch.allclose(gate, gate[:, :1].expand_as(gate))
 
 
-def test_segment_mean_equals_dense_mean_for_full_rays_in_any_order():
+def test_mean_over_ray_indices_equals_dense_mean_for_full_rays_in_any_order():
     R, S, C = 6, 5, 8
     dense = torch.randn(R, S, C)
     order = torch.randperm(R * S)
     packed, ray_indices = dense.reshape(-1, C)[order], torch.arange(R).repeat_interleave(S)[order]
-    torch.testing.assert_close(segment_mean(packed, ray_indices, R), dense.mean(dim=1))
+    torch.testing.assert_close(mean_over_ray_indices(packed, ray_indices, R), dense.mean(dim=1))
 
 
-def test_segment_mean_handles_ragged_and_empty_rays():
+def test_mean_over_ray_indices_handles_ragged_and_empty_rays():
     values = torch.tensor([[1.0], [3.0], [5.0]])
     ray_indices = torch.tensor([0, 0, 2])
     torch.testing.assert_close(
-        segment_mean(values, ray_indices, 4), torch.tensor([[2.0], [0.0], [5.0], [0.0]])
+        mean_over_ray_indices(values, ray_indices, 4), torch.tensor([[2.0], [0.0], [5.0], [0.0]])
     )
 
 

@@ -7,7 +7,7 @@ B (+SE), C (+MLCA) and D (Mixer-NeRF) differ only in ``ModelConfig.use_se`` / ``
 from .config import PRESETS, ModelConfig, preset_config
 from .mlca import MLCA
 from .network import MixerNeRF
-from .squeeze_excitation import SqueezeExcitation, segment_mean
+from .squeeze_excitation import SqueezeExcitation, mean_over_ray_indices
 
 __all__ = [
     "MLCA",
@@ -15,6 +15,6 @@ __all__ = [
     "MixerNeRF",
     "ModelConfig",
     "SqueezeExcitation",
+    "mean_over_ray_indices",
     "preset_config",
-    "segment_mean",
 ]

@@ -24,11 +24,11 @@ import torch
 from torch import nn
 
 from ..ops import ray_scale
-from ..ops import segment_mean as packed_segment_mean
+from ..ops import segment_mean
 from ..ops._checks import check_backend
 
 
-def segment_mean(values: torch.Tensor, ray_indices: torch.Tensor, num_rays: int) -> torch.Tensor:
+def mean_over_ray_indices(values: torch.Tensor, ray_indices: torch.Tensor, num_rays: int) -> torch.Tensor:
     """Mean of ``values (N, C)`` over the rows of each ray -> ``(num_rays, C)``, accumulated in
     float32 or better; rays without samples get 0."""
     acc = torch.promote_types(values.dtype, torch.float32)
@@ -83,13 +83,13 @@ class SqueezeExcitation(nn.Module):
         if self.per_point:
             return self.gate(features) * features
         if offsets is not None:
-            squeezed = packed_segment_mean(features, offsets, backend=self.backend, check_values=False)
+            squeezed = segment_mean(features, offsets, backend=self.backend, check_values=False)
             scale = self.gate(squeezed).to(features.dtype)
             return ray_scale(features, scale, offsets, backend=self.backend, check_values=False)
         if ray_indices is not None:
             if num_rays is None:
                 num_rays = int(ray_indices.max()) + 1 if ray_indices.numel() else 0
-            squeezed = segment_mean(features, ray_indices, num_rays).to(features.dtype)
+            squeezed = mean_over_ray_indices(features, ray_indices, num_rays).to(features.dtype)
             return self.gate(squeezed)[ray_indices] * features
         if features.dim() == 3:
             acc = torch.promote_types(features.dtype, torch.float32)
