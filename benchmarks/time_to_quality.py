@@ -19,7 +19,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -28,26 +27,7 @@ import torch.nn.functional as F
 
 from mixer_nerf.data import load_scene
 from mixer_nerf.metrics import psnr
-
-
-class TrainingClock:
-    """Wall-clock seconds spent training, paused while validating."""
-
-    def __init__(self) -> None:
-        self.elapsed, self._start = 0.0, None
-
-    def start(self) -> None:
-        torch.cuda.synchronize()
-        self._start = time.perf_counter()
-
-    def stop(self) -> float:
-        torch.cuda.synchronize()
-        self.elapsed += time.perf_counter() - self._start
-        self._start = None
-        return self.elapsed
-
-    def now(self) -> float:
-        return self.elapsed + (time.perf_counter() - self._start if self._start is not None else 0.0)
+from mixer_nerf.train.trainer import TrainingClock
 
 
 @torch.no_grad()
@@ -61,18 +41,20 @@ def validate(render: Callable, val, chunk: int = 1 << 15) -> float:
     return sum(scores) / len(scores)
 
 
-def run_curve(step_fn: Callable[[int], dict], render: Callable, val, checkpoints: list[float], log: Callable) -> list[dict]:
-    """Train with ``step_fn(step)`` until the last checkpoint, validating at each one. Step 0 runs
-    before the clock starts: it builds any JIT kernels (nerfacc's, ours) and warms up caches."""
+def run_curve(step_fn: Callable[[int], dict], render: Callable, val, checkpoints: list[float], log: Callable,
+              clock: TrainingClock) -> list[dict]:
+    """Train with ``step_fn(step)`` until the last checkpoint, validating at each one, timed by
+    ``clock`` (our trainer's own, whose reading its lr schedule may follow). Step 0 runs before the
+    clock starts: it builds any JIT kernels (nerfacc's, ours) and warms up caches."""
     step_fn(0)
-    clock, curve, step, stats = TrainingClock(), [], 1, {}
+    curve, step, stats = [], 1, {}
     pending = sorted(checkpoints)
     clock.start()
     while pending:
         stats = step_fn(step)
         step += 1
         if step % 16 == 0 and clock.now() >= pending[0]:
-            elapsed = clock.stop()
+            elapsed = clock.pause()
             point = {"seconds": round(elapsed, 2), "step": step, "val_psnr": validate(render, val), **stats}
             curve.append(point)
             log(point)
@@ -162,7 +144,7 @@ def ours_method(args, train, val, device) -> tuple[Callable, Callable, object]:
         val_every=10**9, ckpt_every=10**9, log_every=10**9, progress=False,
         out=tempfile.mkdtemp(prefix="ttq_"), lr=args.lr, lr_final=args.lr_final or args.lr / 10,
         adam_eps=args.adam_eps, backend=args.backend, early_stop_eps=args.early_stop_eps,
-        grid_warmup=args.grid_warmup,
+        grid_warmup=args.grid_warmup, lr_warmup=args.lr_warmup, time_budget=args.anneal_seconds,
         **({} if args.batch_rays is None else {"batch_rays": args.batch_rays}))
     trainer = Trainer(cfg, log=lambda _: None)
 
@@ -194,6 +176,10 @@ def main() -> None:
     parser.add_argument("--lr", type=float, default=5e-4, help="ours: initial learning rate")
     parser.add_argument("--lr-final", type=float, default=None,
                         help="ours: learning rate at --nominal-steps (exponential decay; default lr/10)")
+    parser.add_argument("--lr-warmup", type=int, default=0, help="ours: steps of linear lr warm-up")
+    parser.add_argument("--anneal-seconds", type=float, default=None,
+                        help="ours: decay the lr to --lr-final over this much training time "
+                             "(the trainer's --time-budget) instead of over --nominal-steps")
     parser.add_argument("--adam-eps", type=float, default=1e-15, help="ours: Adam's epsilon")
     parser.add_argument("--early-stop-eps", type=float, default=1e-4,
                         help="ours, occupancy sampler: early ray termination (0: off)")
@@ -229,7 +215,8 @@ def main() -> None:
         record["curve"].append(point)
         (out / f"{label}.json").write_text(json.dumps(record, indent=1))
 
-    run_curve(step_fn, render, val, checkpoints, log=log)
+    clock = trainer.clock if trainer is not None else TrainingClock(device)
+    run_curve(step_fn, render, val, checkpoints, log=log, clock=clock)
     if args.skip_report:
         from benchmarks.skip_report import skip_report
 

@@ -22,7 +22,8 @@ class TrainConfig:
     at 30 s and 60 s on an H100, benchmarks/results/ttq/README.md; bf16 is 16% faster per step but
     learns less per step).
     ``steps`` is also the length of the learning-rate schedule (``lr`` decays exponentially to
-    ``lr_final`` at ``steps``), also when ``time_budget`` stops the run earlier.
+    ``lr_final`` at ``steps``); with a ``time_budget`` the decay follows whichever of the steps
+    and the budget is further along, so a run stopped by its budget ends on ``lr_final``.
     """
 
     data: str | None = None  # scene folder; None = the built-in procedural scene
@@ -39,6 +40,7 @@ class TrainConfig:
     num_fine: int = 128
     lr: float = 5e-4
     lr_final: float = 5e-5
+    lr_warmup: int = 0  # steps of linear learning-rate warm-up
     # nerfacc's value; with a constant lr it beat PyTorch's 1e-8 with decay by 0.6-0.9 dB at 30-60 s
     # on Lego (benchmarks/results/ttq/README.md)
     adam_eps: float = 1e-15
@@ -101,6 +103,8 @@ class TrainConfig:
         ):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
+        if self.lr_warmup < 0:
+            raise ValueError(f"lr_warmup must be >= 0, got {self.lr_warmup}")
         if self.num_fine < 0:
             raise ValueError(f"num_fine must be >= 0, got {self.num_fine}")
         if not (self.lr > 0 and self.lr_final > 0):
