@@ -8,3 +8,7 @@ if compgen -G ".whl/*.whl" >/dev/null; then
 fi
 export PYTHONPATH=${PYTHONPATH:-$PWD}
 nvidia-smi --query-gpu=name,memory.total,clocks.sm --format=csv,noheader
+# nerfacc JIT-builds through torch into TORCH_EXTENSIONS_DIR; pip has just written its sources, so a
+# carried build is touched to be newer than them (else ninja rebuilds it).
+export TORCH_EXTENSIONS_DIR=${TORCH_EXTENSIONS_DIR:-$MIXER_NERF_CACHE/torch_extensions}
+[ -d "$TORCH_EXTENSIONS_DIR" ] && find "$TORCH_EXTENSIONS_DIR" -exec touch {} +
