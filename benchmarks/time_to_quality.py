@@ -43,9 +43,9 @@ def validate(render: Callable, val, chunk: int = 1 << 15) -> float:
 
 def run_curve(step_fn: Callable[[int], dict], render: Callable, val, checkpoints: list[float], log: Callable,
               clock: TrainingClock) -> list[dict]:
-    """Train with ``step_fn(step)`` until the last checkpoint, validating at each one, timed by
-    ``clock`` (our trainer's own, whose reading its lr schedule may follow). Step 0 runs before the
-    clock starts: it builds any JIT kernels (nerfacc's, ours) and warms up caches."""
+    """Train with ``step_fn(step)`` until the last checkpoint, validating at each one (``clock``
+    pauses meanwhile). Step 0 runs before the clock starts: it builds any JIT kernels (nerfacc's,
+    ours) and warms up caches."""
     step_fn(0)
     curve, step, stats = [], 1, {}
     pending = sorted(checkpoints)
@@ -144,7 +144,7 @@ def ours_method(args, train, val, device) -> tuple[Callable, Callable, object]:
         val_every=10**9, ckpt_every=10**9, log_every=10**9, progress=False,
         out=tempfile.mkdtemp(prefix="ttq_"), lr=args.lr, lr_final=args.lr_final or args.lr / 10,
         adam_eps=args.adam_eps, backend=args.backend, early_stop_eps=args.early_stop_eps,
-        grid_warmup=args.grid_warmup, lr_warmup=args.lr_warmup, time_budget=args.anneal_seconds,
+        grid_warmup=args.grid_warmup, lr_warmup=args.lr_warmup,
         **({} if args.batch_rays is None else {"batch_rays": args.batch_rays}))
     trainer = Trainer(cfg, log=lambda _: None)
 
@@ -177,9 +177,6 @@ def main() -> None:
     parser.add_argument("--lr-final", type=float, default=None,
                         help="ours: learning rate at --nominal-steps (exponential decay; default lr/10)")
     parser.add_argument("--lr-warmup", type=int, default=0, help="ours: steps of linear lr warm-up")
-    parser.add_argument("--anneal-seconds", type=float, default=None,
-                        help="ours: decay the lr to --lr-final over this much training time "
-                             "(the trainer's --time-budget) instead of over --nominal-steps")
     parser.add_argument("--adam-eps", type=float, default=1e-15, help="ours: Adam's epsilon")
     parser.add_argument("--early-stop-eps", type=float, default=1e-4,
                         help="ours, occupancy sampler: early ray termination (0: off)")

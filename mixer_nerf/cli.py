@@ -30,15 +30,13 @@ TRAIN_OPTIONS: dict[str, dict[str, Any]] = {
     "--num-coarse": {"type": int, "help": "coarse samples per ray"},
     "--num-fine": {"type": int, "help": "fine samples per ray (0: no fine pass)"},
     "--lr": {"type": float, "help": "initial learning rate (decays exponentially to --lr-final)"},
-    "--lr-final": {"type": float, "help": "learning rate at --steps, or at the end of --time-budget "
-                   "(default lr/10; = --lr: constant)"},
+    "--lr-final": {"type": float, "help": "learning rate at --steps (default lr/10; = --lr: constant)"},
     "--lr-warmup": {"type": int, "metavar": "STEPS", "help": "linear learning-rate warm-up (default 0)"},
     "--precision": {"choices": PRECISIONS, "help": "MLP precision (default: tf32 on CUDA, fp32 on CPU)"},
     "--seed": {"type": int, "help": "random seed"},
     "--val-every": {"type": int, "help": "validate every N steps"},
     "--ckpt-every": {"type": int, "help": "checkpoint every N steps (a killed run loses at most N)"},
-    "--time-budget": {"type": float, "metavar": "SECONDS",
-                      "help": "stop after this much training time (the lr decays over it)"},
+    "--time-budget": {"type": float, "metavar": "SECONDS", "help": "stop after this much training time"},
     "--downscale": {"type": int, "help": "integer image downscale (Blender scenes)"},
     "--sampler": {
         "choices": SAMPLERS,

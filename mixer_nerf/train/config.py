@@ -22,8 +22,7 @@ class TrainConfig:
     at 30 s and 60 s on an H100, benchmarks/results/ttq/README.md; bf16 is 16% faster per step but
     learns less per step).
     ``steps`` is also the length of the learning-rate schedule (``lr`` decays exponentially to
-    ``lr_final`` at ``steps``); with a ``time_budget`` the decay follows whichever of the steps
-    and the budget is further along, so a run stopped by its budget ends on ``lr_final``.
+    ``lr_final`` at ``steps``), also when ``time_budget`` stops the run earlier.
     """
 
     data: str | None = None  # scene folder; None = the built-in procedural scene

@@ -108,7 +108,6 @@ class Trainer:
         self.optimizer = torch.optim.Adam(
             self.params, lr=cfg.lr, eps=cfg.adam_eps, fused=self.device.type == "cuda"
         )
-        self.step, self.clock = 0, TrainingClock(self.device)
         self.scheduler = torch.optim.lr_scheduler.LambdaLR(self.optimizer, lambda s: self._lr_factor(s))
         self.renderer = ImageRenderer(
             self.fields,
@@ -130,6 +129,7 @@ class Trainer:
         self.guard = NonFiniteGuard(self.param_names, self.device)
         self.check_every = 1 if self.device.type == "cpu" else min(cfg.log_every, 50)
         self.train_log, self.val_log = CsvLog(self.files.train_log), CsvLog(self.files.val_log)
+        self.step, self.clock = 0, TrainingClock(self.device)
         self.rays_seen = self.samples_seen = 0
         if state is not None:
             self._load_state(state)
@@ -219,16 +219,10 @@ class Trainer:
 
     def _lr_factor(self, step: int) -> float:
         """lr / cfg.lr at ``step``: a linear warm-up over ``cfg.lr_warmup`` steps, then an
-        exponential decay to ``cfg.lr_final`` as training progresses. Progress is the fraction of
-        ``cfg.steps`` done or, with a ``cfg.time_budget``, of the budget spent if that is further,
-        so that a run stopped by its budget still ends on the annealed rate (such a schedule
-        follows the clock, so a resumed run is then not bit-exact)."""
+        exponential decay to ``cfg.lr_final`` at ``cfg.steps``."""
         cfg = self.cfg
-        progress = min(step / cfg.steps, 1.0)
-        if cfg.time_budget is not None:
-            progress = max(progress, min(self.clock.now() / cfg.time_budget, 1.0))
         warmup = min(1.0, (step + 1) / cfg.lr_warmup) if cfg.lr_warmup else 1.0
-        return warmup * (cfg.lr_final / cfg.lr) ** progress
+        return warmup * (cfg.lr_final / cfg.lr) ** (min(step, cfg.steps) / cfg.steps)
 
     def render_rgb(self, rays_o: torch.Tensor, rays_d: torch.Tensor) -> torch.Tensor:
         """Final colours (R, 3) of arbitrary rays with the current fields (deterministic samples)."""
