@@ -142,7 +142,7 @@ def ours_method(args, train, val, device) -> tuple[Callable, Callable, object]:
         data=args.data, preset=args.preset, sampler=args.sampler, steps=args.nominal_steps,
         target_samples=args.target_samples, precision=args.precision, device="cuda", seed=args.seed,
         val_every=10**9, ckpt_every=10**9, log_every=10**9, progress=False,
-        out=tempfile.mkdtemp(prefix="ttq_"), lr=args.lr, lr_final=args.lr_final or args.lr / 10,
+        out=tempfile.mkdtemp(prefix="ttq_"), lr=args.lr, lr_final=args.lr_final,
         adam_eps=args.adam_eps, backend=args.backend, early_stop_eps=args.early_stop_eps,
         grid_warmup=args.grid_warmup, lr_warmup=args.lr_warmup,
         **({} if args.batch_rays is None else {"batch_rays": args.batch_rays}))
@@ -169,14 +169,15 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--preset", default="D", help="ours: model preset")
     parser.add_argument("--sampler", default="occupancy", help="ours: occupancy | hierarchical")
-    parser.add_argument("--target-samples", type=int, default=65536, help="ours: MLP samples per step")
+    parser.add_argument("--target-samples", type=int, default=131072, help="ours: MLP samples per step")
     parser.add_argument("--batch-rays", type=int, default=None,
                         help="ours, hierarchical sampler: rays per step (default: the trainer's)")
     parser.add_argument("--precision", default="tf32", help="ours: bf16 | tf32 | fp32")
-    parser.add_argument("--lr", type=float, default=5e-4, help="ours: initial learning rate")
+    parser.add_argument("--lr", type=float, default=None, help="ours: learning rate (default: the sampler's recipe)")
     parser.add_argument("--lr-final", type=float, default=None,
-                        help="ours: learning rate at --nominal-steps (exponential decay; default lr/10)")
-    parser.add_argument("--lr-warmup", type=int, default=0, help="ours: steps of linear lr warm-up")
+                        help="ours: learning rate at --nominal-steps (exponential decay; default: the recipe)")
+    parser.add_argument("--lr-warmup", type=int, default=None,
+                        help="ours: steps of linear lr warm-up (default: the sampler's recipe)")
     parser.add_argument("--adam-eps", type=float, default=1e-15, help="ours: Adam's epsilon")
     parser.add_argument("--early-stop-eps", type=float, default=1e-4,
                         help="ours, occupancy sampler: early ray termination (0: off)")

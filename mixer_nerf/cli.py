@@ -29,9 +29,12 @@ TRAIN_OPTIONS: dict[str, dict[str, Any]] = {
     "--batch-rays": {"type": int, "help": "rays per step"},
     "--num-coarse": {"type": int, "help": "coarse samples per ray"},
     "--num-fine": {"type": int, "help": "fine samples per ray (0: no fine pass)"},
-    "--lr": {"type": float, "help": "initial learning rate (decays exponentially to --lr-final)"},
-    "--lr-final": {"type": float, "help": "learning rate at --steps (default lr/10; = --lr: constant)"},
-    "--lr-warmup": {"type": int, "metavar": "STEPS", "help": "linear learning-rate warm-up (default 0)"},
+    "--lr": {"type": float, "help": "learning rate after the warm-up (default: occupancy sampler "
+             "4e-3, hierarchical 5e-4), decaying exponentially to --lr-final"},
+    "--lr-final": {"type": float, "help": "learning rate at --steps (default: occupancy the same as "
+                   "--lr, i.e. constant; hierarchical lr/10)"},
+    "--lr-warmup": {"type": int, "metavar": "STEPS",
+                    "help": "linear learning-rate warm-up (default: occupancy 200, hierarchical 0)"},
     "--precision": {"choices": PRECISIONS, "help": "MLP precision (default: tf32 on CUDA, fp32 on CPU)"},
     "--seed": {"type": int, "help": "random seed"},
     "--val-every": {"type": int, "help": "validate every N steps"},
@@ -105,8 +108,6 @@ def train_config_from_args(args: argparse.Namespace) -> TrainConfig:
     values: dict[str, Any] = {} if args.data else dict(DEMO_SETTINGS)
     typed = {flag.lstrip("-").replace("-", "_") for flag in TRAIN_OPTIONS} | {"data", "device", "backend"}
     values.update({k: getattr(args, k) for k in typed if getattr(args, k, None) is not None})
-    if "lr" in values and "lr_final" not in values:
-        values["lr_final"] = values["lr"] / 10
     values["out"] = args.out or (f"runs/{Path(args.data).name}" if args.data else DEMO_OUT)
     values["progress"] = not args.no_progress
     return TrainConfig(**values)

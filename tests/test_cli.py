@@ -76,7 +76,8 @@ def parse_train(*argv):
 def test_no_data_uses_the_demo_settings_and_typed_flags_win():
     cfg = parse_train("--steps", "9", "--lr", "1e-3", "--precision", "tf32", "--seed", "3")
     assert cfg.data is None and cfg.batch_rays == TINY_DEMO["batch_rays"]
-    assert (cfg.steps, cfg.lr, cfg.lr_final, cfg.precision, cfg.seed) == (9, 1e-3, 1e-4, "tf32", 3)
+    assert (cfg.steps, cfg.lr, cfg.precision, cfg.seed) == (9, 1e-3, "tf32", 3)
+    assert cfg.with_recipe("hierarchical").lr_final == 1e-4  # the typed lr decays by the recipe's 10x
     assert cfg.out == cli.DEMO_OUT
     assert parse_train("--lr", "1e-3", "--lr-final", "1e-3").lr_final == 1e-3  # a constant rate
     assert parse_train("--lr-warmup", "50").lr_warmup == 50

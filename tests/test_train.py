@@ -263,6 +263,15 @@ def test_time_budget_stops_training(tmp_path):
     assert load_checkpoint(tmp_path / "checkpoint.pt")["step"] == summary["step"]
 
 
+def test_learning_rate_comes_from_the_samplers_recipe_unless_given():
+    occupancy, hierarchical = TrainConfig().with_recipe("occupancy"), TrainConfig().with_recipe("hierarchical")
+    assert (occupancy.lr, occupancy.lr_final, occupancy.lr_warmup) == (4e-3, 4e-3, 200)
+    assert (hierarchical.lr, hierarchical.lr_final, hierarchical.lr_warmup) == (5e-4, pytest.approx(5e-5), 0)
+    given = TrainConfig(lr=1e-3, lr_warmup=7).with_recipe("hierarchical")
+    assert (given.lr, given.lr_final, given.lr_warmup) == (1e-3, pytest.approx(1e-4), 7)
+    assert TrainConfig(lr_final=2e-3).with_recipe("occupancy").lr_final == 2e-3
+
+
 def test_lr_warms_up_linearly_then_decays_exponentially(tmp_path):
     trainer = Trainer(tiny_config(tmp_path, steps=100, lr=1e-3, lr_final=1e-4, lr_warmup=4), log=quiet)
     lr = lambda: trainer.scheduler.get_last_lr()[0]  # noqa: E731

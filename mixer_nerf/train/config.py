@@ -21,8 +21,10 @@ class TrainConfig:
     TF32 on CUDA, because at equal training time it beat bf16 autocast on Lego (preset A: +1.0 dB
     at 30 s and 60 s on an H100, benchmarks/results/ttq/README.md; bf16 is 16% faster per step but
     learns less per step).
-    ``steps`` is also the length of the learning-rate schedule (``lr`` decays exponentially to
-    ``lr_final`` at ``steps``), also when ``time_budget`` stops the run earlier.
+    ``steps`` is also the length of the learning-rate schedule (after ``lr_warmup`` steps of linear
+    warm-up, ``lr`` decays exponentially to ``lr_final`` at ``steps``), also when ``time_budget``
+    stops the run earlier. Learning-rate settings left at None come from the sampler's recipe
+    (``SAMPLER_RECIPES``) once the sampler is decided.
     """
 
     data: str | None = None  # scene folder; None = the built-in procedural scene
@@ -37,9 +39,10 @@ class TrainConfig:
     batch_rays: int = 4096
     num_coarse: int = 64
     num_fine: int = 128
-    lr: float = 5e-4
-    lr_final: float = 5e-5
-    lr_warmup: int = 0  # steps of linear learning-rate warm-up
+    # None: the sampler's recipe (SAMPLER_RECIPES), filled in once the sampler is known
+    lr: float | None = None
+    lr_final: float | None = None  # None: lr times the recipe's decay
+    lr_warmup: int | None = None  # steps of linear learning-rate warm-up
     # nerfacc's value; with a constant lr it beat PyTorch's 1e-8 with decay by 0.6-0.9 dB at 30-60 s
     # on Lego (benchmarks/results/ttq/README.md)
     adam_eps: float = 1e-15
@@ -67,7 +70,7 @@ class TrainConfig:
     step_size: float | None = None  # marching step; None: the box diagonal / 1000
     early_stop_eps: float = 1e-4  # stop a ray once its transmittance is below this (0: never)
     alpha_threshold: float = 0.0  # drop samples with a smaller alpha (0: keep them)
-    target_samples: int | None = 65536  # occupancy: adapt the rays per step to this many samples
+    target_samples: int | None = 131072  # occupancy: adapt the rays per step to this many samples
     progress: bool = True  # progress bar on stderr
 
     def __post_init__(self) -> None:
@@ -102,12 +105,13 @@ class TrainConfig:
         ):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
-        if self.lr_warmup < 0:
+        if self.lr_warmup is not None and self.lr_warmup < 0:
             raise ValueError(f"lr_warmup must be >= 0, got {self.lr_warmup}")
         if self.num_fine < 0:
             raise ValueError(f"num_fine must be >= 0, got {self.num_fine}")
-        if not (self.lr > 0 and self.lr_final > 0):
-            raise ValueError(f"lr and lr_final must be positive, got {self.lr} and {self.lr_final}")
+        for name in ("lr", "lr_final"):
+            if getattr(self, name) is not None and not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
         if not self.adam_eps > 0:
             raise ValueError(f"adam_eps must be positive, got {self.adam_eps}")
         if self.time_budget is not None and self.time_budget <= 0:
@@ -121,6 +125,19 @@ class TrainConfig:
         precision = self.precision or ("tf32" if device.startswith("cuda") else "fp32")
         return dataclasses.replace(self, device=device, precision=precision)
 
+    def with_recipe(self, sampler: str) -> TrainConfig:
+        """A copy for ``sampler`` ("occupancy" or "hierarchical") with the learning-rate settings
+        left at None taken from its recipe (``SAMPLER_RECIPES``)."""
+        recipe = SAMPLER_RECIPES[sampler]
+        lr = recipe["lr"] if self.lr is None else self.lr
+        return dataclasses.replace(
+            self,
+            sampler=sampler,
+            lr=lr,
+            lr_final=lr * recipe["lr_decay"] if self.lr_final is None else self.lr_final,
+            lr_warmup=recipe["lr_warmup"] if self.lr_warmup is None else self.lr_warmup,
+        )
+
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
 
@@ -133,6 +150,16 @@ class TrainConfig:
             raise ValueError(f"unknown training settings: {unknown}")
         return cls(**values)
 
+
+SAMPLER_RECIPES: dict[str, dict[str, float]] = {
+    # Measured on Lego 400x400 on an H100 (benchmarks/results/ttq/README.md): with marched samples
+    # (~10 a ray, 131072 a step) preset D gained 2.7 dB at 60 s from lr 5e-4 to 4e-3, and a decay
+    # over the run cost more than it gave (measured up to 240 s, where the rate was still constant).
+    "occupancy": {"lr": 4e-3, "lr_decay": 1.0, "lr_warmup": 200},
+    # NeRF's recipe for dense coarse + fine batches: 5e-4 decaying 10x over `steps`.
+    "hierarchical": {"lr": 5e-4, "lr_decay": 0.1, "lr_warmup": 0},
+}
+"""Learning-rate settings per sampler, for the fields a TrainConfig leaves at None."""
 
 DEMO_SETTINGS: dict[str, Any] = {
     "procedural_resolution": 40,

@@ -174,12 +174,14 @@ class ImageRenderer:
 
 
 def resolve_sampler(cfg: TrainConfig, bbox: torch.Tensor | None) -> TrainConfig:
-    """``cfg`` with ``sampler="auto"`` decided by the scene: occupancy when it has a box. The
-    occupancy sampler renders one marched pass, so it trains no separate fine network."""
+    """``cfg`` with ``sampler="auto"`` decided by the scene (occupancy when it has a box) and
+    that sampler's learning-rate recipe where ``cfg`` leaves it open. The occupancy sampler
+    renders one marched pass, so it trains no separate fine network."""
     sampler = cfg.sampler if cfg.sampler != "auto" else ("occupancy" if bbox is not None else "hierarchical")
     if sampler == "occupancy" and bbox is None:
         raise ValueError("sampler 'occupancy' needs a scene box (bbox); this scene has none")
-    return dataclasses.replace(cfg, sampler=sampler, fine_network=cfg.fine_network and sampler != "occupancy")
+    cfg = cfg.with_recipe(sampler)
+    return dataclasses.replace(cfg, fine_network=cfg.fine_network and sampler != "occupancy")
 
 
 def make_grid(cfg: TrainConfig, bbox: torch.Tensor | None) -> OccupancyGrid | None:
