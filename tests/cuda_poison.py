@@ -1,25 +1,36 @@
-"""Shared by the CUDA tests: poison the caching allocator so unwritten outputs show up as NaN."""
+"""Shared by the CUDA tests: poison the caching allocator so unwritten outputs show up."""
 
 from __future__ import annotations
+
+import gc
 
 import torch
 
 
-def poison_allocator(shapes_and_dtypes, copies=2):
-    """Leave NaN-filled blocks of exactly the sizes the op will allocate in CUDA's caching
-    allocator: its torch.empty outputs then reuse NaN memory, so any element the kernel does not
-    write stays NaN and fails the finiteness checks. The mechanism itself is asserted."""
+def poison_allocator(like, max_copies=64):
+    """Fill the CUDA caching allocator's free blocks of the sizes of the tensors `like` (the
+    op's expected outputs, on any device) with 0xFF bytes: NaN as any float dtype, -1 as an
+    integer. The op's torch.empty outputs then reuse that memory, so an element the kernel does
+    not write keeps the poison and fails the comparisons.
+
+    Two copies per size are not enough: earlier tests leave cached free blocks of stale data
+    inside segments that live tensors keep, and the allocator may hand one of those out instead
+    (seen on an H100 after the segment-op and mlca tests). So each size is allocated until the
+    allocator has to reserve new memory, which proves no cached free block of that size was left
+    unpoisoned. The mechanism itself is asserted."""
+    nbytes = [t.numel() * t.element_size() for t in like if t.numel()]
+    if not nbytes:
+        return
+    gc.collect()  # tensors of earlier tests held only by reference cycles
     torch.cuda.synchronize()
     torch.cuda.empty_cache()
-    blocks = [
-        torch.full(shape, float("nan"), dtype=dtype, device="cuda")
-        for shape, dtype in shapes_and_dtypes
-        for _ in range(copies)
-        if torch.Size(shape).numel()
-    ]
-    if not blocks:
-        return
-    probe_shape, probe_dtype = blocks[0].shape, blocks[0].dtype
+    blocks = []
+    for n in nbytes:
+        for copy in range(max_copies):
+            reserved = torch.cuda.memory_reserved()
+            blocks.append(torch.full((n,), 255, dtype=torch.uint8, device="cuda"))
+            if copy >= 1 and torch.cuda.memory_reserved() > reserved:
+                break
     del blocks
-    probe = torch.empty(probe_shape, dtype=probe_dtype, device="cuda")
-    assert torch.isnan(probe).all(), "poisoning did not reach the allocator"
+    probe = torch.empty(nbytes[0], dtype=torch.uint8, device="cuda")
+    assert (probe == 255).all(), "poisoning did not reach the allocator"

@@ -340,11 +340,11 @@ def test_cuda_matches_cpu_and_reference(lead, T, C, D, dtype, gen):
     want_out, want_grads = truth(inputs, grad)
     cuda_inputs, cuda_grad = [t.cuda() for t in inputs], grad.cuda()
 
-    poison_allocator([(cpu_out.shape, dtype)])
+    poison_allocator([cpu_out])
     out = mlca(*cuda_inputs, backend="kernel")
     leaves = [t.clone().requires_grad_() for t in cuda_inputs]
     out_for_grad = mlca(*leaves, backend="kernel")
-    poison_allocator([(t.shape, dtype) for t in inputs])
+    poison_allocator(inputs)
     grads = torch.autograd.grad(out_for_grad, leaves, cuda_grad)
 
     assert out.dtype == dtype and out.device.type == "cuda"

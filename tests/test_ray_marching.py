@@ -18,6 +18,7 @@ import torch
 from mixer_nerf import _extension
 from mixer_nerf.ops.ray_marching import PackedSamples, filter_by_transmittance, ray_marching
 from mixer_nerf.ops.ray_marching_reference import clip_to_box, march_dtype, pack_bits, ray_marching_reference
+from cuda_poison import poison_allocator
 
 needs_kernels = pytest.mark.skipif(not _extension.available(), reason="mixer_nerf kernels not built")
 on_cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU")
@@ -418,23 +419,6 @@ def test_opcheck(gen):
 # --- CUDA --------------------------------------------------------------------------------------
 
 
-def poison_allocator(nbytes_list, copies=2):
-    """Fill freed CUDA caching-allocator blocks of the outputs' sizes with 0xFF bytes (NaN as
-    float, -1 as int64) so that an output element the kernel never writes keeps that value. The
-    outputs are then compared for equality with the CPU kernel's: no poisoned element can pass."""
-    torch.cuda.synchronize()
-    torch.cuda.empty_cache()
-    blocks = [
-        torch.full((max(n, 1),), 255, dtype=torch.uint8, device="cuda")
-        for n in nbytes_list
-        for _ in range(copies)
-    ]
-    del blocks
-    probe = torch.empty(max(nbytes_list[0], 1), dtype=torch.uint8, device="cuda")
-    assert (probe == 255).all(), "poisoning did not reach the allocator"
-    del probe
-
-
 def check_cuda(
     rays, grid, stratified=False, exact=True, step=0.013, cone_angle=0.0, max_samples_per_ray=None
 ):
@@ -457,7 +441,7 @@ def check_cuda(
 
     kernel = torch.ops.mixer_nerf.ray_marching_fwd
     cpu, reference = run(kernel, "cpu"), run(ray_marching_reference, "cpu")
-    poison_allocator([t.numel() * t.element_size() for t in cpu])
+    poison_allocator(list(cpu))
     got = run(kernel, "cuda")
     check_layout(got, R)
     same = assert_same if exact else assert_nearly_same
