@@ -144,7 +144,7 @@ def ours_method(args, train, val, device) -> tuple[Callable, Callable, object]:
         val_every=10**9, ckpt_every=10**9, log_every=10**9, progress=False,
         out=tempfile.mkdtemp(prefix="ttq_"), lr=args.lr, lr_final=args.lr_final,
         adam_eps=args.adam_eps, backend=args.backend, early_stop_eps=args.early_stop_eps,
-        grid_warmup=args.grid_warmup, lr_warmup=args.lr_warmup,
+        grid_warmup=args.grid_warmup, lr_warmup=args.lr_warmup, bf16_density_passes=args.bf16_density_passes,
         **({} if args.batch_rays is None else {"batch_rays": args.batch_rays}))
     trainer = Trainer(cfg, log=lambda _: None)
 
@@ -178,6 +178,8 @@ def main() -> None:
                         help="ours: learning rate at --nominal-steps (exponential decay; default: the recipe)")
     parser.add_argument("--lr-warmup", type=int, default=None,
                         help="ours: steps of linear lr warm-up (default: the sampler's recipe)")
+    parser.add_argument("--bf16-density-passes", action="store_true",
+                        help="ours, occupancy sampler: grid refreshes and the early-termination pre-pass in bf16")
     parser.add_argument("--adam-eps", type=float, default=1e-15, help="ours: Adam's epsilon")
     parser.add_argument("--early-stop-eps", type=float, default=1e-4,
                         help="ours, occupancy sampler: early ray termination (0: off)")

@@ -51,6 +51,10 @@ TRAIN_OPTIONS: dict[str, dict[str, Any]] = {
         "help": "occupancy sampler: MLP samples per step (the ray batch adapts)",
     },
     "--early-stop-eps": {"type": float, "help": "stop rays whose transmittance falls below this (0: never)"},
+    "--bf16-density-passes": {
+        "action": "store_true",
+        "help": "occupancy sampler: no-grad density passes (grid refreshes, early termination) in bf16",
+    },
     "--grid-resolution": {"type": int, "help": "occupancy grid cells per axis"},
 }
 

@@ -119,6 +119,17 @@ def test_packed_field_gets_the_layout_of_exactly_the_samples_it_evaluates():
         torch.testing.assert_close(torch.repeat_interleave(torch.arange(64), offsets.diff()), ray_indices)
 
 
+def test_density_field_runs_the_pre_pass_and_the_field_the_rest():
+    rays_o, rays_d = rays_towards_ball(64, spread=0.6)
+    field, pre = RecordingBall(), RecordingBall()
+    out = render_rays_marched(field, rays_o, rays_d, ball_grid(), stratified=False, early_stop_eps=1e-4,
+                              backend="torch", density_field=pre)
+    alone = render_rays_marched(RecordingBall(), rays_o, rays_d, ball_grid(), stratified=False,
+                                early_stop_eps=1e-4, backend="torch")
+    assert len(pre.calls) == 1 and len(field.calls) == 1 and field.calls[0][0] < pre.calls[0][0]
+    torch.testing.assert_close(out.color, alone.color, atol=0, rtol=0)
+
+
 class IndicesOnly(nn.Module):
     """A field without the offsets argument: the renderer passes it only ray_indices."""
 

@@ -283,6 +283,15 @@ def test_lr_warms_up_linearly_then_decays_exponentially(tmp_path):
     assert lr() == pytest.approx(1e-3 * 0.1 ** (4 / 100))  # warm-up done
 
 
+def test_bf16_density_passes_decide_the_skipping_under_autocast(tmp_path):
+    trainer = Trainer(tiny_config(tmp_path, sampler="occupancy", bf16_density_passes=True), log=quiet)
+    assert trainer.density_field.dtype == torch.bfloat16 and trainer.density_field.field is trainer.fields.coarse
+    assert trainer.coarse_field.dtype is None  # the training pass keeps its precision
+    for _ in range(4):  # past the grid's warm-up: refreshes and pre-passes in bf16
+        losses = trainer.train_step()
+    assert torch.isfinite(losses["loss"])
+
+
 def test_existing_run_is_not_overwritten(tmp_path):
     Trainer(tiny_config(tmp_path, steps=1), log=quiet).fit()
     before = (tmp_path / "checkpoint.pt").read_bytes()

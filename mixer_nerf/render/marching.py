@@ -65,6 +65,7 @@ def render_rays_marched(
     cone_angle: float = 0.0,
     backend: str = "auto",
     generator: torch.Generator | None = None,
+    density_field: nn.Module | None = None,
 ) -> MarchedResult:
     """Render rays through ``field`` evaluating it only where ``grid`` says there is something.
 
@@ -83,6 +84,8 @@ def render_rays_marched(
         early_stop_eps: drop samples once transmittance is below this (0: keep them all).
         alpha_threshold: drop samples whose alpha is below this (0: keep them all).
         cone_angle: > 0 grows the step with distance (unbounded scenes).
+        density_field: what the no-grad pre-pass evaluates (default ``field``), e.g. the same
+            MLP under bf16 autocast: the pre-pass only decides which samples to keep.
 
     Returns:
         :class:`MarchedResult`; color, depth and opacity are differentiable through the field.
@@ -97,12 +100,13 @@ def render_rays_marched(
     extra = _layout_arguments(field, rays_o.shape[0])
 
     if (early_stop_eps > 0 or alpha_threshold > 0) and samples.t_starts.numel():
+        pre = field if density_field is None else density_field
         with torch.no_grad():
             x = _sample_points(rays_o, rays_d, samples)
-            if hasattr(field, "density"):
-                sigma = field.density(x, **extra(samples))
+            if hasattr(pre, "density"):
+                sigma = pre.density(x, **extra(samples))
             else:
-                sigma = field(x, viewdirs[samples.ray_indices])[0]
+                sigma = pre(x, viewdirs[samples.ray_indices])[0]
             keep = filter_by_transmittance(sigma.float() * norm[samples.ray_indices], samples,
                                            early_stop_eps, alpha_threshold)
         samples = samples.select(keep)

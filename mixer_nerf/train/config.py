@@ -71,6 +71,9 @@ class TrainConfig:
     early_stop_eps: float = 1e-4  # stop a ray once its transmittance is below this (0: never)
     alpha_threshold: float = 0.0  # drop samples with a smaller alpha (0: keep them)
     target_samples: int | None = 131072  # occupancy: adapt the rays per step to this many samples
+    # occupancy: run the no-grad density passes (grid refreshes, the early-termination pre-pass)
+    # under bf16 autocast whatever `precision` is; they only decide which samples to skip
+    bf16_density_passes: bool = False
     progress: bool = True  # progress bar on stderr
 
     def __post_init__(self) -> None:

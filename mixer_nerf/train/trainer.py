@@ -103,6 +103,10 @@ class Trainer:
         self.fields = RadianceFields(self.model_cfg, cfg.fine_network, make_grid(cfg, self.train_scene.bbox))
         self.fields.to(self.device)
         self.coarse_field, self.fine_field = self.fields.runners(cfg.precision, self.device)
+        # The no-grad density passes that decide what to skip (grid refreshes, early termination).
+        self.density_field = (
+            self.fields.runners("bf16", self.device)[0] if cfg.bf16_density_passes else self.coarse_field
+        )
         self.params = [p for p in self.fields.parameters() if p.requires_grad]
         self.param_names = [n for n, p in self.fields.named_parameters() if p.requires_grad]
         self.optimizer = torch.optim.Adam(
@@ -189,7 +193,7 @@ class Trainer:
         cfg, grid = self.cfg, self.fields.grid
         grid.update(
             self.step,
-            lambda x: self.coarse_field.density(x),
+            lambda x: self.density_field.density(x),
             every=cfg.grid_every,
             threshold=cfg.grid_threshold,
             warmup_steps=cfg.grid_warmup,
@@ -208,6 +212,7 @@ class Trainer:
             alpha_threshold=cfg.alpha_threshold,
             backend=cfg.backend,
             generator=self.sampler.generator,
+            density_field=self.density_field,
         )
         num_samples = out.samples.t_starts.shape[0]  # known on the host: marching synchronised
         self.samples_seen += num_samples
