@@ -153,7 +153,8 @@ def ours_method(args, train, val, device) -> tuple[Callable, Callable, object]:
         samples_before, rays = trainer.samples_seen, trainer.sampler.batch_rays
         trainer.train_step()
         return {"samples_per_ray": trainer.samples_seen / max(trainer.rays_seen, 1),
-                "samples_per_step": trainer.samples_seen - samples_before, "rays": rays}
+                "samples_per_step": trainer.samples_seen - samples_before, "rays": rays,
+                "marched_per_ray": trainer.marched_seen / max(trainer.rays_seen, 1)}
 
     return step_fn, trainer.render_rgb, trainer
 

@@ -127,6 +127,7 @@ def test_density_field_runs_the_pre_pass_and_the_field_the_rest():
     alone = render_rays_marched(RecordingBall(), rays_o, rays_d, ball_grid(), stratified=False,
                                 early_stop_eps=1e-4, backend="torch")
     assert len(pre.calls) == 1 and len(field.calls) == 1 and field.calls[0][0] < pre.calls[0][0]
+    assert out.num_marched == pre.calls[0][0] and out.samples.t_starts.numel() == field.calls[0][0]
     torch.testing.assert_close(out.color, alone.color, atol=0, rtol=0)
 
 

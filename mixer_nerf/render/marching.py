@@ -30,6 +30,7 @@ class MarchedResult(NamedTuple):
     opacity: torch.Tensor  # (R,)
     samples: PackedSamples  # the samples the field was evaluated at (N,)
     weights: torch.Tensor  # (N,)
+    num_marched: int  # samples marching emitted: what the early-termination pre-pass evaluated
 
 
 def _layout_arguments(field: nn.Module, num_rays: int):
@@ -98,6 +99,7 @@ def render_rays_marched(
     # Each field call gets the layout of exactly the samples it evaluates: the marched ones for
     # the pre-pass, then the survivors, whose offsets select() recomputes.
     extra = _layout_arguments(field, rays_o.shape[0])
+    num_marched = samples.t_starts.shape[0]
 
     if (early_stop_eps > 0 or alpha_threshold > 0) and samples.t_starts.numel():
         pre = field if density_field is None else density_field
@@ -118,4 +120,4 @@ def render_rays_marched(
     color, depth, opacity, weights = composite_packed(
         sigma, rgb.to(rays_o.dtype), samples.t_starts, samples.t_ends, samples.offsets, bg,
         backend=backend, check_values=False)
-    return MarchedResult(color, depth, opacity, samples, weights)
+    return MarchedResult(color, depth, opacity, samples, weights, num_marched)

@@ -134,7 +134,7 @@ class Trainer:
         self.check_every = 1 if self.device.type == "cpu" else min(cfg.log_every, 50)
         self.train_log, self.val_log = CsvLog(self.files.train_log), CsvLog(self.files.val_log)
         self.step, self.clock = 0, TrainingClock(self.device)
-        self.rays_seen = self.samples_seen = 0
+        self.rays_seen = self.samples_seen = self.marched_seen = 0  # marched: before early termination
         if state is not None:
             self._load_state(state)
         self.files.config.write_text(
@@ -216,6 +216,7 @@ class Trainer:
         )
         num_samples = out.samples.t_starts.shape[0]  # known on the host: marching synchronised
         self.samples_seen += num_samples
+        self.marched_seen += out.num_marched
         if cfg.target_samples is not None:
             # Keep the MLP's work per step near the target as the grid empties (nerfacc's recipe).
             rays = rays_o.shape[0] * cfg.target_samples / max(num_samples, 1)
@@ -323,6 +324,7 @@ class Trainer:
                     "batch_rays": self.sampler.batch_rays,
                     "rays_seen": self.rays_seen,
                     "samples_seen": self.samples_seen,
+                    "marched_seen": self.marched_seen,
                 },
             },
         )
@@ -339,6 +341,7 @@ class Trainer:
         self.sampler.batch_rays = int(progress.get("batch_rays", self.sampler.batch_rays))
         self.rays_seen = int(progress.get("rays_seen", 0))
         self.samples_seen = int(progress.get("samples_seen", 0))
+        self.marched_seen = int(progress.get("marched_seen", 0))
         self.clock = TrainingClock(self.device, float(state["elapsed"]))
         # Rows a killed run logged after its last checkpoint describe steps that will be redone.
         self.train_log.truncate_after(self.step)
