@@ -1,6 +1,6 @@
 """Long-run numerical stability and multi-seed convergence of training.
 
-1. Stability: a long run at a high learning rate (10x the default) in bf16 on the built-in
+1. Stability: a long run at a high learning rate (10x the sampler's default) in bf16 on the built-in
    procedural scene and on Lego, checking the loss, every gradient and every parameter for NaN/Inf
    after every step; reports the first failure (none expected) and the final PSNR.
 2. Convergence: short runs with several seeds on Lego and Fern at the default learning rate;
@@ -29,6 +29,7 @@ import torch
 
 from mixer_nerf.metrics import psnr
 from mixer_nerf.train import TrainConfig, Trainer
+from mixer_nerf.train.config import SAMPLER_RECIPES
 
 TINY_MODEL = {"depth": 2, "width": 32, "skips": (), "view_width": 16, "pos_freqs": 4, "dir_freqs": 2}
 
@@ -105,7 +106,7 @@ def train_and_watch(
         phase=phase,
         scene=scene,
         seed=cfg.seed,
-        lr=cfg.lr,
+        lr=trainer.cfg.lr,
         precision=trainer.cfg.precision,
         steps=trainer.step,
         seconds=round(elapsed, 2),
@@ -207,7 +208,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     )
     parser.add_argument("--tiny", action="store_true", help="toy sizes for a CPU smoke test")
     parser.add_argument("--stability-steps", type=int, default=3000)
-    parser.add_argument("--stability-lr", type=float, default=5e-3, help="10x the default 5e-4")
+    parser.add_argument("--stability-lr", type=float,
+                        help="default: 10x the sampler's recipe (occupancy 4e-2, hierarchical 5e-3)")
     parser.add_argument("--convergence-steps", type=int, default=500)
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     parser.add_argument("--batch-rays", type=int, default=4096)
@@ -229,6 +231,9 @@ def parse_args(argv=None) -> argparse.Namespace:
         args.batch_rays, args.num_coarse, args.num_fine = 64, 8, 8
         args.downscale, args.val_rays, args.budget = 8, 1024, min(args.budget, 60.0)
         args.sampler = "hierarchical"  # the occupancy sampler's fine marching step is slow on a CPU
+    if args.stability_lr is None:  # every scene here has a box: "auto" samples by occupancy
+        sampler = "hierarchical" if args.sampler == "hierarchical" else "occupancy"
+        args.stability_lr = 10 * SAMPLER_RECIPES[sampler]["lr"]
     if args.precision is None:
         args.precision = "bf16" if args.device == "cuda" else "fp32"
     if args.check_every is None:
