@@ -13,8 +13,8 @@
 #   field         python -m benchmarks.bench_field $FIELD_ARGS (the MLP's cost per preset and precision)
 #   crash         tools/diagnose_exception_crash.py (in the background, alongside later stages)
 # Logs and results are packed into $OUT/gpu_check.tgz (the device returns at most 8 files), the
-# built library into $OUT/jit_cache.tar (unpack it into .gpu_cache and carry that to skip the build
-# next time); a summary is printed last.
+# builds into $OUT/gpu_cache.tar by tools/gpu_build.sh (unpack it into .gpu_cache and carry that to
+# skip the builds next time); a summary is printed last.
 source tools/gpu_env.sh >/dev/null
 OUT=${OUT:-/tmp/gpu_check}; mkdir -p "$OUT/results"
 summary=$(mktemp)
@@ -28,8 +28,7 @@ step() {  # step NAME SECONDS CMD...: run with a time limit, keep the log, recor
   local rc=$?
   echo "$name rc=$rc $((SECONDS - t0))s: $(grep -E 'passed|failed|ERROR SUMMARY|error' "$OUT/$name.log" | tail -1)" >>"$summary"
 }
-step build 420 python -c "from mixer_nerf import _extension as e; assert e.has_cuda_kernels(); print('CUDA kernels loaded')"
-(cd "$MIXER_NERF_CACHE" && tar cf "$OUT/jit_cache.tar" $(find build -name mixer_nerf_C.so))
+bash tools/gpu_build.sh >>"$summary"
 stages=("$@")
 [ ${#stages[@]} -eq 0 ] && stages=(crash pytest error_budget bench memcheck racecheck)
 for stage in "${stages[@]}"; do
