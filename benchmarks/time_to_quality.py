@@ -144,7 +144,8 @@ def ours_method(args, train, val, device) -> tuple[Callable, Callable, object]:
         val_every=10**9, ckpt_every=10**9, log_every=10**9, progress=False,
         out=tempfile.mkdtemp(prefix="ttq_"), lr=args.lr, lr_final=args.lr_final,
         adam_eps=args.adam_eps, backend=args.backend, early_stop_eps=args.early_stop_eps,
-        grid_warmup=args.grid_warmup, lr_warmup=args.lr_warmup, bf16_density_passes=args.bf16_density_passes,
+        grid_warmup=args.grid_warmup, step_size=args.step_size,
+        grid_every=args.grid_every, lr_warmup=args.lr_warmup, bf16_density_passes=args.bf16_density_passes,
         **({} if args.batch_rays is None else {"batch_rays": args.batch_rays}))
     trainer = Trainer(cfg, log=lambda _: None)
 
@@ -179,14 +180,19 @@ def main() -> None:
                         help="ours: learning rate at --nominal-steps (exponential decay; default: the recipe)")
     parser.add_argument("--lr-warmup", type=int, default=None,
                         help="ours: steps of linear lr warm-up (default: the sampler's recipe)")
-    parser.add_argument("--bf16-density-passes", action="store_true",
-                        help="ours, occupancy sampler: grid refreshes and the early-termination pre-pass in bf16")
+    parser.add_argument("--bf16-density-passes", action=argparse.BooleanOptionalAction, default=None,
+                        help="ours, occupancy sampler: grid refreshes and the early-termination pre-pass in bf16 "
+                             "(default: the trainer's, on CUDA)")
     parser.add_argument("--adam-eps", type=float, default=1e-15, help="ours: Adam's epsilon")
     parser.add_argument("--early-stop-eps", type=float, default=1e-4,
                         help="ours, occupancy sampler: early ray termination (0: off)")
     parser.add_argument("--grid-warmup", type=int, default=256,
                         help="ours, occupancy sampler: steps of a fully occupied grid (a huge value: "
                              "no empty-space skipping, box clipping only)")
+    parser.add_argument("--grid-every", type=int, default=16,
+                        help="ours, occupancy sampler: refresh the grid every N steps")
+    parser.add_argument("--step-size", type=float, default=None,
+                        help="ours, occupancy sampler: marching step (default: the box diagonal / 1000)")
     parser.add_argument("--backend", default="auto", help="ours: auto | kernel | torch (the pure-PyTorch path)")
     parser.add_argument("--skip-report", action="store_true",
                         help="ours, occupancy sampler: after training, time one val render under each skip")

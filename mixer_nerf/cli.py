@@ -44,7 +44,7 @@ TRAIN_OPTIONS: dict[str, dict[str, Any]] = {
     "--sampler": {
         "choices": SAMPLERS,
         "help": "occupancy (skip empty space, occluded samples, missed rays), "
-        "hierarchical (NeRF's dense coarse + fine), auto (occupancy when the scene has a box)",
+        "hierarchical (NeRF's dense coarse + fine), auto (occupancy for bounded scenes such as Blender's, hierarchical for forward-facing LLFF)",
     },
     "--target-samples": {
         "type": int,
@@ -52,8 +52,9 @@ TRAIN_OPTIONS: dict[str, dict[str, Any]] = {
     },
     "--early-stop-eps": {"type": float, "help": "stop rays whose transmittance falls below this (0: never)"},
     "--bf16-density-passes": {
-        "action": "store_true",
-        "help": "occupancy sampler: no-grad density passes (grid refreshes, early termination) in bf16",
+        "action": argparse.BooleanOptionalAction,
+        "help": "occupancy sampler: no-grad density passes (grid refreshes, early termination) in bf16 "
+        "(default: on CUDA)",
     },
     "--grid-resolution": {"type": int, "help": "occupancy grid cells per axis"},
 }

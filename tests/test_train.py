@@ -25,6 +25,7 @@ from mixer_nerf.train import (
     save_checkpoint,
 )
 from mixer_nerf.train.checkpoint import capture_rng_state, restore_rng_state
+from mixer_nerf.train.fields import resolve_sampler
 from mixer_nerf.train.guard import NonFiniteGuard
 from mixer_nerf.train.logbook import CsvLog, plot_curves
 
@@ -117,9 +118,10 @@ def test_config_round_trips_and_resolves_for_the_machine():
     with pytest.raises(ValueError, match="unknown training settings"):
         TrainConfig.from_dict({**cfg.to_dict(), "bogus": 1})
     cpu = cfg.resolved(cuda_available=False)
-    assert (cpu.device, cpu.precision) == ("cpu", "fp32")
+    assert (cpu.device, cpu.precision, cpu.bf16_density_passes) == ("cpu", "fp32", False)
     gpu = cfg.resolved(cuda_available=True)
-    assert (gpu.device, gpu.precision) == ("cuda", "tf32")
+    assert (gpu.device, gpu.precision, gpu.bf16_density_passes) == ("cuda", "tf32", True)
+    assert not TrainConfig(bf16_density_passes=False).resolved(cuda_available=True).bf16_density_passes
     with pytest.raises(ValueError, match="cuda"):
         TrainConfig(device="cuda").resolved(cuda_available=False)
 
@@ -270,6 +272,17 @@ def test_learning_rate_comes_from_the_samplers_recipe_unless_given():
     given = TrainConfig(lr=1e-3, lr_warmup=7).with_recipe("hierarchical")
     assert (given.lr, given.lr_final, given.lr_warmup) == (1e-3, pytest.approx(1e-4), 7)
     assert TrainConfig(lr_final=2e-3).with_recipe("occupancy").lr_final == 2e-3
+
+
+def test_auto_sampler_marches_bounded_scenes_and_samples_forward_facing_ones_hierarchically():
+    box = torch.tensor([[-1.0] * 3, [1.0] * 3])
+    auto = TrainConfig(sampler="auto")
+    assert resolve_sampler(auto, box, ndc=False).sampler == "occupancy"
+    assert resolve_sampler(auto, box, ndc=True).sampler == "hierarchical"  # LLFF in NDC
+    assert resolve_sampler(auto, None, ndc=False).sampler == "hierarchical"
+    assert resolve_sampler(TrainConfig(sampler="occupancy"), box, ndc=True).sampler == "occupancy"
+    with pytest.raises(ValueError, match="needs a scene box"):
+        resolve_sampler(TrainConfig(sampler="occupancy"), None, ndc=False)
 
 
 def test_lr_warms_up_linearly_then_decays_exponentially(tmp_path):

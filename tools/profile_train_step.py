@@ -1,7 +1,7 @@
 """Where a training step's time goes: wall time per step against GPU busy time, and the kernels.
 
     python tools/profile_train_step.py [--data .data/lego_400] [--preset D] [--precision tf32]
-        [--warmup 400] [--steps 30] [--out DIR]
+        [--warmup 400] [--steps 30] [--bf16-density-passes] [--out DIR]
 
 Trains ``--warmup`` steps (past the occupancy grid's dense warm-up, so the batch has its steady
 size), then profiles ``--steps`` steps with torch.profiler. Prints ms per step (wall), the GPU's
@@ -28,21 +28,26 @@ def main() -> None:
     parser.add_argument("--precision", default="tf32")
     parser.add_argument("--warmup", type=int, default=400)
     parser.add_argument("--steps", type=int, default=30)
+    parser.add_argument("--bf16-density-passes", action=argparse.BooleanOptionalAction, default=None,
+                        help="default: the trainer's (on CUDA)")
     parser.add_argument("--out", default=None, help="write the table to DIR/train_step_<preset>_<precision>.txt")
     args = parser.parse_args()
 
     cfg = TrainConfig(data=args.data, preset=args.preset, precision=args.precision, device="cuda",
                       val_every=10**9, ckpt_every=10**9, log_every=10**9, progress=False,
-                      out=tempfile.mkdtemp(prefix="profile_"))
+                      bf16_density_passes=args.bf16_density_passes, out=tempfile.mkdtemp(prefix="profile_"))
     trainer = Trainer(cfg, log=lambda _: None)
     trainer.fields.train()
     for _ in range(args.warmup):
         trainer.train_step()
     torch.cuda.synchronize()
+    seen = trainer.rays_seen, trainer.samples_seen, trainer.marched_seen
     start = time.perf_counter()
     for _ in range(args.steps):
         trainer.train_step()
     torch.cuda.synchronize()
+    rays, shaded, marched = (now - before for now, before in
+                             zip((trainer.rays_seen, trainer.samples_seen, trainer.marched_seen), seen))
     wall_ms = (time.perf_counter() - start) * 1e3 / args.steps
     with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CUDA]) as prof:
         for _ in range(args.steps):
@@ -52,12 +57,14 @@ def main() -> None:
     busy_ms = sum(e.self_device_time_total for e in events) / 1e3 / args.steps
     header = (f"preset {args.preset}, {args.precision}, {args.data}, {torch.cuda.get_device_name()}: "
               f"{wall_ms:.2f} ms per step (wall, unprofiled), GPU busy {busy_ms:.2f} ms per step, "
-              f"batch {trainer.sampler.batch_rays} rays, step {trainer.step}")
+              f"batch {trainer.sampler.batch_rays} rays, step {trainer.step}, per ray {marched / rays:.1f} "
+              f"marched and {shaded / rays:.1f} shaded samples, bf16 density passes "
+              f"{trainer.cfg.bf16_density_passes}")
     table = events.table(sort_by="self_cuda_time_total", row_limit=30, max_name_column_width=70)
     print(header)
     print(table)
     if args.out:
-        path = Path(args.out) / f"train_step_{args.preset}_{args.precision}.txt"
+        path = Path(args.out) / f"train_step_{args.preset}_{args.precision}{'_bf16pass' * trainer.cfg.bf16_density_passes}.txt"
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text(header + "\n" + table + "\n")
 

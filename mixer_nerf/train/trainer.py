@@ -94,7 +94,7 @@ class Trainer:
         self.train_scene = load_split(folder, fmt, "train", cfg.downscale).to(self.device)
         val_scene, self.val_split = held_out_split(folder, fmt, "val", cfg.downscale)
         self.val_scene = val_scene.to(self.device)
-        self.cfg = cfg = resolve_sampler(cfg, self.train_scene.bbox)
+        self.cfg = cfg = resolve_sampler(cfg, self.train_scene.bbox, self.train_scene.ndc)
         self.scene = scene_info(self.train_scene, folder, fmt, cfg)
         self.background = self.train_scene.background.to(self.device, torch.float32)
 
