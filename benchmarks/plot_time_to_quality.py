@@ -1,13 +1,14 @@
 """Plot and tabulate the curves written by ``benchmarks.time_to_quality``.
 
-    python -m benchmarks.plot_time_to_quality benchmarks/results/ttq
-Writes ``time_to_quality.png`` and ``time_to_quality.md`` in that folder.
+    python -m benchmarks.plot_time_to_quality benchmarks/results/ttq [--targets 25,28,31]
+Writes ``time_to_quality.png`` and ``time_to_quality.md`` in that folder; ``--targets`` are the
+PSNRs (dB) whose time to reach the table gives.
 """
 
 from __future__ import annotations
 
+import argparse
 import json
-import sys
 from pathlib import Path
 
 import matplotlib
@@ -16,18 +17,15 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 
-# Time to quality: the first checkpoint at or above each of these validation PSNRs.
-TARGETS_DB = (25.0, 28.0, 31.0)
-
-
-def main(folder: str) -> None:
+def main(folder: str, targets_db: tuple[float, ...] = (25.0, 28.0, 31.0)) -> None:
+    """Time to quality: the first checkpoint at or above each of ``targets_db``."""
     root = Path(folder)
     records = [json.loads(p.read_text()) for p in sorted(root.glob("*.json"))]
     fig, ax = plt.subplots(figsize=(6, 4))
     seconds = sorted({pt["seconds"] // 1 for r in records for pt in r["curve"]})
     rows = ["| method | " + " | ".join(f"~{int(s)} s" for s in seconds) + " | samples/ray | steps | "
-            + " | ".join(f"first checkpoint >= {t} dB" for t in TARGETS_DB) + " |",
-            "|---|" + "---:|" * (len(seconds) + 2 + len(TARGETS_DB))]
+            + " | ".join(f"first checkpoint >= {t} dB" for t in targets_db) + " |",
+            "|---|" + "---:|" * (len(seconds) + 2 + len(targets_db))]
     for r in records:
         xs = [pt["seconds"] for pt in r["curve"]]
         ys = [pt["val_psnr"] for pt in r["curve"]]
@@ -36,7 +34,7 @@ def main(folder: str) -> None:
         last = r["curve"][-1] if r["curve"] else {}
         cells = [f"{by_time[s]:.2f}" if s in by_time else "" for s in seconds]
         reached = [next((f"{pt['seconds']:.0f} s" for pt in r["curve"] if pt["val_psnr"] >= t),
-                        f"not by {last.get('seconds', 0):.0f} s") for t in TARGETS_DB]
+                        f"not by {last.get('seconds', 0):.0f} s") for t in targets_db]
         rows.append(f"| {r['label']} | " + " | ".join(cells)
                     + f" | {last.get('samples_per_ray', float('nan')):.1f} | {last.get('step', '')} | "
                     + " | ".join(reached) + " |")
@@ -51,4 +49,8 @@ def main(folder: str) -> None:
 
 
 if __name__ == "__main__":
-    main(sys.argv[1] if len(sys.argv) > 1 else "benchmarks/results/ttq")
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("folder", nargs="?", default="benchmarks/results/ttq")
+    parser.add_argument("--targets", default="25,28,31", help="comma-separated PSNRs in dB")
+    args = parser.parse_args()
+    main(args.folder, tuple(float(t) for t in args.targets.split(",")))
