@@ -8,7 +8,9 @@ if compgen -G ".whl/*.whl" >/dev/null; then
 fi
 export PYTHONPATH=${PYTHONPATH:-$PWD}
 nvidia-smi --query-gpu=name,memory.total,clocks.sm --format=csv,noheader
-# nerfacc JIT-builds through torch into TORCH_EXTENSIONS_DIR; pip has just written its sources, so a
-# carried build is touched to be newer than them (else ninja rebuilds it).
+# nerfacc JIT-builds through torch into TORCH_EXTENSIONS_DIR. pip has just written its sources, and
+# ninja rebuilds an output whose mtime in .ninja_log is older than an input: so the sources are
+# dated back to 2000 and a carried build is touched to be newer than them.
 export TORCH_EXTENSIONS_DIR=${TORCH_EXTENSIONS_DIR:-$MIXER_NERF_CACHE/torch_extensions}
+[ -d /tmp/site/nerfacc ] && find /tmp/site/nerfacc -exec touch -d 2000-01-01 {} +
 [ -d "$TORCH_EXTENSIONS_DIR" ] && find "$TORCH_EXTENSIONS_DIR" -exec touch {} +
