@@ -231,7 +231,7 @@ def parse_args(argv=None) -> argparse.Namespace:
         args.batch_rays, args.num_coarse, args.num_fine = 64, 8, 8
         args.downscale, args.val_rays, args.budget = 8, 1024, min(args.budget, 60.0)
         args.sampler = "hierarchical"  # the occupancy sampler's fine marching step is slow on a CPU
-    if args.stability_lr is None:  # every scene here has a box: "auto" samples by occupancy
+    if args.stability_lr is None:  # the stability scenes are bounded: "auto" samples by occupancy
         sampler = "hierarchical" if args.sampler == "hierarchical" else "occupancy"
         args.stability_lr = 10 * SAMPLER_RECIPES[sampler]["lr"]
     if args.precision is None:

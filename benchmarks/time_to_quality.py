@@ -144,9 +144,10 @@ def ours_method(args, train, val, device) -> tuple[Callable, Callable, object]:
         val_every=10**9, ckpt_every=10**9, log_every=10**9, progress=False,
         out=tempfile.mkdtemp(prefix="ttq_"), lr=args.lr, lr_final=args.lr_final,
         adam_eps=args.adam_eps, backend=args.backend, early_stop_eps=args.early_stop_eps,
-        grid_warmup=args.grid_warmup, step_size=args.step_size,
-        grid_every=args.grid_every, lr_warmup=args.lr_warmup, bf16_density_passes=args.bf16_density_passes,
-        **({} if args.batch_rays is None else {"batch_rays": args.batch_rays}))
+        grid_warmup=args.grid_warmup, step_size=args.step_size, lr_warmup=args.lr_warmup,
+        bf16_density_passes=args.bf16_density_passes,
+        # options whose default is the trainer's own
+        **{k: getattr(args, k) for k in ("batch_rays", "grid_every") if getattr(args, k) is not None})
     trainer = Trainer(cfg, log=lambda _: None)
 
     def step_fn(step: int) -> dict:
@@ -189,8 +190,8 @@ def main() -> None:
     parser.add_argument("--grid-warmup", type=int, default=256,
                         help="ours, occupancy sampler: steps of a fully occupied grid (a huge value: "
                              "no empty-space skipping, box clipping only)")
-    parser.add_argument("--grid-every", type=int, default=16,
-                        help="ours, occupancy sampler: refresh the grid every N steps")
+    parser.add_argument("--grid-every", type=int, default=None,
+                        help="ours, occupancy sampler: refresh the grid every N steps (default: the trainer's)")
     parser.add_argument("--step-size", type=float, default=None,
                         help="ours, occupancy sampler: marching step (default: the box diagonal / 1000)")
     parser.add_argument("--backend", default="auto", help="ours: auto | kernel | torch (the pure-PyTorch path)")

@@ -1,7 +1,7 @@
 """Where a training step's time goes: wall time per step against GPU busy time, and the kernels.
 
     python tools/profile_train_step.py [--data .data/lego_400] [--preset D] [--precision tf32]
-        [--warmup 400] [--steps 30] [--bf16-density-passes] [--out DIR]
+        [--warmup 400] [--steps 30] [--[no-]bf16-density-passes] [--out DIR]
 
 Trains ``--warmup`` steps (past the occupancy grid's dense warm-up, so the batch has its steady
 size), then profiles ``--steps`` steps with torch.profiler. Prints ms per step (wall), the GPU's

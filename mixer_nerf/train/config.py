@@ -17,10 +17,11 @@ SAMPLERS = ("auto", "occupancy", "hierarchical")
 class TrainConfig:
     """Everything that defines a training run.
 
-    ``None`` in ``precision``, ``device`` and ``bf16_density_passes`` means "pick for the machine" (see :meth:`resolved`):
-    TF32 on CUDA, because at equal training time it beat bf16 autocast on Lego (preset A: +1.0 dB
-    at 30 s and 60 s on an H100, benchmarks/results/ttq/README.md; bf16 is 16% faster per step but
-    learns less per step).
+    ``None`` in ``precision``, ``device`` and ``bf16_density_passes`` means "pick for the machine"
+    (see :meth:`resolved`). Precision: TF32 on CUDA, because at equal training time it beat bf16
+    autocast on Lego (preset A: +1.0 dB at 30 s and 60 s on an H100,
+    benchmarks/results/ttq/README.md; bf16 is 16% faster per step but learns less per step).
+    Density passes: bf16 on CUDA, off on CPU.
     ``steps`` is also the length of the learning-rate schedule (after ``lr_warmup`` steps of linear
     warm-up, ``lr`` decays exponentially to ``lr_final`` at ``steps``), also when ``time_budget``
     stops the run earlier. Learning-rate settings left at None come from the sampler's recipe
@@ -74,7 +75,8 @@ class TrainConfig:
     target_samples: int | None = 131072  # occupancy: adapt the rays per step to this many samples
     # occupancy: run the no-grad density passes (grid refreshes, the early-termination pre-pass)
     # under bf16 autocast whatever `precision` is; they only decide which samples to skip. None:
-    # on CUDA (Lego, preset D, H100: 17% more steps in 120 s, +0.27 dB at 120 s), off on CPU.
+    # on CUDA (Lego, preset D, H100, three runs: 12-19% more steps in 120 s, +0.14 to +0.42 dB at
+    # 120 s), off on CPU.
     bf16_density_passes: bool | None = None
     progress: bool = True  # progress bar on stderr
 
