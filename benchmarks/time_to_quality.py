@@ -133,6 +133,12 @@ def nerfacc_method(args, train, val, device) -> tuple[Callable, Callable, None]:
     return step_fn, render_val, None
 
 
+TRAINER_OPTIONS = (
+    "target_samples", "batch_rays", "precision", "lr", "lr_final", "lr_warmup", "bf16_density_passes",
+    "adam_eps", "early_stop_eps", "empty_space_weight", "grid_warmup", "grid_every", "step_size")
+"""Options of ours passed to TrainConfig only when given: unset, they keep the trainer's defaults."""
+
+
 def ours_method(args, train, val, device) -> tuple[Callable, Callable, object]:
     import tempfile
 
@@ -140,22 +146,18 @@ def ours_method(args, train, val, device) -> tuple[Callable, Callable, object]:
 
     cfg = TrainConfig(
         data=args.data, preset=args.preset, sampler=args.sampler, steps=args.nominal_steps,
-        target_samples=args.target_samples, precision=args.precision, device="cuda", seed=args.seed,
-        val_every=10**9, ckpt_every=10**9, log_every=10**9, progress=False,
-        out=tempfile.mkdtemp(prefix="ttq_"), lr=args.lr, lr_final=args.lr_final,
-        adam_eps=args.adam_eps, backend=args.backend, early_stop_eps=args.early_stop_eps,
-        grid_warmup=args.grid_warmup, step_size=args.step_size, lr_warmup=args.lr_warmup,
-        bf16_density_passes=args.bf16_density_passes,
-        # options whose default is the trainer's own
-        **{k: getattr(args, k) for k in ("batch_rays", "grid_every") if getattr(args, k) is not None})
+        device="cuda", seed=args.seed, val_every=10**9, ckpt_every=10**9, log_every=10**9,
+        progress=False, out=tempfile.mkdtemp(prefix="ttq_"), backend=args.backend,
+        # the options left unset keep the trainer's defaults
+        **{k: getattr(args, k) for k in TRAINER_OPTIONS if getattr(args, k) is not None})
     trainer = Trainer(cfg, log=lambda _: None)
 
     def step_fn(step: int) -> dict:
         trainer.fields.train()
-        samples_before, rays = trainer.samples_seen, trainer.sampler.batch_rays
+        samples_before, rays_before = trainer.samples_seen, trainer.rays_seen
         trainer.train_step()
         return {"samples_per_ray": trainer.samples_seen / max(trainer.rays_seen, 1),
-                "samples_per_step": trainer.samples_seen - samples_before, "rays": rays,
+                "samples_per_step": trainer.samples_seen - samples_before, "rays": trainer.rays_seen - rays_before,
                 "marched_per_ray": trainer.marched_seen / max(trainer.rays_seen, 1)}
 
     return step_fn, trainer.render_rgb, trainer
@@ -172,10 +174,10 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--preset", default="D", help="ours: model preset")
     parser.add_argument("--sampler", default="occupancy", help="ours: occupancy | hierarchical")
-    parser.add_argument("--target-samples", type=int, default=131072, help="ours: MLP samples per step")
+    parser.add_argument("--target-samples", type=int, help="ours: MLP samples per step (default: the trainer's)")
     parser.add_argument("--batch-rays", type=int, default=None,
                         help="ours, hierarchical sampler: rays per step (default: the trainer's)")
-    parser.add_argument("--precision", default="tf32", help="ours: bf16 | tf32 | fp32")
+    parser.add_argument("--precision", help="ours: bf16 | tf32 | fp32 (default: the trainer's, tf32 on CUDA)")
     parser.add_argument("--lr", type=float, default=None, help="ours: learning rate (default: the sampler's recipe)")
     parser.add_argument("--lr-final", type=float, default=None,
                         help="ours: learning rate at --nominal-steps (exponential decay; default: the recipe)")
@@ -184,12 +186,15 @@ def main() -> None:
     parser.add_argument("--bf16-density-passes", action=argparse.BooleanOptionalAction, default=None,
                         help="ours, occupancy sampler: grid refreshes and the early-termination pre-pass in bf16 "
                              "(default: the trainer's, on CUDA)")
-    parser.add_argument("--adam-eps", type=float, default=1e-15, help="ours: Adam's epsilon")
-    parser.add_argument("--early-stop-eps", type=float, default=1e-4,
-                        help="ours, occupancy sampler: early ray termination (0: off)")
-    parser.add_argument("--grid-warmup", type=int, default=256,
+    parser.add_argument("--adam-eps", type=float, help="ours: Adam's epsilon (default: the trainer's)")
+    parser.add_argument("--early-stop-eps", type=float,
+                        help="ours, occupancy sampler: early ray termination (0: off; default: the trainer's)")
+    parser.add_argument("--empty-space-weight", type=float,
+                        help="ours, occupancy sampler: weight of the empty-space density loss (0: off; "
+                             "default: the trainer's)")
+    parser.add_argument("--grid-warmup", type=int,
                         help="ours, occupancy sampler: steps of a fully occupied grid (a huge value: "
-                             "no empty-space skipping, box clipping only)")
+                             "no empty-space skipping, box clipping only; default: the trainer's)")
     parser.add_argument("--grid-every", type=int, default=None,
                         help="ours, occupancy sampler: refresh the grid every N steps (default: the trainer's)")
     parser.add_argument("--step-size", type=float, default=None,

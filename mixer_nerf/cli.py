@@ -51,6 +51,11 @@ TRAIN_OPTIONS: dict[str, dict[str, Any]] = {
         "help": "occupancy sampler: MLP samples per step (the ray batch adapts)",
     },
     "--early-stop-eps": {"type": float, "help": "stop rays whose transmittance falls below this (0: never)"},
+    "--empty-space-weight": {
+        "type": float,
+        "help": "occupancy sampler: weight of the loss that keeps density out of the cells the grid "
+        "marks empty (0: off; default 1e-3)",
+    },
     "--bf16-density-passes": {
         "action": argparse.BooleanOptionalAction,
         "help": "occupancy sampler: no-grad density passes (grid refreshes, early termination) in bf16 "

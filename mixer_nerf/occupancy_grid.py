@@ -125,6 +125,17 @@ class OccupancyGrid(nn.Module):
             ]
         return torch.cat([random_cells, occupied])
 
+    def random_points(
+        self, count: int, generator: torch.Generator | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """``count`` uniform random points in the box ``(count, 3)`` and whether each lies in an
+        empty cell ``(count,)`` bool (no host sync). Training pushes the density down at the empty
+        ones: marching never samples there, so nothing else keeps haze out of those cells, and a
+        render without the grid would show it."""
+        cells = torch.randint(self.num_cells, (count,), device=self.density.device, generator=generator)
+        empty = ((self.bitfield[cells // 8] >> (cells % 8).to(torch.uint8)) & 1) == 0
+        return self._jittered_points(cells, generator), empty
+
     def _jittered_points(self, cells: torch.Tensor, generator: torch.Generator | None) -> torch.Tensor:
         """(n,) flat cell indices -> (n, 3) uniform random points inside those cells."""
         _, Y, Z = self.resolution

@@ -105,6 +105,8 @@ def params_of(trainer: Trainer) -> dict[str, torch.Tensor]:
         ("lr_warmup", -1),
         ("device", "tpu"),
         ("num_fine", -1),
+        ("empty_space_weight", -1e-3),
+        ("empty_space_points", 0),
     ],
 )
 def test_config_rejects_bad_values_naming_them(field, value):
@@ -304,6 +306,63 @@ def test_bf16_density_passes_decide_the_skipping_under_autocast(tmp_path):
         losses = trainer.train_step()
     assert torch.isfinite(losses["loss"])
     assert trainer.marched_seen >= trainer.samples_seen > 0  # early termination only drops samples
+
+
+def test_empty_space_loss_lowers_density_only_in_cells_the_grid_marks_empty(tmp_path):
+    """Past the grid's warm-up each batch carries random box points; the loss is their mean density
+    in empty cells (times the box diagonal and the weight), and its gradient reaches the MLP."""
+    trainer = Trainer(tiny_config(tmp_path, sampler="occupancy", empty_space_weight=0.5,
+                                  empty_space_points=64), log=quiet)
+    batch = trainer.batches.take(0)
+    assert batch.empty_points is None  # warm-up: every cell occupied, nothing to push down
+    trainer.batches.discard()
+    for _ in range(trainer.cfg.grid_warmup + 1):
+        trainer.train_step()
+    grid = trainer.fields.grid
+    grid.occupied = torch.arange(grid.num_cells).reshape(grid.resolution) % 2 == 0  # half the cells
+    trainer.batches.discard()
+    assert trainer.step % trainer.cfg.grid_every != 0  # preparing this step's batch keeps the grid
+    batch = trainer.batches.take(trainer.step)
+    cells = ((batch.empty_points - grid.aabb[0]) / (grid.aabb[1] - grid.aabb[0]) * grid.resolution[0]).long()
+    flat = (cells[:, 0] * grid.resolution[1] + cells[:, 1]) * grid.resolution[2] + cells[:, 2]
+    assert torch.equal(batch.empty_mask, flat % 2 == 1) and 0 < batch.empty_mask.sum() < 64
+    losses = trainer._marched_losses(batch)
+    sigma = trainer.fields.coarse.density(batch.empty_points)
+    diagonal = float((grid.aabb[1] - grid.aabb[0]).norm())
+    expected = 0.5 * diagonal * (sigma * batch.empty_mask).sum() / 64
+    torch.testing.assert_close(losses["loss_empty"], expected)
+    (grad,) = torch.autograd.grad(losses["loss_empty"], trainer.fields.coarse.head.weight)
+    assert grad[0].abs().sum() > 0  # the density row learns from it
+
+
+def test_a_discarded_prefetch_rewinds_the_rays_and_the_batch_size(tmp_path):
+    """Checkpoints drop the batch prepared ahead: preparing it again draws the same rays."""
+    trainer = Trainer(tiny_config(tmp_path, sampler="occupancy", grid_warmup=100), log=quiet)
+    trainer.train_step()  # prefetches step 1's batch
+    ahead = trainer.batches._next[1]
+    rays_before = trainer.batches._next[2][1]
+    trainer.batches.discard()
+    assert trainer.sampler.batch_rays == rays_before
+    again = trainer.batches.take(1)
+    assert torch.equal(again.rays_o, ahead.rays_o) and torch.equal(again.samples.t_starts, ahead.samples.t_starts)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU")
+def test_cuda_batches_prepared_on_the_side_stream_train_as_those_prepared_in_line(tmp_path):
+    """On CUDA the next batch is prepared on a side stream while the backward pass runs; the same
+    run preparing every batch on the main stream must end with the same weights."""
+    runs = []
+    for side_stream in (True, False):
+        trainer = Trainer(tiny_config(tmp_path / str(side_stream), sampler="occupancy", device="cuda",
+                                      backend="auto", bf16_density_passes=True), log=quiet)
+        if not side_stream:
+            trainer.batches._stream = trainer.batches._weights_ready = None
+        for _ in range(8):  # past the warm-up: grid refreshes, early termination, empty-space loss
+            assert torch.isfinite(trainer.train_step()["loss"])
+        runs.append((params_of(trainer), trainer.samples_seen, trainer.marched_seen))
+    assert runs[0][1:] == runs[1][1:]
+    for name, value in runs[0][0].items():
+        torch.testing.assert_close(value, runs[1][0][name], rtol=1e-4, atol=1e-6, msg=name)
 
 
 def test_existing_run_is_not_overwritten(tmp_path):

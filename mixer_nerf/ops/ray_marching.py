@@ -40,11 +40,12 @@ class PackedSamples(NamedTuple):
     offsets: torch.Tensor  # (R+1,) int64; rays with no sample have equal offsets
 
     def select(self, keep: torch.Tensor) -> PackedSamples:
-        """The samples where ``keep`` (N,) bool is True, offsets recomputed (no host sync but
-        the one boolean indexing needs)."""
+        """The samples where ``keep`` (N,) bool is True, offsets recomputed (one host sync: the
+        number kept)."""
         kept_before = torch.nn.functional.pad(keep.cumsum(0), (1, 0))
+        rows = keep.nonzero().squeeze(1)
         return PackedSamples(
-            self.t_starts[keep], self.t_ends[keep], self.ray_indices[keep], kept_before[self.offsets]
+            self.t_starts[rows], self.t_ends[rows], self.ray_indices[rows], kept_before[self.offsets]
         )
 
 

@@ -5,7 +5,8 @@ termination and packed (ragged) samples.
     filter_by_transmittance (early termination, optional alpha threshold)] -> field on the
     surviving samples -> composite_packed
 
-A ray that misses the box or crosses only empty cells has no samples: it costs nothing but its
+:func:`march_samples` is the no-grad first half (up to the filter), :func:`shade_samples` the
+differentiable second; :func:`render_rays_marched` runs both. A ray that misses the box or crosses only empty cells has no samples: it costs nothing but its
 background. Every skip is a switch: ``early_stop_eps=0`` and ``alpha_threshold=0`` keep every
 marched sample; an :class:`~mixer_nerf.occupancy_grid.OccupancyGrid` that is fully occupied (as
 during warm-up) marches densely through the box.
@@ -22,6 +23,13 @@ from torch import nn
 from ..occupancy_grid import OccupancyGrid
 from ..ops import composite_packed
 from ..ops.ray_marching import PackedSamples, filter_by_transmittance, ray_marching
+
+
+class MarchedSamples(NamedTuple):
+    """Where a batch of rays needs its field evaluated: the first stage of marched rendering."""
+
+    samples: PackedSamples  # the samples that survive every skip (N,)
+    num_marched: int  # samples marching emitted: what the early-termination pre-pass evaluated
 
 
 class MarchedResult(NamedTuple):
@@ -51,6 +59,77 @@ def _sample_points(rays_o, rays_d, samples: PackedSamples) -> torch.Tensor:
     return rays_o[samples.ray_indices] + rays_d[samples.ray_indices] * mid[:, None]
 
 
+def _unit(rays_d: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(|d| (R,), d / |d| (R, 3))."""
+    norm = torch.linalg.vector_norm(rays_d, dim=-1)
+    return norm, rays_d / norm.clamp_min(torch.finfo(rays_d.dtype).tiny)[:, None]
+
+
+@torch.no_grad()
+def march_samples(
+    rays_o: torch.Tensor,
+    rays_d: torch.Tensor,
+    grid: OccupancyGrid,
+    near: float | torch.Tensor = 0.0,
+    far: float | torch.Tensor = float("inf"),
+    step_size: float | None = None,
+    stratified: bool = True,
+    early_stop_eps: float = 1e-4,
+    alpha_threshold: float = 0.0,
+    cone_angle: float = 0.0,
+    backend: str = "auto",
+    generator: torch.Generator | None = None,
+    density_field: nn.Module | None = None,
+) -> MarchedSamples:
+    """The samples of :func:`render_rays_marched` (no grad): marching through ``grid``, then, when
+    ``density_field`` is given and ``early_stop_eps`` or ``alpha_threshold`` is positive, a
+    forward-only density pass over them and :func:`~mixer_nerf.ops.filter_by_transmittance`.
+
+    Splitting this stage from :func:`shade_samples` lets a trainer prepare the next batch while
+    the current one's backward pass runs. Arguments as for :func:`render_rays_marched`;
+    ``density_field`` None skips the pre-pass (every marched sample is kept).
+    """
+    step = grid.step_size if step_size is None else step_size
+    samples = ray_marching(rays_o, rays_d, near, far, grid, step, stratified=stratified,
+                           generator=generator, cone_angle=cone_angle, backend=backend)
+    num_marched = samples.t_starts.shape[0]
+    filtering = early_stop_eps > 0 or alpha_threshold > 0
+    if density_field is None or not filtering or not num_marched:
+        return MarchedSamples(samples, num_marched)
+    norm, viewdirs = _unit(rays_d)
+    x = _sample_points(rays_o, rays_d, samples)
+    layout = _layout_arguments(density_field, rays_o.shape[0])(samples)
+    if hasattr(density_field, "density"):
+        sigma = density_field.density(x, **layout)
+    else:
+        sigma = density_field(x, viewdirs[samples.ray_indices], **layout)[0]
+    keep = filter_by_transmittance(sigma.float() * norm[samples.ray_indices], samples,
+                                   early_stop_eps, alpha_threshold)
+    return MarchedSamples(samples.select(keep), num_marched)
+
+
+def shade_samples(
+    field: nn.Module,
+    rays_o: torch.Tensor,
+    rays_d: torch.Tensor,
+    samples: PackedSamples,
+    background: torch.Tensor | None = None,
+    backend: str = "auto",
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Evaluate ``field`` at packed ``samples`` of rays ``(R, 3)`` and composite them:
+    ``(color (R, 3), depth (R,), opacity (R,), weights (N,))``, differentiable through the field.
+    The field gets the samples' layout as in :func:`render_rays_marched`."""
+    norm, viewdirs = _unit(rays_d)
+    x = _sample_points(rays_o, rays_d, samples)
+    layout = _layout_arguments(field, rays_o.shape[0])(samples)
+    sigma, rgb = field(x, viewdirs[samples.ray_indices], **layout)
+    sigma = sigma.to(rays_o.dtype) * norm[samples.ray_indices]
+    bg = None if background is None else background.to(rays_o.dtype)
+    return composite_packed(
+        sigma, rgb.to(rays_o.dtype), samples.t_starts, samples.t_ends, samples.offsets, bg,
+        backend=backend, check_values=False)
+
+
 def render_rays_marched(
     field: nn.Module,
     rays_o: torch.Tensor,
@@ -68,7 +147,8 @@ def render_rays_marched(
     generator: torch.Generator | None = None,
     density_field: nn.Module | None = None,
 ) -> MarchedResult:
-    """Render rays through ``field`` evaluating it only where ``grid`` says there is something.
+    """Render rays through ``field`` evaluating it only where ``grid`` says there is something:
+    :func:`march_samples`, then :func:`shade_samples`.
 
     Args:
         field: ``field(x (N, 3), d (N, 3) unit) -> (sigma (N,), rgb (N, 3))``; a field whose forward
@@ -91,33 +171,9 @@ def render_rays_marched(
     Returns:
         :class:`MarchedResult`; color, depth and opacity are differentiable through the field.
     """
-    step = grid.step_size if step_size is None else step_size
-    samples = ray_marching(rays_o, rays_d, near, far, grid, step, stratified=stratified,
-                           generator=generator, cone_angle=cone_angle, backend=backend)
-    norm = torch.linalg.vector_norm(rays_d, dim=-1)
-    viewdirs = rays_d / norm.clamp_min(torch.finfo(rays_d.dtype).tiny)[:, None]
-    # Each field call gets the layout of exactly the samples it evaluates: the marched ones for
-    # the pre-pass, then the survivors, whose offsets select() recomputes.
-    extra = _layout_arguments(field, rays_o.shape[0])
-    num_marched = samples.t_starts.shape[0]
-
-    if (early_stop_eps > 0 or alpha_threshold > 0) and samples.t_starts.numel():
-        pre = field if density_field is None else density_field
-        with torch.no_grad():
-            x = _sample_points(rays_o, rays_d, samples)
-            if hasattr(pre, "density"):
-                sigma = pre.density(x, **extra(samples))
-            else:
-                sigma = pre(x, viewdirs[samples.ray_indices])[0]
-            keep = filter_by_transmittance(sigma.float() * norm[samples.ray_indices], samples,
-                                           early_stop_eps, alpha_threshold)
-        samples = samples.select(keep)
-
-    x = _sample_points(rays_o, rays_d, samples)
-    sigma, rgb = field(x, viewdirs[samples.ray_indices], **extra(samples))
-    sigma = sigma.to(rays_o.dtype) * norm[samples.ray_indices]
-    bg = None if background is None else background.to(rays_o.dtype)
-    color, depth, opacity, weights = composite_packed(
-        sigma, rgb.to(rays_o.dtype), samples.t_starts, samples.t_ends, samples.offsets, bg,
-        backend=backend, check_values=False)
-    return MarchedResult(color, depth, opacity, samples, weights, num_marched)
+    marched = march_samples(
+        rays_o, rays_d, grid, near, far, step_size, stratified, early_stop_eps, alpha_threshold,
+        cone_angle, backend, generator, field if density_field is None else density_field)
+    color, depth, opacity, weights = shade_samples(
+        field, rays_o, rays_d, marched.samples, background, backend)
+    return MarchedResult(color, depth, opacity, marched.samples, weights, marched.num_marched)

@@ -14,7 +14,7 @@ import torch.nn.functional as F
 
 from ..metrics import psnr
 from ..render import render_rays
-from ..render.marching import render_rays_marched
+from ..render.marching import shade_samples
 from .checkpoint import capture_rng_state, load_checkpoint, restore_rng_state, save_checkpoint
 from .config import TrainConfig
 from .fields import (
@@ -28,6 +28,7 @@ from .fields import (
 )
 from .guard import NonFiniteError, NonFiniteGuard
 from .logbook import CsvLog, plot_curves
+from .marched_batches import MarchedBatch, MarchedBatches
 from .output import RunFiles, prepare_run_folder
 from .sampler import RaySampler
 from .scenes import held_out_split, load_split, scene_info, scene_source
@@ -130,6 +131,12 @@ class Trainer:
         if self.fields.grid is not None and cfg.target_samples is not None:
             # The grid starts fully occupied: start small and let the batch grow to the target.
             self.sampler.batch_rays = min(cfg.batch_rays, max(1, cfg.target_samples // 256))
+        self.batches = None
+        if self.fields.grid is not None:
+            self.batches = MarchedBatches(cfg, self.sampler, self.fields.grid, self.density_field,
+                                          self.train_scene.near, self.train_scene.far)
+            # The empty-space loss is the optical depth of a box diagonal through the mean density.
+            self.box_diagonal = float((self.fields.grid.aabb[1] - self.fields.grid.aabb[0]).norm())
         self.guard = NonFiniteGuard(self.param_names, self.device)
         self.check_every = 1 if self.device.type == "cpu" else min(cfg.log_every, 50)
         self.train_log, self.val_log = CsvLog(self.files.train_log), CsvLog(self.files.val_log)
@@ -147,11 +154,11 @@ class Trainer:
         """One optimisation step on a fresh random batch. Returns device scalars (no sync):
         ``loss`` (coarse + fine MSE, or the marched pass's MSE) and ``mse`` (of the final colours)."""
         cfg = self.cfg
-        rays_o, rays_d, target = self.sampler.sample()
-        self.rays_seen += rays_o.shape[0]
-        if self.fields.grid is not None:
-            losses = self._marched_losses(rays_o, rays_d, target)
+        if self.batches is not None:
+            losses = self._marched_losses(self.batches.take(self.step))
         else:
+            rays_o, rays_d, target = self.sampler.sample()
+            self.rays_seen += rays_o.shape[0]
             losses = self._hierarchical_losses(rays_o, rays_d, target)
         loss = sum(losses.values())
         self.optimizer.zero_grad(set_to_none=True)
@@ -160,6 +167,8 @@ class Trainer:
         self.guard.observe_losses(step, **losses)
         if cfg.check_grads:
             self.guard.observe_grads(step, [p.grad for p in self.params])
+        if self.batches is not None:
+            self.batches.prefetch(step)  # overlaps the backward pass; reads the weights before the update
         self.optimizer.step()
         self.scheduler.step()
         self.step = step
@@ -189,39 +198,20 @@ class Trainer:
             losses["loss_fine"] = F.mse_loss(out.fine.color, target)
         return losses
 
-    def _marched_losses(self, rays_o, rays_d, target) -> dict[str, torch.Tensor]:
-        cfg, grid = self.cfg, self.fields.grid
-        grid.update(
-            self.step,
-            lambda x: self.density_field.density(x),
-            every=cfg.grid_every,
-            threshold=cfg.grid_threshold,
-            warmup_steps=cfg.grid_warmup,
-            generator=self.sampler.generator,
+    def _marched_losses(self, batch: MarchedBatch) -> dict[str, torch.Tensor]:
+        cfg = self.cfg
+        self.rays_seen += batch.rays_o.shape[0]
+        self.samples_seen += batch.samples.t_starts.shape[0]
+        self.marched_seen += batch.num_marched
+        color, *_ = shade_samples(
+            self.coarse_field, batch.rays_o, batch.rays_d, batch.samples, self.background, cfg.backend
         )
-        out = render_rays_marched(
-            self.coarse_field,
-            rays_o,
-            rays_d,
-            grid,
-            self.train_scene.near,
-            self.train_scene.far,
-            stratified=True,
-            background=self.background,
-            early_stop_eps=cfg.early_stop_eps,
-            alpha_threshold=cfg.alpha_threshold,
-            backend=cfg.backend,
-            generator=self.sampler.generator,
-            density_field=self.density_field,
-        )
-        num_samples = out.samples.t_starts.shape[0]  # known on the host: marching synchronised
-        self.samples_seen += num_samples
-        self.marched_seen += out.num_marched
-        if cfg.target_samples is not None:
-            # Keep the MLP's work per step near the target as the grid empties (nerfacc's recipe).
-            rays = rays_o.shape[0] * cfg.target_samples / max(num_samples, 1)
-            self.sampler.batch_rays = int(min(max(rays, 1), 1 << 18))
-        return {"loss_coarse": F.mse_loss(out.color, target)}
+        losses = {"loss_coarse": F.mse_loss(color, batch.target)}
+        if batch.empty_points is not None:
+            sigma = self.coarse_field.density(batch.empty_points)
+            depth = (sigma * batch.empty_mask).mean() * self.box_diagonal
+            losses["loss_empty"] = cfg.empty_space_weight * depth
+        return losses
 
     def _lr_factor(self, step: int) -> float:
         """lr / cfg.lr at ``step``: a linear warm-up over ``cfg.lr_warmup`` steps, then an
@@ -307,6 +297,8 @@ class Trainer:
     def save(self) -> None:
         """Atomically write the full training state to ``checkpoint.pt`` (after the guard check)."""
         self.guard.raise_if_bad()
+        if self.batches is not None:
+            self.batches.discard()  # a resumed run prepares its first batch with these weights
         save_checkpoint(
             self.files.checkpoint,
             {
