@@ -1,12 +1,14 @@
 """Where a training step's time goes: wall time per step against GPU busy time, and the kernels.
 
     python tools/profile_train_step.py [--data .data/lego_400] [--preset D] [--precision tf32]
-        [--warmup 400] [--steps 30] [--[no-]bf16-density-passes] [--out DIR]
+        [--warmup 400] [--steps 30] [--[no-]bf16-density-passes] [--empty-space-weight W] [--out DIR]
 
 Trains ``--warmup`` steps (past the occupancy grid's dense warm-up, so the batch has its steady
 size), then profiles ``--steps`` steps with torch.profiler. Prints ms per step (wall), the GPU's
 busy ms per step (sum of kernel times), and the kernels sorted by CUDA time; a wall time well
-above the busy time means the step waits on the host (Python, launches, synchronisations).
+above the busy time means the step waits on the host (Python, launches, synchronisations). The
+file in ``--out`` also lists the Python functions by their own host time (cProfile, ``--steps``
+more steps) and the host ms per step when the GPU has nothing left to do: the step's host cost.
 """
 
 from __future__ import annotations
@@ -30,12 +32,14 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=30)
     parser.add_argument("--bf16-density-passes", action=argparse.BooleanOptionalAction, default=None,
                         help="default: the trainer's (on CUDA)")
+    parser.add_argument("--empty-space-weight", type=float, default=None, help="default: the trainer's")
     parser.add_argument("--out", default=None, help="write the table to DIR/train_step_<preset>_<precision>.txt")
     args = parser.parse_args()
 
     cfg = TrainConfig(data=args.data, preset=args.preset, precision=args.precision, device="cuda",
                       val_every=10**9, ckpt_every=10**9, log_every=10**9, progress=False,
-                      bf16_density_passes=args.bf16_density_passes, out=tempfile.mkdtemp(prefix="profile_"))
+                      bf16_density_passes=args.bf16_density_passes, out=tempfile.mkdtemp(prefix="profile_"),
+                      **({} if args.empty_space_weight is None else {"empty_space_weight": args.empty_space_weight}))
     trainer = Trainer(cfg, log=lambda _: None)
     trainer.fields.train()
     for _ in range(args.warmup):
@@ -63,10 +67,31 @@ def main() -> None:
     table = events.table(sort_by="self_cuda_time_total", row_limit=30, max_name_column_width=70)
     print(header)
     print(table)
+    host = _host_profile(trainer, args.steps)
     if args.out:
         path = Path(args.out) / f"train_step_{args.preset}_{args.precision}{'_bf16pass' * trainer.cfg.bf16_density_passes}.txt"
         path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(header + "\n" + table + "\n")
+        path.write_text(header + "\n" + table + "\n" + host + "\n")
+
+
+def _host_profile(trainer: Trainer, steps: int) -> str:
+    """Python functions by own host time over ``steps`` steps (cProfile), after each of which the
+    host waits for the GPU: the host's cost of a step with nothing to overlap it."""
+    import cProfile
+    import io
+    import pstats
+
+    profiler = cProfile.Profile()
+    start = time.perf_counter()
+    profiler.enable()
+    for _ in range(steps):
+        trainer.train_step()
+        torch.cuda.synchronize()
+    profiler.disable()
+    serial_ms = (time.perf_counter() - start) * 1e3 / steps
+    text = io.StringIO()
+    pstats.Stats(profiler, stream=text).sort_stats("tottime").print_stats(35)
+    return f"host profile (cProfile, a GPU sync after each step): {serial_ms:.2f} ms per step\n" + text.getvalue()
 
 
 if __name__ == "__main__":
