@@ -320,9 +320,11 @@ def test_empty_space_loss_lowers_density_only_in_cells_the_grid_marks_empty(tmp_
         trainer.train_step()
     grid = trainer.fields.grid
     grid.occupied = torch.arange(grid.num_cells).reshape(grid.resolution) % 2 == 0  # half the cells
+    grid.update = lambda *args, **kwargs: False  # keep that grid through the refresh step
     trainer.batches.discard()
-    assert trainer.step % trainer.cfg.grid_every != 0  # preparing this step's batch keeps the grid
-    batch = trainer.batches.take(trainer.step)
+    step = trainer.step + trainer.step % 2  # the points come with the grid refreshes (every 2 here)
+    assert trainer.batches.take(step + 1).empty_points is None
+    batch = trainer.batches.take(step)
     cells = ((batch.empty_points - grid.aabb[0]) / (grid.aabb[1] - grid.aabb[0]) * grid.resolution[0]).long()
     flat = (cells[:, 0] * grid.resolution[1] + cells[:, 1]) * grid.resolution[2] + cells[:, 2]
     assert torch.equal(batch.empty_mask, flat % 2 == 1) and 0 < batch.empty_mask.sum() < 64
