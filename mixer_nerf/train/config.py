@@ -75,9 +75,11 @@ class TrainConfig:
     target_samples: int | None = 131072  # occupancy: adapt the rays per step to this many samples
     # occupancy: at each grid refresh, the density at `empty_space_points` random points of the box
     # is pushed down where the grid marks the cell empty (loss: weight x the optical depth of the
-    # box's diagonal through their mean density). Marching never samples those cells, so without it
-    # they keep faint haze that a render without the grid shows. 0: off.
-    empty_space_weight: float = 1e-2
+    # box's diagonal through their mean density). Marching never samples those cells, so they keep
+    # faint haze that only a render without the grid shows. Off by default: on Lego (H100, 60 s)
+    # weight 1e-2 cut that render's gap from 0.44 to 0.12 dB but cost steps, and 3e-2 made
+    # training unstable (benchmarks/results/ttq/README.md). 0: off.
+    empty_space_weight: float = 0.0
     empty_space_points: int = 65536
     # occupancy: run the no-grad density passes (grid refreshes, the early-termination pre-pass)
     # under bf16 autocast whatever `precision` is; they only decide which samples to skip. None:
