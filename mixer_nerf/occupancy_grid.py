@@ -14,7 +14,7 @@ from collections.abc import Callable, Sequence
 import torch
 from torch import nn
 
-from .ops.ray_marching_reference import pack_bits, unpack_bits
+from .ops.ray_marching_reference import cell_bits, pack_bits, unpack_bits
 
 
 class OccupancyGrid(nn.Module):
@@ -133,8 +133,7 @@ class OccupancyGrid(nn.Module):
         ones: marching never samples there, so nothing else keeps haze out of those cells, and a
         render without the grid would show it."""
         cells = torch.randint(self.num_cells, (count,), device=self.density.device, generator=generator)
-        empty = ((self.bitfield[cells // 8] >> (cells % 8).to(torch.uint8)) & 1) == 0
-        return self._jittered_points(cells, generator), empty
+        return self._jittered_points(cells, generator), ~cell_bits(self.bitfield, cells)
 
     def _jittered_points(self, cells: torch.Tensor, generator: torch.Generator | None) -> torch.Tensor:
         """(n,) flat cell indices -> (n, 3) uniform random points inside those cells."""

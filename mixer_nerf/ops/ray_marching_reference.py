@@ -27,6 +27,12 @@ def unpack_bits(bitfield: torch.Tensor, num_cells: int) -> torch.Tensor:
     return ((bitfield[:, None] >> shifts) & 1).bool().reshape(-1)[:num_cells]
 
 
+def cell_bits(bitfield: torch.Tensor, cells: torch.Tensor) -> torch.Tensor:
+    """The bits of flat cell indices ``cells`` (int64, any shape) in a bitfield of
+    :func:`pack_bits`'s layout, as bool of the same shape."""
+    return ((bitfield.long()[cells >> 3] >> (cells & 7)) & 1).bool()
+
+
 def pack_bits(occupied: torch.Tensor) -> torch.Tensor:
     """Inverse of :func:`unpack_bits`: (num_cells,) bool -> (ceil(num_cells / 8),) uint8."""
     flat = occupied.reshape(-1).to(torch.uint8)
@@ -118,7 +124,7 @@ def ray_marching_reference(
         .long()
     )
     cell = (cell_xyz[..., 0] * resolution[1] + cell_xyz[..., 1]) * resolution[2] + cell_xyz[..., 2]
-    occupied = ((bitfield.long()[cell >> 3] >> (cell & 7)) & 1).bool()
+    occupied = cell_bits(bitfield, cell)
     keep = valid & occupied
     if max_samples_per_ray is not None:
         keep &= keep.cumsum(1) <= max_samples_per_ray
