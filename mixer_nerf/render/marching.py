@@ -41,28 +41,22 @@ class MarchedResult(NamedTuple):
     num_marched: int  # samples marching emitted: what the early-termination pre-pass evaluated
 
 
-def _layout_arguments(field: nn.Module, num_rays: int):
-    """``samples -> kwargs``: the packed layout of the samples, as far as ``field`` takes it
-    (``ray_indices`` with ``num_rays``, and the CSR ``offsets`` of its fused SE path)."""
+def _field_inputs(field: nn.Module, rays_o, rays_d, samples: PackedSamples):
+    """What a field call on packed samples needs: the points ``(N, 3)``, their unit view
+    directions ``(N, 3)``, their rays' ``|d|`` ``(N,)`` (densities are per unit t) and the samples'
+    packed layout as far as ``field.forward`` takes it (``ray_indices`` with ``num_rays``, and the
+    CSR ``offsets`` of its fused SE path)."""
     parameters = inspect.signature(field.forward).parameters
-    with_indices, with_offsets = "ray_indices" in parameters, "offsets" in parameters
-
-    def arguments(samples: PackedSamples) -> dict:
-        kwargs = {"ray_indices": samples.ray_indices, "num_rays": num_rays} if with_indices else {}
-        return {**kwargs, "offsets": samples.offsets} if with_offsets else kwargs
-
-    return arguments
-
-
-def _sample_points(rays_o, rays_d, samples: PackedSamples) -> torch.Tensor:
-    mid = 0.5 * (samples.t_starts + samples.t_ends)
-    return rays_o[samples.ray_indices] + rays_d[samples.ray_indices] * mid[:, None]
-
-
-def _unit(rays_d: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """(|d| (R,), d / |d| (R, 3))."""
+    layout = {}
+    if "ray_indices" in parameters:
+        layout.update(ray_indices=samples.ray_indices, num_rays=rays_o.shape[0])
+    if "offsets" in parameters:
+        layout["offsets"] = samples.offsets
     norm = torch.linalg.vector_norm(rays_d, dim=-1)
-    return norm, rays_d / norm.clamp_min(torch.finfo(rays_d.dtype).tiny)[:, None]
+    viewdirs = rays_d / norm.clamp_min(torch.finfo(rays_d.dtype).tiny)[:, None]
+    mid = 0.5 * (samples.t_starts + samples.t_ends)
+    rays = samples.ray_indices
+    return rays_o[rays] + rays_d[rays] * mid[:, None], viewdirs[rays], norm[rays], layout
 
 
 @torch.no_grad()
@@ -96,15 +90,12 @@ def march_samples(
     filtering = early_stop_eps > 0 or alpha_threshold > 0
     if density_field is None or not filtering or not num_marched:
         return MarchedSamples(samples, num_marched)
-    norm, viewdirs = _unit(rays_d)
-    x = _sample_points(rays_o, rays_d, samples)
-    layout = _layout_arguments(density_field, rays_o.shape[0])(samples)
+    x, viewdirs, norm, layout = _field_inputs(density_field, rays_o, rays_d, samples)
     if hasattr(density_field, "density"):
         sigma = density_field.density(x, **layout)
     else:
-        sigma = density_field(x, viewdirs[samples.ray_indices], **layout)[0]
-    keep = filter_by_transmittance(sigma.float() * norm[samples.ray_indices], samples,
-                                   early_stop_eps, alpha_threshold)
+        sigma = density_field(x, viewdirs, **layout)[0]
+    keep = filter_by_transmittance(sigma.float() * norm, samples, early_stop_eps, alpha_threshold)
     return MarchedSamples(samples.select(keep), num_marched)
 
 
@@ -119,11 +110,9 @@ def shade_samples(
     """Evaluate ``field`` at packed ``samples`` of rays ``(R, 3)`` and composite them:
     ``(color (R, 3), depth (R,), opacity (R,), weights (N,))``, differentiable through the field.
     The field gets the samples' layout as in :func:`render_rays_marched`."""
-    norm, viewdirs = _unit(rays_d)
-    x = _sample_points(rays_o, rays_d, samples)
-    layout = _layout_arguments(field, rays_o.shape[0])(samples)
-    sigma, rgb = field(x, viewdirs[samples.ray_indices], **layout)
-    sigma = sigma.to(rays_o.dtype) * norm[samples.ray_indices]
+    x, viewdirs, norm, layout = _field_inputs(field, rays_o, rays_d, samples)
+    sigma, rgb = field(x, viewdirs, **layout)
+    sigma = sigma.to(rays_o.dtype) * norm
     bg = None if background is None else background.to(rays_o.dtype)
     return composite_packed(
         sigma, rgb.to(rays_o.dtype), samples.t_starts, samples.t_ends, samples.offsets, bg,
