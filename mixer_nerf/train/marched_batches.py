@@ -43,9 +43,9 @@ class MarchedBatches:
 
     Steps count the optimizer steps already taken (0 for the first batch). Use per step n:
     :meth:`take` (the batch of step n), forward and backward, then :meth:`prefetch` for step n+1
-    before the optimizer step. :meth:`discard` drops a prefetched
-    batch and rewinds the random state and batch size to before it, so that a checkpoint taken
-    between steps resumes exactly as the run continues.
+    before the optimizer step. :meth:`discard` drops a prefetched batch and rewinds the random
+    state and batch size to before it, so that a checkpoint taken between steps resumes exactly as
+    the run continues.
     """
 
     def __init__(
@@ -67,13 +67,12 @@ class MarchedBatches:
 
     def take(self, step: int) -> MarchedBatch:
         """The batch of ``step`` (prefetched, or prepared now), ready for the current stream."""
+        self._mark_weights()
         if self._next is None or self._next[0] != step:
             self.discard()
-            self._mark_weights()
             self.prefetch(step)
         _, batch, _ = self._next
         self._next = None
-        self._mark_weights()
         return batch
 
     def prefetch(self, step: int) -> None:
