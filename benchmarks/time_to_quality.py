@@ -134,7 +134,7 @@ def nerfacc_method(args, train, val, device) -> tuple[Callable, Callable, None]:
 
 
 TRAINER_OPTIONS = (
-    "target_samples", "batch_rays", "precision", "lr", "lr_final", "lr_warmup", "bf16_density_passes",
+    "target_samples", "batch_rays", "precision", "lr", "lr_final", "lr_warmup", "lr_hold", "bf16_density_passes",
     "adam_eps", "early_stop_eps", "empty_space_weight", "grid_warmup", "grid_every", "step_size")
 """Options of ours passed to TrainConfig only when given: unset, they keep the trainer's defaults."""
 
@@ -147,6 +147,8 @@ def ours_method(args, train, val, device) -> tuple[Callable, Callable, object]:
     cfg = TrainConfig(
         data=args.data, preset=args.preset, sampler=args.sampler, steps=args.nominal_steps,
         device="cuda", seed=args.seed, val_every=10**9, ckpt_every=10**9, log_every=10**9,
+        # as a user training for a fixed time would: the schedule ends at the last checkpoint
+        time_budget=max(float(c) for c in args.checkpoints.split(",")),
         progress=False, out=tempfile.mkdtemp(prefix="ttq_"), backend=args.backend,
         # the options left unset keep the trainer's defaults
         **{k: getattr(args, k) for k in TRAINER_OPTIONS if getattr(args, k) is not None})
@@ -158,7 +160,8 @@ def ours_method(args, train, val, device) -> tuple[Callable, Callable, object]:
         trainer.train_step()
         return {"samples_per_ray": trainer.samples_seen / max(trainer.rays_seen, 1),
                 "samples_per_step": trainer.samples_seen - samples_before, "rays": trainer.rays_seen - rays_before,
-                "marched_per_ray": trainer.marched_seen / max(trainer.rays_seen, 1)}
+                "marched_per_ray": trainer.marched_seen / max(trainer.rays_seen, 1),
+                "lr": trainer.optimizer.param_groups[0]["lr"]}
 
     return step_fn, trainer.render_rgb, trainer
 
@@ -180,7 +183,10 @@ def main() -> None:
     parser.add_argument("--precision", help="ours: bf16 | tf32 | fp32 (default: the trainer's, tf32 on CUDA)")
     parser.add_argument("--lr", type=float, default=None, help="ours: learning rate (default: the sampler's recipe)")
     parser.add_argument("--lr-final", type=float, default=None,
-                        help="ours: learning rate at --nominal-steps (exponential decay; default: the recipe)")
+                        help="ours: learning rate at the last checkpoint (the trainer's time budget) "
+                             "or --nominal-steps, whichever comes first (exponential decay; default: the recipe)")
+    parser.add_argument("--lr-hold", type=float, default=None,
+                        help="ours: fraction of the run at --lr before the decay starts (default: the recipe)")
     parser.add_argument("--lr-warmup", type=int, default=None,
                         help="ours: steps of linear lr warm-up (default: the sampler's recipe)")
     parser.add_argument("--bf16-density-passes", action=argparse.BooleanOptionalAction, default=None,

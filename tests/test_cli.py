@@ -81,6 +81,7 @@ def test_no_data_uses_the_demo_settings_and_typed_flags_win():
     assert cfg.out == cli.DEMO_OUT
     assert parse_train("--lr", "1e-3", "--lr-final", "1e-3").lr_final == 1e-3  # a constant rate
     assert parse_train("--lr-warmup", "50").lr_warmup == 50
+    assert parse_train("--lr-hold", "0.6").lr_hold == 0.6
 
 
 def test_data_uses_the_full_defaults():

@@ -103,6 +103,7 @@ def params_of(trainer: Trainer) -> dict[str, torch.Tensor]:
         ("adam_eps", 0.0),
         ("time_budget", -1.0),
         ("lr_warmup", -1),
+        ("lr_hold", 1.0),
         ("device", "tpu"),
         ("num_fine", -1),
         ("empty_space_weight", -1e-3),
@@ -271,6 +272,8 @@ def test_learning_rate_comes_from_the_samplers_recipe_unless_given():
     occupancy, hierarchical = TrainConfig().with_recipe("occupancy"), TrainConfig().with_recipe("hierarchical")
     assert (occupancy.lr, occupancy.lr_final, occupancy.lr_warmup) == (4e-3, 4e-3, 200)
     assert (hierarchical.lr, hierarchical.lr_final, hierarchical.lr_warmup) == (5e-4, pytest.approx(5e-5), 0)
+    assert hierarchical.lr_hold == 0.0  # NeRF's decay over the whole run
+    assert TrainConfig(lr_hold=0.25).with_recipe("occupancy").lr_hold == 0.25
     given = TrainConfig(lr=1e-3, lr_warmup=7).with_recipe("hierarchical")
     assert (given.lr, given.lr_final, given.lr_warmup) == (1e-3, pytest.approx(1e-4), 7)
     assert TrainConfig(lr_final=2e-3).with_recipe("occupancy").lr_final == 2e-3
@@ -288,14 +291,27 @@ def test_auto_sampler_marches_bounded_scenes_and_samples_forward_facing_ones_hie
 
 
 def test_lr_warms_up_linearly_then_decays_exponentially(tmp_path):
-    trainer = Trainer(tiny_config(tmp_path, steps=100, lr=1e-3, lr_final=1e-4, lr_warmup=4), log=quiet)
-    lr = lambda: trainer.scheduler.get_last_lr()[0]  # noqa: E731
+    trainer = Trainer(tiny_config(tmp_path, steps=100, lr=1e-3, lr_final=1e-4, lr_warmup=4, lr_hold=0.0), log=quiet)
+    lr = lambda: trainer.optimizer.param_groups[0]["lr"]  # noqa: E731
+    trainer.train_step()
     assert lr() == pytest.approx(1e-3 / 4)
     trainer.train_step()
     assert lr() == pytest.approx(1e-3 * 2 / 4 * 0.1 ** (1 / 100))
     for _ in range(3):
         trainer.train_step()
     assert lr() == pytest.approx(1e-3 * 0.1 ** (4 / 100))  # warm-up done
+
+
+def test_lr_is_held_then_decays_by_steps_or_by_the_time_budget_whichever_is_further(tmp_path):
+    cfg = tiny_config(tmp_path, steps=100, lr=1e-3, lr_final=1e-4, lr_warmup=0, lr_hold=0.5, time_budget=1000.0)
+    trainer = Trainer(cfg, log=quiet)
+    assert trainer._lr_factor() == 1.0
+    trainer.step = 75  # three quarters of the steps: half-way through the decay
+    assert trainer._lr_factor() == pytest.approx(0.1**0.5)
+    trainer.step, trainer.clock.elapsed = 10, 900.0  # nine tenths of the budget
+    assert trainer._lr_factor() == pytest.approx(0.1**0.8)
+    trainer.clock.elapsed = 5000.0
+    assert trainer._lr_factor() == pytest.approx(0.1)
 
 
 def test_bf16_density_passes_decide_the_skipping_under_autocast(tmp_path):

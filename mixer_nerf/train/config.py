@@ -22,10 +22,11 @@ class TrainConfig:
     autocast on Lego (preset A: +1.0 dB at 30 s and 60 s on an H100,
     benchmarks/results/ttq/README.md; bf16 is 16% faster per step but learns less per step).
     Density passes: bf16 on CUDA, off on CPU.
-    ``steps`` is also the length of the learning-rate schedule (after ``lr_warmup`` steps of linear
-    warm-up, ``lr`` decays exponentially to ``lr_final`` at ``steps``), also when ``time_budget``
-    stops the run earlier. Learning-rate settings left at None come from the sampler's recipe
-    (``SAMPLER_RECIPES``) once the sampler is decided.
+    Learning rate: a linear warm-up over ``lr_warmup`` steps, ``lr`` held for the first ``lr_hold``
+    of the run, then an exponential decay to ``lr_final`` at its end. The run's end is ``steps`` or,
+    with a ``time_budget``, whichever of the two comes first: the schedule follows the training
+    clock, so a run given 2 minutes anneals within them. Learning-rate settings left at None come
+    from the sampler's recipe (``SAMPLER_RECIPES``) once the sampler is decided.
     """
 
     data: str | None = None  # scene folder; None = the built-in procedural scene
@@ -44,6 +45,7 @@ class TrainConfig:
     lr: float | None = None
     lr_final: float | None = None  # None: lr times the recipe's decay
     lr_warmup: int | None = None  # steps of linear learning-rate warm-up
+    lr_hold: float | None = None  # fraction of the run at lr before the decay to lr_final starts
     # nerfacc's value; with a constant lr it beat PyTorch's 1e-8 with decay by 0.6-0.9 dB at 30-60 s
     # on Lego (benchmarks/results/ttq/README.md)
     adam_eps: float = 1e-15
@@ -123,6 +125,8 @@ class TrainConfig:
         ):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
+        if self.lr_hold is not None and not 0 <= self.lr_hold < 1:
+            raise ValueError(f"lr_hold must be in [0, 1), got {self.lr_hold}")
         if self.lr_warmup is not None and self.lr_warmup < 0:
             raise ValueError(f"lr_warmup must be >= 0, got {self.lr_warmup}")
         if self.num_fine < 0:
@@ -156,6 +160,7 @@ class TrainConfig:
             lr=lr,
             lr_final=lr * recipe["lr_decay"] if self.lr_final is None else self.lr_final,
             lr_warmup=recipe["lr_warmup"] if self.lr_warmup is None else self.lr_warmup,
+            lr_hold=recipe["lr_hold"] if self.lr_hold is None else self.lr_hold,
         )
 
     def to_dict(self) -> dict[str, Any]:
@@ -175,9 +180,9 @@ SAMPLER_RECIPES: dict[str, dict[str, float]] = {
     # Measured on Lego 400x400 on an H100 (benchmarks/results/ttq/README.md): at 60 s preset D
     # reached 30.35 dB with 4e-3 and 131072 samples a step (~10 a ray) against 27.46 with 5e-4 and
     # 65536; decaying the rate over a 60 s run cost 1.6 dB. Constant, it gave 33.54 dB at 240 s.
-    "occupancy": {"lr": 4e-3, "lr_decay": 1.0, "lr_warmup": 200},
+    "occupancy": {"lr": 4e-3, "lr_decay": 1.0, "lr_warmup": 200, "lr_hold": 0.0},
     # NeRF's recipe for dense coarse + fine batches: 5e-4 decaying 10x over `steps`.
-    "hierarchical": {"lr": 5e-4, "lr_decay": 0.1, "lr_warmup": 0},
+    "hierarchical": {"lr": 5e-4, "lr_decay": 0.1, "lr_warmup": 0, "lr_hold": 0.0},
 }
 """Learning-rate settings per sampler, for the fields a TrainConfig leaves at None."""
 

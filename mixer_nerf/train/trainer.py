@@ -1,4 +1,4 @@
-"""The training loop: random ray batches, coarse + fine MSE, Adam with exponential decay,
+"""The training loop: random ray batches, coarse + fine MSE, Adam with a held then decaying rate,
 periodic validation, atomic checkpoints, logs, a non-finite guard and a wall-clock budget."""
 
 from __future__ import annotations
@@ -113,7 +113,6 @@ class Trainer:
         self.optimizer = torch.optim.Adam(
             self.params, lr=cfg.lr, eps=cfg.adam_eps, fused=self.device.type == "cuda"
         )
-        self.scheduler = torch.optim.lr_scheduler.LambdaLR(self.optimizer, lambda s: self._lr_factor(s))
         self.renderer = ImageRenderer(
             self.fields,
             cfg.precision,
@@ -154,6 +153,8 @@ class Trainer:
         """One optimisation step on a fresh random batch. Returns device scalars (no sync):
         ``loss`` (coarse + fine MSE, or the marched pass's MSE) and ``mse`` (of the final colours)."""
         cfg = self.cfg
+        for group in self.optimizer.param_groups:
+            group["lr"] = cfg.lr * self._lr_factor()
         if self.batches is not None:
             losses = self._marched_losses(self.batches.take(self.step))
         else:
@@ -170,7 +171,6 @@ class Trainer:
         if self.batches is not None:
             self.batches.prefetch(step)  # overlaps the backward pass; reads the weights before the update
         self.optimizer.step()
-        self.scheduler.step()
         self.step = step
         return {"loss": loss.detach(), "mse": losses.get("loss_fine", losses["loss_coarse"]).detach()}
 
@@ -213,12 +213,18 @@ class Trainer:
             losses["loss_empty"] = cfg.empty_space_weight * depth
         return losses
 
-    def _lr_factor(self, step: int) -> float:
-        """lr / cfg.lr at ``step``: a linear warm-up over ``cfg.lr_warmup`` steps, then an
-        exponential decay to ``cfg.lr_final`` at ``cfg.steps``."""
+    def _lr_factor(self) -> float:
+        """lr / cfg.lr for the coming step: a linear warm-up over ``cfg.lr_warmup`` steps, ``cfg.lr``
+        for the first ``cfg.lr_hold`` of the run, then an exponential decay to ``cfg.lr_final`` at
+        its end. Progress is the step over ``cfg.steps`` or, with a time budget, the training time
+        over the budget when that is further along (so the decay happens within the budget)."""
         cfg = self.cfg
-        warmup = min(1.0, (step + 1) / cfg.lr_warmup) if cfg.lr_warmup else 1.0
-        return warmup * (cfg.lr_final / cfg.lr) ** (min(step, cfg.steps) / cfg.steps)
+        progress = self.step / cfg.steps
+        if cfg.time_budget is not None:
+            progress = max(progress, self.clock.now() / cfg.time_budget)
+        decay = min(1.0, max(0.0, (progress - cfg.lr_hold) / (1.0 - cfg.lr_hold)))
+        warmup = min(1.0, (self.step + 1) / cfg.lr_warmup) if cfg.lr_warmup else 1.0
+        return warmup * (cfg.lr_final / cfg.lr) ** decay
 
     def render_rgb(self, rays_o: torch.Tensor, rays_d: torch.Tensor) -> torch.Tensor:
         """Final colours (R, 3) of arbitrary rays with the current fields (deterministic samples)."""
@@ -309,7 +315,6 @@ class Trainer:
                 "scene": self.scene,
                 "model": self.fields.state_dict(),
                 "optimizer": self.optimizer.state_dict(),
-                "scheduler": self.scheduler.state_dict(),
                 "rng": capture_rng_state(self.sampler.generator),
                 # The occupancy sampler adapts the batch size; the counters feed samples_per_ray.
                 "progress": {
@@ -326,7 +331,6 @@ class Trainer:
     def _load_state(self, state: dict[str, Any]) -> None:
         self.fields.load_state_dict(state["model"])
         self.optimizer.load_state_dict(state["optimizer"])
-        self.scheduler.load_state_dict(state["scheduler"])
         restore_rng_state(state["rng"], self.sampler.generator)
         self.step = int(state["step"])
         progress = state.get("progress", {})
@@ -351,7 +355,7 @@ class Trainer:
         row = {
             "step": self.step,
             "seconds": round(self.clock.elapsed, 3),
-            "lr": self.scheduler.get_last_lr()[0],
+            "lr": self.optimizer.param_groups[0]["lr"],
             "loss": loss,
             "psnr": -10.0 * math.log10(max(mse, 1e-30)),
             "rays_per_s": round(rays_per_s, 1),
