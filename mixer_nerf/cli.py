@@ -32,12 +32,12 @@ TRAIN_OPTIONS: dict[str, dict[str, Any]] = {
     "--lr": {"type": float, "help": "learning rate after the warm-up (default: occupancy sampler "
              "4e-3, hierarchical 5e-4), decaying exponentially to --lr-final"},
     "--lr-final": {"type": float, "help": "learning rate at the end of the run, --steps or "
-                   "--time-budget, whichever comes first (default: occupancy the same as "
-                   "--lr, i.e. constant; hierarchical lr/10)"},
+                   "--time-budget, whichever comes first (default: lr/10)"},
     "--lr-warmup": {"type": int, "metavar": "STEPS",
                     "help": "linear learning-rate warm-up (default: occupancy 200, hierarchical 0)"},
     "--lr-hold": {"type": float, "metavar": "FRACTION",
-                  "help": "fraction of the run at --lr before the decay to --lr-final starts (default 0)"},
+                  "help": "fraction of the run at --lr before the decay to --lr-final starts (default: "
+                  "occupancy sampler 0.5, hierarchical 0)"},
     "--precision": {"choices": PRECISIONS, "help": "MLP precision (default: tf32 on CUDA, fp32 on CPU)"},
     "--seed": {"type": int, "help": "random seed"},
     "--val-every": {"type": int, "help": "validate every N steps"},

@@ -270,13 +270,15 @@ def test_time_budget_stops_training(tmp_path):
 
 def test_learning_rate_comes_from_the_samplers_recipe_unless_given():
     occupancy, hierarchical = TrainConfig().with_recipe("occupancy"), TrainConfig().with_recipe("hierarchical")
-    assert (occupancy.lr, occupancy.lr_final, occupancy.lr_warmup) == (4e-3, 4e-3, 200)
+    assert (occupancy.lr, occupancy.lr_final, occupancy.lr_warmup) == (4e-3, pytest.approx(4e-4), 200)
+    assert occupancy.lr_hold == 0.5
     assert (hierarchical.lr, hierarchical.lr_final, hierarchical.lr_warmup) == (5e-4, pytest.approx(5e-5), 0)
     assert hierarchical.lr_hold == 0.0  # NeRF's decay over the whole run
     assert TrainConfig(lr_hold=0.25).with_recipe("occupancy").lr_hold == 0.25
     given = TrainConfig(lr=1e-3, lr_warmup=7).with_recipe("hierarchical")
     assert (given.lr, given.lr_final, given.lr_warmup) == (1e-3, pytest.approx(1e-4), 7)
     assert TrainConfig(lr_final=2e-3).with_recipe("occupancy").lr_final == 2e-3
+    assert TrainConfig(lr=1e-3).with_recipe("occupancy").lr_final == pytest.approx(1e-4)
 
 
 def test_auto_sampler_marches_bounded_scenes_and_samples_forward_facing_ones_hierarchically():
