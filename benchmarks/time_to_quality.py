@@ -135,7 +135,7 @@ def nerfacc_method(args, train, val, device) -> tuple[Callable, Callable, None]:
 
 TRAINER_OPTIONS = (
     "target_samples", "batch_rays", "precision", "lr", "lr_final", "lr_warmup", "lr_hold", "bf16_density_passes",
-    "adam_eps", "early_stop_eps", "empty_space_weight", "grid_warmup", "grid_every", "step_size")
+    "adam_eps", "early_stop_eps", "empty_space_weight", "grid_warmup", "grid_every", "grid_threshold", "step_size")
 """Options of ours passed to TrainConfig only when given: unset, they keep the trainer's defaults."""
 
 
@@ -203,6 +203,9 @@ def main() -> None:
                              "no empty-space skipping, box clipping only; default: the trainer's)")
     parser.add_argument("--grid-every", type=int, default=None,
                         help="ours, occupancy sampler: refresh the grid every N steps (default: the trainer's)")
+    parser.add_argument("--grid-threshold", type=float, default=None,
+                        help="ours, occupancy sampler: opacity of one marching step above which a cell is "
+                             "occupied (default: the trainer's)")
     parser.add_argument("--step-size", type=float, default=None,
                         help="ours, occupancy sampler: marching step (default: the box diagonal / 1000)")
     parser.add_argument("--backend", default="auto", help="ours: auto | kernel | torch (the pure-PyTorch path)")
