@@ -57,7 +57,7 @@ TRAIN_OPTIONS: dict[str, dict[str, Any]] = {
     "--empty-space-weight": {
         "type": float,
         "help": "occupancy sampler: weight of the loss that keeps density out of the cells the grid "
-        "marks empty, applied at each grid refresh (default 0: off; e.g. 1e-2)",
+        "marks empty, applied at each grid refresh (default 1e-2; 0: off)",
     },
     "--bf16-density-passes": {
         "action": argparse.BooleanOptionalAction,

@@ -78,10 +78,10 @@ class TrainConfig:
     # occupancy: at each grid refresh, the density at `empty_space_points` random points of the box
     # is pushed down where the grid marks the cell empty (loss: weight x the optical depth of the
     # box's diagonal through their mean density). Marching never samples those cells, so they keep
-    # faint haze that only a render without the grid shows. Off by default: on Lego (H100, 60 s)
-    # weight 1e-2 cut that render's gap from 0.44 to 0.12 dB but cost steps, and 3e-2 made
-    # training unstable (benchmarks/results/ttq/README.md). 0: off.
-    empty_space_weight: float = 0.0
+    # faint haze that only a render without the grid shows. On Lego (H100, preset A, 120 s with the
+    # decaying rate) weight 1e-2 cut that render's gap from 0.28 to 0.02 dB (mean of the val views);
+    # 3e-2 made training unstable (benchmarks/results/ttq/README.md). 0: off.
+    empty_space_weight: float = 1e-2
     empty_space_points: int = 65536
     # occupancy: run the no-grad density passes (grid refreshes, the early-termination pre-pass)
     # under bf16 autocast whatever `precision` is; they only decide which samples to skip. None:
