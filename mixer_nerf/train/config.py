@@ -182,7 +182,7 @@ SAMPLER_RECIPES: dict[str, dict[str, float]] = {
     # 65536. Held for half the run, then decayed 10x by its end, a 120 s run of preset D reached
     # 34.58 dB (33.63 held for 0.3 and decayed 100x, 34.11 held for 0.5 and decayed 100x).
     "occupancy": {"lr": 4e-3, "lr_decay": 0.1, "lr_warmup": 200, "lr_hold": 0.5},
-    # NeRF's recipe for dense coarse + fine batches: 5e-4 decaying 10x over `steps`.
+    # NeRF's recipe for dense coarse + fine batches: 5e-4 decaying 10x over the whole run.
     "hierarchical": {"lr": 5e-4, "lr_decay": 0.1, "lr_warmup": 0, "lr_hold": 0.0},
 }
 """Learning-rate settings per sampler, for the fields a TrainConfig leaves at None."""
