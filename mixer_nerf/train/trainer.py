@@ -153,8 +153,9 @@ class Trainer:
         """One optimisation step on a fresh random batch. Returns device scalars (no sync):
         ``loss`` (coarse + fine MSE, or the marched pass's MSE) and ``mse`` (of the final colours)."""
         cfg = self.cfg
+        lr = cfg.lr * self._lr_factor()
         for group in self.optimizer.param_groups:
-            group["lr"] = cfg.lr * self._lr_factor()
+            group["lr"] = lr
         if self.batches is not None:
             losses = self._marched_losses(self.batches.take(self.step))
         else:
