@@ -17,7 +17,8 @@ import torch
 
 from benchmarks.harness import Case, Variant
 from mixer_nerf.ops.ray_marching import PackedSamples, ray_marching
-from mixer_nerf.ops.ray_marching_reference import pack_bits, ray_marching_reference
+from mixer_nerf.ops.bitfield import pack_bits
+from mixer_nerf.ops.ray_marching_reference import ray_marching_reference
 
 AABB = ((-1.5, -1.5, -1.5), (1.5, 1.5, 1.5))
 RESOLUTION = 128

@@ -170,7 +170,8 @@ def run_eval(args: argparse.Namespace) -> int:
     if args.max_images is not None and args.max_images < 1:
         raise UserError(f"--max-images must be positive, got {args.max_images}")
     record = evaluate(
-        args.ckpt, data=args.data, split=args.split, out=args.out, device=args.device, backend=args.backend
+        args.ckpt, data=args.data, split=args.split, out=args.out, device=args.device, backend=args.backend,
+        max_images=args.max_images,
     )
     _print_eval(record)
     return 0

@@ -138,6 +138,10 @@ def test_eval_and_render_commands(demo_run, tmp_path, capsys):
     assert "eval (val, 4 views)" in out and str(tmp_path / "ev") in out
     rows = (tmp_path / "ev" / "metrics.csv").read_text().splitlines()
     assert rows[0] == "index,name,psnr,ssim,lpips" and len(rows) == 5
+    argv = ["eval", "--ckpt", ckpt, "--split", "val", "--out", str(tmp_path / "ev2"), "--backend", "torch"]
+    assert cli.main([*argv, "--max-images", "2"]) == 0
+    assert "eval (val, 2 views)" in capsys.readouterr().out
+    assert len((tmp_path / "ev2" / "metrics.csv").read_text().splitlines()) == 3
 
     assert (
         cli.main(

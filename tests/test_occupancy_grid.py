@@ -9,7 +9,7 @@ import random
 import pytest
 import torch
 
-from mixer_nerf.occupancy_grid import OccupancyGrid
+from mixer_nerf.render.skipping import OccupancyGrid
 from mixer_nerf.ops.ray_marching import ray_marching
 
 AABB = [-1.5, -1.5, -1.5, 1.5, 1.5, 1.5]
@@ -55,9 +55,9 @@ def test_starts_dense_and_packs_bits():
 def test_update_only_every_n_steps(gen):
     grid = OccupancyGrid(AABB, 8)
     assert not grid.update(3, constant(1.0), every=16, generator=gen)
-    assert (grid.density == 0).all()
+    assert (grid.opacity == 0).all()
     assert grid.update(32, constant(1.0), every=16, generator=gen)
-    assert (grid.density > 0).all()
+    assert (grid.opacity > 0).all()
 
 
 def test_warmup_is_dense_and_updates_every_cell(gen):
@@ -66,18 +66,18 @@ def test_warmup_is_dense_and_updates_every_cell(gen):
     assert grid.occupied.all(), "during warm-up every cell counts as occupied"
     grid.update(16, sphere(), warmup_steps=256, generator=gen)
     assert grid.occupied.all()
-    assert (grid.density > 0).sum() > 0
+    assert (grid.opacity > 0).sum() > 0
 
 
 def test_ema_decay_is_exact(gen):
     grid = OccupancyGrid(AABB, 6, step_size=0.01)
     opacity = -math.expm1(-5.0 * 0.01)
     grid.update(0, constant(5.0), generator=gen)
-    torch.testing.assert_close(grid.density, torch.full_like(grid.density, opacity))
+    torch.testing.assert_close(grid.opacity, torch.full_like(grid.opacity, opacity))
     grid.update(16, constant(0.0), decay=0.9, generator=gen)  # still warming up: every cell
-    torch.testing.assert_close(grid.density, torch.full_like(grid.density, 0.9 * opacity))
+    torch.testing.assert_close(grid.opacity, torch.full_like(grid.opacity, 0.9 * opacity))
     grid.update(32, constant(50.0), decay=0.9, generator=gen)  # a larger opacity replaces it
-    torch.testing.assert_close(grid.density, torch.full_like(grid.density, -math.expm1(-0.5)))
+    torch.testing.assert_close(grid.opacity, torch.full_like(grid.opacity, -math.expm1(-0.5)))
 
 
 def test_sphere_gives_the_expected_cells(gen):
@@ -108,19 +108,19 @@ def test_threshold_is_capped_by_the_mean(gen):
 def test_after_warmup_only_a_subset_is_measured(gen):
     grid = OccupancyGrid(AABB, 16)
     grid.update(0, constant(1.0), warmup_steps=1, generator=gen)
-    before = grid.density.clone()
+    before = grid.opacity.clone()
     grid.update(16, constant(0.0), warmup_steps=1, decay=0.5, generator=gen)
-    decayed = grid.density < before
+    decayed = grid.opacity < before
     # A random quarter plus (all cells being occupied before) as many occupied ones: <= half.
     assert 0.15 < decayed.float().mean() <= 0.5
-    torch.testing.assert_close(grid.density[decayed], 0.5 * before[decayed])
+    torch.testing.assert_close(grid.opacity[decayed], 0.5 * before[decayed])
 
 
 def test_nan_densities_count_as_empty(gen):
     grid = OccupancyGrid(AABB, 8)
     grid.update(0, lambda x: torch.full(x.shape[:1], math.nan), warmup_steps=1, generator=gen)
     grid.update(16, lambda x: torch.full(x.shape[:1], -math.inf), warmup_steps=1, generator=gen)
-    assert torch.isfinite(grid.density).all() and not grid.occupied.any()
+    assert torch.isfinite(grid.opacity).all() and not grid.occupied.any()
 
 
 def test_chunks_and_autocast(gen):
@@ -138,9 +138,9 @@ def test_chunks_and_autocast(gen):
     a.update(0, density_fn, chunk_size=100, generator=torch.Generator().manual_seed(1))
     assert max(calls) == 100 and sum(calls) == 512
     b.update(0, density_fn, generator=torch.Generator().manual_seed(1))
-    torch.testing.assert_close(a.density, b.density)
+    torch.testing.assert_close(a.opacity, b.opacity)
     a.update(16, density_fn, autocast_dtype=torch.bfloat16, generator=gen)
-    assert a.density.dtype == torch.float32 and torch.isfinite(a.density).all()
+    assert a.opacity.dtype == torch.float32 and torch.isfinite(a.opacity).all()
 
 
 def test_checkpoint_round_trip(gen):
@@ -152,8 +152,13 @@ def test_checkpoint_round_trip(gen):
     buffer.seek(0)
     restored = OccupancyGrid(AABB, (8, 6, 4))
     restored.load_state_dict(torch.load(buffer))
-    for name in ("aabb", "density", "bitfield"):
+    for name in ("aabb", "opacity", "bitfield"):
         assert torch.equal(getattr(restored, name), getattr(grid, name))
+    # A checkpoint from before the "density" -> "opacity" rename still loads.
+    legacy = {("density" if k == "opacity" else k): v for k, v in grid.state_dict().items()}
+    renamed = OccupancyGrid(AABB, (8, 6, 4))
+    renamed.load_state_dict(legacy)
+    assert torch.equal(renamed.opacity, grid.opacity)
     rays_o, rays_d = torch.randn(100, 3, generator=gen) * 3, torch.randn(100, 3, generator=gen)
     for x, y in zip(
         ray_marching(rays_o, rays_d, 0.0, 10.0, grid, 0.01),

@@ -17,7 +17,8 @@ import torch
 
 from mixer_nerf import _extension
 from mixer_nerf.ops.ray_marching import PackedSamples, filter_by_transmittance, ray_marching
-from mixer_nerf.ops.ray_marching_reference import clip_to_box, march_dtype, pack_bits, ray_marching_reference
+from mixer_nerf.ops.bitfield import pack_bits
+from mixer_nerf.ops.ray_marching_reference import clip_to_box, march_dtype, ray_marching_reference
 from cuda_poison import poison_allocator
 
 needs_kernels = pytest.mark.skipif(not _extension.available(), reason="mixer_nerf kernels not built")

@@ -9,8 +9,7 @@ import torch
 from torch import nn
 
 from mixer_nerf.model import MixerNeRF, preset_config
-from mixer_nerf.occupancy_grid import OccupancyGrid
-from mixer_nerf.render.marching import render_rays_marched
+from mixer_nerf.render.skipping import MarchingOptions, OccupancyGrid, render_rays_marched
 
 
 class BallField(nn.Module):
@@ -39,6 +38,10 @@ def ball_grid(resolution: int = 32) -> OccupancyGrid:
     return grid
 
 
+KEEP_ALL = MarchingOptions(early_stop_eps=0.0)
+EARLY_STOP = MarchingOptions(early_stop_eps=1e-4)
+
+
 def full_grid(resolution: int = 8) -> OccupancyGrid:
     return OccupancyGrid([-1.5, -1.5, -1.5, 1.5, 1.5, 1.5], resolution, step_size=3 / 256)
 
@@ -47,9 +50,9 @@ def test_empty_space_skip_keeps_the_image_and_drops_samples():
     rays_o, rays_d = rays_towards_ball(256)
     field, background = BallField(3.0), torch.tensor([1.0, 1.0, 1.0])
     dense = render_rays_marched(field, rays_o, rays_d, full_grid(), stratified=False, background=background,
-                                early_stop_eps=0.0, backend="torch")
+                                options=KEEP_ALL, backend="torch")
     skipped = render_rays_marched(field, rays_o, rays_d, ball_grid(), stratified=False, background=background,
-                                  early_stop_eps=0.0, backend="torch")
+                                  options=KEEP_ALL, backend="torch")
     assert skipped.samples.t_starts.numel() < dense.samples.t_starts.numel() / 4
     torch.testing.assert_close(skipped.color, dense.color, atol=1e-5, rtol=0)
     torch.testing.assert_close(skipped.opacity, dense.opacity, atol=1e-5, rtol=0)
@@ -68,9 +71,9 @@ def test_rays_that_miss_the_box_cost_nothing_but_background():
 def test_early_termination_changes_the_image_by_at_most_its_threshold():
     rays_o, rays_d = rays_towards_ball(256, spread=0.3)  # every ray hits the opaque ball
     field = BallField(200.0)
-    kept = render_rays_marched(field, rays_o, rays_d, ball_grid(), stratified=False, early_stop_eps=0.0,
+    kept = render_rays_marched(field, rays_o, rays_d, ball_grid(), stratified=False, options=KEEP_ALL,
                                backend="torch")
-    stopped = render_rays_marched(field, rays_o, rays_d, ball_grid(), stratified=False, early_stop_eps=1e-4,
+    stopped = render_rays_marched(field, rays_o, rays_d, ball_grid(), stratified=False, options=EARLY_STOP,
                                   backend="torch")
     assert stopped.samples.t_starts.numel() < kept.samples.t_starts.numel() / 2
     # What is dropped lies behind transmittance < 1e-4: at most that much light per channel.
@@ -93,6 +96,8 @@ def test_gradients_reach_the_field_and_packed_model_gets_ray_indices():
 class RecordingBall(BallField):
     """An opaque ball that records the packed layout each call of it gets."""
 
+    packed_layout = ("ray_indices", "offsets")
+
     def __init__(self) -> None:
         super().__init__(200.0)
         self.calls = []
@@ -111,7 +116,7 @@ def test_packed_field_gets_the_layout_of_exactly_the_samples_it_evaluates():
     each with its own offsets (recomputed by select), consistent with its ray_indices."""
     rays_o, rays_d = rays_towards_ball(64, spread=0.6)
     field = RecordingBall()
-    render_rays_marched(field, rays_o, rays_d, ball_grid(), stratified=False, early_stop_eps=1e-4,
+    render_rays_marched(field, rays_o, rays_d, ball_grid(), stratified=False, options=EARLY_STOP,
                         backend="torch")
     assert len(field.calls) == 2 and field.calls[1][0] < field.calls[0][0]
     for rows, ray_indices, num_rays, offsets in field.calls:
@@ -122,17 +127,19 @@ def test_packed_field_gets_the_layout_of_exactly_the_samples_it_evaluates():
 def test_density_field_runs_the_pre_pass_and_the_field_the_rest():
     rays_o, rays_d = rays_towards_ball(64, spread=0.6)
     field, pre = RecordingBall(), RecordingBall()
-    out = render_rays_marched(field, rays_o, rays_d, ball_grid(), stratified=False, early_stop_eps=1e-4,
+    out = render_rays_marched(field, rays_o, rays_d, ball_grid(), stratified=False, options=EARLY_STOP,
                               backend="torch", density_field=pre)
     alone = render_rays_marched(RecordingBall(), rays_o, rays_d, ball_grid(), stratified=False,
-                                early_stop_eps=1e-4, backend="torch")
+                                options=EARLY_STOP, backend="torch")
     assert len(pre.calls) == 1 and len(field.calls) == 1 and field.calls[0][0] < pre.calls[0][0]
     assert out.num_marched == pre.calls[0][0] and out.samples.t_starts.numel() == field.calls[0][0]
     torch.testing.assert_close(out.color, alone.color, atol=0, rtol=0)
 
 
 class IndicesOnly(nn.Module):
-    """A field without the offsets argument: the renderer passes it only ray_indices."""
+    """A field that declares only ray_indices: the renderer passes it no offsets."""
+
+    packed_layout = ("ray_indices",)
 
     def __init__(self, field: nn.Module) -> None:
         super().__init__()
@@ -180,7 +187,7 @@ def test_constant_density_in_a_full_grid_matches_beer_lambert():
         def forward(self, x, d):
             return torch.full(x.shape[:-1], sigma), torch.full_like(x, 0.5)
 
-    out = render_rays_marched(Constant(), rays_o, rays_d, full_grid(), stratified=False, early_stop_eps=0.0,
+    out = render_rays_marched(Constant(), rays_o, rays_d, full_grid(), stratified=False, options=KEEP_ALL,
                               backend="torch")
     # The ray crosses the 3-unit box: opacity 1 - exp(-sigma * 3), exactly (samples tile the chord).
     assert out.opacity.item() == pytest.approx(1 - math.exp(-sigma * 3), rel=1e-5)

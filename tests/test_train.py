@@ -25,7 +25,7 @@ from mixer_nerf.train import (
     save_checkpoint,
 )
 from mixer_nerf.train.checkpoint import capture_rng_state, restore_rng_state
-from mixer_nerf.train.fields import resolve_sampler
+from mixer_nerf.train.sampling import resolve_sampler
 from mixer_nerf.train.guard import NonFiniteGuard
 from mixer_nerf.train.logbook import CsvLog, plot_curves
 

@@ -43,6 +43,9 @@ from .squeeze_excitation import SqueezeExcitation
 class MixerNeRF(nn.Module):
     """Radiance field ``f(x, d) -> (sigma, rgb)``; see the module docstring for the architecture."""
 
+    # Packed samples' layout the renderers pass (mixer_nerf.render.skipping): SE squeezes per ray.
+    packed_layout = ("ray_indices", "offsets")
+
     def __init__(self, cfg: ModelConfig | None = None) -> None:
         super().__init__()
         self.cfg = cfg = cfg or ModelConfig()

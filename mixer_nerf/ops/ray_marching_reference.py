@@ -13,32 +13,14 @@ import math
 
 import torch
 
+from .bitfield import cell_bits
+
 _MAX_INDEX = float(2**40)  # kMaxIndex of ray_marching_math.h
 
 
 def march_dtype(dtype: torch.dtype) -> torch.dtype:
     """Arithmetic type of the march for rays of ``dtype``."""
     return torch.float64 if dtype == torch.float64 else torch.float32
-
-
-def unpack_bits(bitfield: torch.Tensor, num_cells: int) -> torch.Tensor:
-    """(ceil(num_cells / 8),) uint8, bit ``c % 8`` of byte ``c // 8`` per cell -> (num_cells,) bool."""
-    shifts = torch.arange(8, device=bitfield.device, dtype=torch.uint8)
-    return ((bitfield[:, None] >> shifts) & 1).bool().reshape(-1)[:num_cells]
-
-
-def cell_bits(bitfield: torch.Tensor, cells: torch.Tensor) -> torch.Tensor:
-    """The bits of flat cell indices ``cells`` (int64, any shape) in a bitfield of
-    :func:`pack_bits`'s layout, as bool of the same shape."""
-    return ((bitfield.long()[cells >> 3] >> (cells & 7)) & 1).bool()
-
-
-def pack_bits(occupied: torch.Tensor) -> torch.Tensor:
-    """Inverse of :func:`unpack_bits`: (num_cells,) bool -> (ceil(num_cells / 8),) uint8."""
-    flat = occupied.reshape(-1).to(torch.uint8)
-    flat = torch.nn.functional.pad(flat, (0, -flat.numel() % 8))
-    weights = torch.tensor([1 << i for i in range(8)], device=flat.device, dtype=torch.int32)
-    return (flat.view(-1, 8) * weights).sum(-1).to(torch.uint8)
 
 
 def clip_to_box(o, d, near, far, lo, hi):

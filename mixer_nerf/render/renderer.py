@@ -19,6 +19,7 @@ from torch import nn
 
 from ..ops import hierarchical_samples
 from ..ops._checks import check_backend, check_floating, check_same_device, check_same_dtype, check_shape
+from .image_renderer import ChunkResult, ImageResult, render_in_chunks
 from .samplers import sample_intervals, stratified_depths
 from .volume import RayBundleResult, composite_samples, query_field
 
@@ -31,12 +32,6 @@ class RenderOutput(NamedTuple):
     def final(self) -> RayBundleResult:
         """The fine pass, or the coarse one when there is none."""
         return self.coarse if self.fine is None else self.fine
-
-
-class ImageResult(NamedTuple):
-    color: torch.Tensor  # (..., 3)
-    depth: torch.Tensor  # (...)
-    opacity: torch.Tensor  # (...)
 
 
 def render_rays(
@@ -142,24 +137,22 @@ def render_image(
             per_ray[name] = value.reshape(-1, *trailing)
         else:
             shared[name] = value
-    num_rays = flat_o.shape[0]
-    color = flat_o.new_empty(num_rays, 3)
-    depth, opacity = flat_o.new_empty(num_rays), flat_o.new_empty(num_rays)
-    for start in range(0, num_rays, chunk):
-        part = slice(start, start + chunk)
-        chunked = {name: value[part] for name, value in per_ray.items()}
-        result = render_rays(
-            field,
-            flat_o[part],
-            flat_d[part],
-            fine_field=fine_field,
-            stratified=stratified,
-            **shared,
-            **chunked,
-            **kwargs,
-        ).final
-        color[part], depth[part], opacity[part] = result.color, result.depth, result.opacity
+
+    def render_chunk(o, d, **chunked):
+        out = render_rays(field, o, d, fine_field=fine_field, stratified=stratified, **shared, **chunked,
+                          **kwargs)
+        return chunk_result(out)
+
+    result, _, _ = render_in_chunks(render_chunk, flat_o, flat_d, chunk, per_ray)
+    color, depth, opacity = result
     return ImageResult(color.reshape(*batch, 3), depth.reshape(batch), opacity.reshape(batch))
+
+
+def chunk_result(out: RenderOutput) -> ChunkResult:
+    """The final pass of ``out`` with the samples both passes shaded (all of them: dense)."""
+    shaded = sum(p.weights.numel() for p in out if p is not None)
+    final = out.final
+    return ChunkResult(final.color, final.depth, final.opacity, shaded, shaded)
 
 
 def _render_pass(

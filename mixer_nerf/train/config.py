@@ -6,6 +6,8 @@ import dataclasses
 from dataclasses import dataclass, field
 from typing import Any
 
+from ..render.skipping import MarchingOptions
+
 PRESETS = ("A", "B", "C", "D")
 PRECISIONS = ("bf16", "tf32", "fp32")
 BACKENDS = ("auto", "kernel", "torch")
@@ -18,10 +20,8 @@ class TrainConfig:
     """Everything that defines a training run.
 
     ``None`` in ``precision``, ``device`` and ``bf16_density_passes`` means "pick for the machine"
-    (see :meth:`resolved`). Precision: TF32 on CUDA, because at equal training time it beat bf16
-    autocast on Lego (preset A: +1.0 dB at 30 s and 60 s on an H100,
-    benchmarks/results/ttq/README.md; bf16 is 16% faster per step but learns less per step).
-    Density passes: bf16 on CUDA, off on CPU.
+    (see :meth:`resolved`): TF32 on CUDA (at equal time it beat bf16 autocast, docs/training.md),
+    bf16 density passes on CUDA, off on CPU.
     Learning rate: a linear warm-up over ``lr_warmup`` steps, ``lr`` held for the first ``lr_hold``
     of the run, then an exponential decay to ``lr_final`` at its end. The run's end is ``steps`` or,
     with a ``time_budget``, whichever of the two comes first: the schedule follows the training
@@ -46,9 +46,7 @@ class TrainConfig:
     lr_final: float | None = None  # None: lr times the recipe's decay
     lr_warmup: int | None = None  # steps of linear learning-rate warm-up
     lr_hold: float | None = None  # fraction of the run at lr before the decay to lr_final starts
-    # nerfacc's value; with a constant lr it beat PyTorch's 1e-8 with decay by 0.6-0.9 dB at 30-60 s
-    # on Lego (benchmarks/results/ttq/README.md)
-    adam_eps: float = 1e-15
+    adam_eps: float = 1e-15  # nerfacc's value; it beat PyTorch's 1e-8 (docs/training.md)
     seed: int = 0
     precision: str | None = None  # bf16 / tf32 / fp32; None: tf32 on CUDA, fp32 on CPU
     device: str | None = None  # cpu / cuda; None: cuda when available
@@ -61,11 +59,8 @@ class TrainConfig:
     time_budget: float | None = None  # seconds of training (validation excluded); None: no limit
     chunk: int = 8192  # rays per chunk when rendering whole images
     check_grads: bool = True  # the non-finite guard also checks every gradient
-    # Sampling. "occupancy": one pass over packed samples marched through an occupancy grid of the
-    # scene box, with early ray termination (skips empty space, occluded samples and rays that miss
-    # the box; no fine network). "hierarchical": NeRF's dense coarse + fine passes. "auto":
-    # occupancy for bounded scenes with a box (Blender), else hierarchical (LLFF in NDC: the
-    # scene fills its box, see fields.resolve_sampler).
+    # "occupancy": one marched pass over packed samples (mixer_nerf.render.skipping; no fine
+    # network). "hierarchical": NeRF's dense coarse + fine passes. "auto": see sampling.resolve_sampler.
     sampler: str = "auto"
     grid_resolution: int = 128
     grid_every: int = 16  # refresh the grid from the model's density every N steps
@@ -75,18 +70,13 @@ class TrainConfig:
     early_stop_eps: float = 1e-4  # stop a ray once its transmittance is below this (0: never)
     alpha_threshold: float = 0.0  # drop samples with a smaller alpha (0: keep them)
     target_samples: int | None = 131072  # occupancy: adapt the rays per step to this many samples
-    # occupancy: at each grid refresh, the density at `empty_space_points` random points of the box
-    # is pushed down where the grid marks the cell empty (loss: weight x the optical depth of the
-    # box's diagonal through their mean density). Marching never samples those cells, so they keep
-    # faint haze that only a render without the grid shows. On Lego (H100, preset A, 120 s with the
-    # decaying rate) weight 1e-2 cut that render's gap from 0.28 to 0.02 dB (mean of the val views);
-    # 3e-2 made training unstable (benchmarks/results/ttq/README.md). 0: off.
+    # occupancy: at each grid refresh, push the density down at random box points in cells the grid
+    # marks empty, which marching never samples; keeps a render without the grid clean
+    # (docs/training.md). 0: off.
     empty_space_weight: float = 1e-2
     empty_space_points: int = 65536
-    # occupancy: run the no-grad density passes (grid refreshes, the early-termination pre-pass)
-    # under bf16 autocast whatever `precision` is; they only decide which samples to skip. None:
-    # on CUDA (Lego, preset D, H100, three runs: 12-19% more steps in 120 s, +0.14 to +0.42 dB at
-    # 120 s), off on CPU.
+    # occupancy: the no-grad density passes (grid refreshes, the early-termination pre-pass) in bf16
+    # whatever `precision` is: they only decide which samples to skip. None: on CUDA, off on CPU.
     bf16_density_passes: bool | None = None
     progress: bool = True  # progress bar on stderr
 
@@ -97,12 +87,9 @@ class TrainConfig:
         _one_of("sampler", self.sampler, SAMPLERS)
         if self.target_samples is not None and self.target_samples < 1:
             raise ValueError(f"target_samples must be positive, got {self.target_samples}")
-        if not 0 <= self.early_stop_eps < 1 or not 0 <= self.alpha_threshold < 1:
-            raise ValueError("early_stop_eps and alpha_threshold must be in [0, 1)")
         if not self.empty_space_weight >= 0:
             raise ValueError(f"empty_space_weight must be >= 0, got {self.empty_space_weight}")
-        if self.step_size is not None and not self.step_size > 0:
-            raise ValueError(f"step_size must be positive, got {self.step_size}")
+        self.marching()  # checks step_size, early_stop_eps, alpha_threshold
         if self.precision is not None:
             _one_of("precision", self.precision, PRECISIONS)
         if self.device is not None and self.device.split(":")[0] not in ("cpu", "cuda"):
@@ -163,6 +150,10 @@ class TrainConfig:
             lr_hold=recipe["lr_hold"] if self.lr_hold is None else self.lr_hold,
         )
 
+    def marching(self) -> MarchingOptions:
+        """The occupancy sampler's marching step and skips."""
+        return MarchingOptions(self.step_size, self.early_stop_eps, self.alpha_threshold)
+
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
 
@@ -177,10 +168,7 @@ class TrainConfig:
 
 
 SAMPLER_RECIPES: dict[str, dict[str, float]] = {
-    # Measured on Lego 400x400 on an H100 (benchmarks/results/ttq/README.md): at 60 s preset D
-    # reached 30.35 dB with 4e-3 and 131072 samples a step (~10 a ray) against 27.46 with 5e-4 and
-    # 65536. Held for half the run, then decayed 10x by its end, a 120 s run of preset D reached
-    # 34.58 dB (33.63 held for 0.3 and decayed 100x, 34.11 held for 0.5 and decayed 100x).
+    # Chosen by time-to-quality screens on Lego (docs/training.md).
     "occupancy": {"lr": 4e-3, "lr_decay": 0.1, "lr_warmup": 200, "lr_hold": 0.5},
     # NeRF's recipe for dense coarse + fine batches: 5e-4 decaying 10x over the whole run.
     "hierarchical": {"lr": 5e-4, "lr_decay": 0.1, "lr_warmup": 0, "lr_hold": 0.0},

@@ -11,7 +11,10 @@ import torch
 
 from .checkpoint import CheckpointError, load_checkpoint
 from .config import TrainConfig
-from .fields import ImageRenderer, RadianceFields, make_grid, model_config_from_dict, set_matmul_precision
+from ..render import ImageRenderer
+from .fields import RadianceFields, model_config_from_dict
+from .precision import set_matmul_precision
+from .sampling import image_renderer, make_grid
 
 
 @dataclass
@@ -56,17 +59,5 @@ def load_trained(path: str | Path, device: str | None = None, backend: str | Non
     dev = torch.device(cfg.device)
     fields.to(dev).eval()
     scene = state["scene"]
-    renderer = ImageRenderer(
-        fields,
-        cfg.precision,
-        scene["near"],
-        scene["far"],
-        scene["background"].to(dev, torch.float32),
-        cfg.num_coarse,
-        cfg.num_fine,
-        cfg.chunk,
-        cfg.backend,
-        cfg.early_stop_eps,
-        cfg.alpha_threshold,
-    )
+    renderer = image_renderer(cfg, fields, scene["near"], scene["far"], scene["background"].to(dev, torch.float32))
     return TrainedRun(path, cfg, int(state["step"]), scene, renderer, dev)

@@ -14,23 +14,18 @@ import torch.nn.functional as F
 
 from ..metrics import psnr
 from ..render import render_rays
-from ..render.marching import shade_samples
+from ..render.skipping import shade_samples
 from .checkpoint import capture_rng_state, load_checkpoint, restore_rng_state, save_checkpoint
 from .config import TrainConfig
-from .fields import (
-    ImageRenderer,
-    RadianceFields,
-    make_grid,
-    model_config,
-    model_config_to_dict,
-    resolve_sampler,
-    set_matmul_precision,
-)
+from .fields import RadianceFields, model_config, model_config_to_dict
 from .guard import NonFiniteError, NonFiniteGuard
 from .logbook import CsvLog, plot_curves
-from .marched_batches import MarchedBatch, MarchedBatches
+from .marched_batches import MarchedBatches
+from .occupancy_batch import MarchedBatch, prepare_marched_batch
 from .output import RunFiles, prepare_run_folder
+from .precision import set_matmul_precision
 from .sampler import RaySampler
+from .sampling import image_renderer, make_grid, occupancy_sampler, resolve_sampler
 from .scenes import held_out_split, load_split, scene_info, scene_source
 
 RESUMABLE_OVERRIDES = ("time_budget", "progress")
@@ -113,27 +108,19 @@ class Trainer:
         self.optimizer = torch.optim.Adam(
             self.params, lr=cfg.lr, eps=cfg.adam_eps, fused=self.device.type == "cuda"
         )
-        self.renderer = ImageRenderer(
-            self.fields,
-            cfg.precision,
-            self.train_scene.near,
-            self.train_scene.far,
-            self.background,
-            cfg.num_coarse,
-            cfg.num_fine,
-            cfg.chunk,
-            cfg.backend,
-            cfg.early_stop_eps,
-            cfg.alpha_threshold,
-        )
+        near, far = self.train_scene.near, self.train_scene.far
+        self.renderer = image_renderer(cfg, self.fields, near, far, self.background)
         self.sampler = RaySampler(self.train_scene, cfg.batch_rays, cfg.seed)
-        if self.fields.grid is not None and cfg.target_samples is not None:
-            # The grid starts fully occupied: start small and let the batch grow to the target.
-            self.sampler.batch_rays = min(cfg.batch_rays, max(1, cfg.target_samples // 256))
         self.batches = None
         if self.fields.grid is not None:
-            self.batches = MarchedBatches(cfg, self.sampler, self.fields.grid, self.density_field,
-                                          self.train_scene.near, self.train_scene.far)
+            occupancy = occupancy_sampler(cfg, self.fields.grid)
+            if occupancy.budget is not None:
+                self.sampler.batch_rays = occupancy.budget.first_rays(cfg.batch_rays)
+            empty_points = cfg.empty_space_points if cfg.empty_space_weight > 0 else 0
+            self.batches = MarchedBatches(
+                lambda step: prepare_marched_batch(step, self.sampler, occupancy, self.density_field, near, far,
+                                                   empty_points, cfg.backend),
+                self.sampler)
             # The empty-space loss is the optical depth of a box diagonal through the mean density.
             self.box_diagonal = float((self.fields.grid.aabb[1] - self.fields.grid.aabb[0]).norm())
         self.guard = NonFiniteGuard(self.param_names, self.device)

@@ -14,7 +14,7 @@ from collections.abc import Callable, Sequence
 import torch
 from torch import nn
 
-from .ops.ray_marching_reference import cell_bits, pack_bits, unpack_bits
+from ...ops.bitfield import cell_bits, pack_bits, unpack_bits
 
 
 class OccupancyGrid(nn.Module):
@@ -30,7 +30,7 @@ class OccupancyGrid(nn.Module):
     """
 
     aabb: torch.Tensor
-    density: torch.Tensor
+    opacity: torch.Tensor
     bitfield: torch.Tensor
 
     def __init__(
@@ -52,8 +52,8 @@ class OccupancyGrid(nn.Module):
             raise ValueError(f"step_size must be positive and finite, got {step_size!r}")
         self.resolution: tuple[int, int, int] = res
         self.register_buffer("aabb", box)
-        # EMA of each cell's opacity over one marching step.
-        self.register_buffer("density", torch.zeros(res))
+        # Moving maximum of each cell's opacity over one marching step.
+        self.register_buffer("opacity", torch.zeros(res))
         self.register_buffer("bitfield", pack_bits(torch.ones(self.num_cells, dtype=torch.bool)))
 
     @property
@@ -103,7 +103,7 @@ class OccupancyGrid(nn.Module):
         opacity = self._opacity(
             self._jittered_points(cells, generator), density_fn, chunk_size, autocast_dtype
         )
-        flat = self.density.view(-1)
+        flat = self.opacity.view(-1)
         fresh = torch.full_like(flat, -1.0).scatter_reduce_(0, cells, opacity, "amax")
         flat.copy_(torch.where(fresh >= 0, torch.maximum(flat * decay, fresh), flat))
         occupied = (
@@ -113,7 +113,7 @@ class OccupancyGrid(nn.Module):
         return True
 
     def _cells_to_update(self, everything: bool, generator: torch.Generator | None) -> torch.Tensor:
-        device = self.density.device
+        device = self.opacity.device
         if everything:
             return torch.arange(self.num_cells, device=device)
         quarter = self.num_cells // 4
@@ -132,7 +132,7 @@ class OccupancyGrid(nn.Module):
         empty cell ``(count,)`` bool (no host sync). Training pushes the density down at the empty
         ones: marching never samples there, so nothing else keeps haze out of those cells, and a
         render without the grid would show it."""
-        cells = torch.randint(self.num_cells, (count,), device=self.density.device, generator=generator)
+        cells = torch.randint(self.num_cells, (count,), device=self.opacity.device, generator=generator)
         return self._jittered_points(cells, generator), ~cell_bits(self.bitfield, cells)
 
     def _jittered_points(self, cells: torch.Tensor, generator: torch.Generator | None) -> torch.Tensor:
@@ -155,6 +155,13 @@ class OccupancyGrid(nn.Module):
                 out[start : start + chunk_size] = sigma
         tau = torch.nan_to_num(out * self.step_size, nan=0.0).clamp_min(0)
         return -torch.expm1(-tau)
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
+        # Checkpoints written before the buffer was renamed call it "density".
+        old = prefix + "density"
+        if old in state_dict and prefix + "opacity" not in state_dict:
+            state_dict[prefix + "opacity"] = state_dict.pop(old)
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     def extra_repr(self) -> str:
         return f"resolution={self.resolution}, step_size={self.step_size:.3g}, aabb={self.aabb.tolist()}"

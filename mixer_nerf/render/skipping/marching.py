@@ -1,28 +1,63 @@
-"""Renderer that skips what a scene does not need: occupancy-grid marching, early ray
-termination and packed (ragged) samples.
+"""Rendering that skips what a scene does not need: occupancy-grid marching, early ray termination
+and packed (ragged) samples.
 
     rays -> ray_marching (box clip + empty-space skip) -> [no-grad density pass ->
     filter_by_transmittance (early termination, optional alpha threshold)] -> field on the
     surviving samples -> composite_packed
 
 :func:`march_samples` is the no-grad first half (up to the filter), :func:`shade_samples` the
-differentiable second; :func:`render_rays_marched` runs both. A ray that misses the box or crosses only empty cells has no samples: it costs nothing but its
-background. Every skip is a switch: ``early_stop_eps=0`` and ``alpha_threshold=0`` keep every
-marched sample; an :class:`~mixer_nerf.occupancy_grid.OccupancyGrid` that is fully occupied (as
-during warm-up) marches densely through the box.
+differentiable second; :func:`render_rays_marched` runs both. A ray that misses the box or crosses
+only empty cells has no samples: it costs nothing but its background. Every skip is a switch in
+:class:`MarchingOptions`: ``early_stop_eps=0`` and ``alpha_threshold=0`` keep every marched sample;
+a fully occupied grid (as during warm-up) marches densely through the box.
+
+Fields: ``field(x (N, 3), d (N, 3) unit) -> (sigma (N,), rgb (N, 3))``. A field that also takes the
+samples' packed layout declares it in ``packed_layout``, a tuple of ``"ray_indices"`` (then it
+gets ``ray_indices`` (N,) and ``num_rays``) and ``"offsets"`` (the CSR offsets (R+1,)), as
+:class:`~mixer_nerf.model.MixerNeRF` does for its per-ray squeeze-and-excitation.
 """
 
 from __future__ import annotations
 
-import inspect
+from dataclasses import dataclass
 from typing import NamedTuple
 
 import torch
 from torch import nn
 
-from ..occupancy_grid import OccupancyGrid
-from ..ops import composite_packed
-from ..ops.ray_marching import PackedSamples, filter_by_transmittance, ray_marching
+from ...ops import composite_packed
+from ...ops.ray_marching import PackedSamples, filter_by_transmittance, ray_marching
+from .occupancy_grid import OccupancyGrid
+
+
+@dataclass(frozen=True)
+class MarchingOptions:
+    """How marching samples a ray and which samples it skips.
+
+    Attributes:
+        step_size: marching step in t (None: the grid's).
+        early_stop_eps: drop samples once transmittance is below this (0: keep them all).
+        alpha_threshold: drop samples whose alpha is below this (0: keep them all).
+        cone_angle: > 0 grows the step with distance (unbounded scenes).
+    """
+
+    step_size: float | None = None
+    early_stop_eps: float = 1e-4
+    alpha_threshold: float = 0.0
+    cone_angle: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.step_size is not None and not self.step_size > 0:
+            raise ValueError(f"step_size must be positive, got {self.step_size}")
+        if not 0 <= self.early_stop_eps < 1 or not 0 <= self.alpha_threshold < 1:
+            raise ValueError("early_stop_eps and alpha_threshold must be in [0, 1)")
+        if not self.cone_angle >= 0:
+            raise ValueError(f"cone_angle must be >= 0, got {self.cone_angle}")
+
+    @property
+    def filters(self) -> bool:
+        """Whether a density pre-pass can drop marched samples."""
+        return self.early_stop_eps > 0 or self.alpha_threshold > 0
 
 
 class MarchedSamples(NamedTuple):
@@ -41,16 +76,15 @@ class MarchedResult(NamedTuple):
     num_marched: int  # samples marching emitted: what the early-termination pre-pass evaluated
 
 
-def _field_inputs(field: nn.Module, rays_o, rays_d, samples: PackedSamples):
+def field_inputs(field: nn.Module, rays_o, rays_d, samples: PackedSamples):
     """What a field call on packed samples needs: the points ``(N, 3)``, their unit view
-    directions ``(N, 3)``, their rays' ``|d|`` ``(N,)`` (densities are per unit t) and the samples'
-    packed layout as far as ``field.forward`` takes it (``ray_indices`` with ``num_rays``, and the
-    CSR ``offsets`` of its fused SE path)."""
-    parameters = inspect.signature(field.forward).parameters
+    directions ``(N, 3)``, their rays' ``|d|`` ``(N,)`` (densities are per unit t) and the keyword
+    arguments of the layout the field declares in ``packed_layout``."""
+    declared = getattr(field, "packed_layout", ())
     layout = {}
-    if "ray_indices" in parameters:
+    if "ray_indices" in declared:
         layout.update(ray_indices=samples.ray_indices, num_rays=rays_o.shape[0])
-    if "offsets" in parameters:
+    if "offsets" in declared:
         layout["offsets"] = samples.offsets
     norm = torch.linalg.vector_norm(rays_d, dim=-1)
     viewdirs = rays_d / norm.clamp_min(torch.finfo(rays_d.dtype).tiny)[:, None]
@@ -66,36 +100,34 @@ def march_samples(
     grid: OccupancyGrid,
     near: float | torch.Tensor = 0.0,
     far: float | torch.Tensor = float("inf"),
-    step_size: float | None = None,
+    options: MarchingOptions = MarchingOptions(),
+    *,
     stratified: bool = True,
-    early_stop_eps: float = 1e-4,
-    alpha_threshold: float = 0.0,
-    cone_angle: float = 0.0,
-    backend: str = "auto",
-    generator: torch.Generator | None = None,
     density_field: nn.Module | None = None,
+    generator: torch.Generator | None = None,
+    backend: str = "auto",
 ) -> MarchedSamples:
     """The samples of :func:`render_rays_marched` (no grad): marching through ``grid``, then, when
-    ``density_field`` is given and ``early_stop_eps`` or ``alpha_threshold`` is positive, a
-    forward-only density pass over them and :func:`~mixer_nerf.ops.filter_by_transmittance`.
+    ``density_field`` is given and ``options`` filter, a forward-only density pass over them and
+    :func:`~mixer_nerf.ops.filter_by_transmittance`.
 
     Splitting this stage from :func:`shade_samples` lets a trainer prepare the next batch while
     the current one's backward pass runs. Arguments as for :func:`render_rays_marched`;
     ``density_field`` None skips the pre-pass (every marched sample is kept).
     """
-    step = grid.step_size if step_size is None else step_size
+    step = grid.step_size if options.step_size is None else options.step_size
     samples = ray_marching(rays_o, rays_d, near, far, grid, step, stratified=stratified,
-                           generator=generator, cone_angle=cone_angle, backend=backend)
+                           generator=generator, cone_angle=options.cone_angle, backend=backend)
     num_marched = samples.t_starts.shape[0]
-    filtering = early_stop_eps > 0 or alpha_threshold > 0
-    if density_field is None or not filtering or not num_marched:
+    if density_field is None or not options.filters or not num_marched:
         return MarchedSamples(samples, num_marched)
-    x, viewdirs, norm, layout = _field_inputs(density_field, rays_o, rays_d, samples)
+    x, viewdirs, norm, layout = field_inputs(density_field, rays_o, rays_d, samples)
     if hasattr(density_field, "density"):
         sigma = density_field.density(x, **layout)
     else:
         sigma = density_field(x, viewdirs, **layout)[0]
-    keep = filter_by_transmittance(sigma.float() * norm, samples, early_stop_eps, alpha_threshold)
+    keep = filter_by_transmittance(sigma.float() * norm, samples, options.early_stop_eps,
+                                   options.alpha_threshold)
     return MarchedSamples(samples.select(keep), num_marched)
 
 
@@ -108,9 +140,8 @@ def shade_samples(
     backend: str = "auto",
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Evaluate ``field`` at packed ``samples`` of rays ``(R, 3)`` and composite them:
-    ``(color (R, 3), depth (R,), opacity (R,), weights (N,))``, differentiable through the field.
-    The field gets the samples' layout as in :func:`render_rays_marched`."""
-    x, viewdirs, norm, layout = _field_inputs(field, rays_o, rays_d, samples)
+    ``(color (R, 3), depth (R,), opacity (R,), weights (N,))``, differentiable through the field."""
+    x, viewdirs, norm, layout = field_inputs(field, rays_o, rays_d, samples)
     sigma, rgb = field(x, viewdirs, **layout)
     sigma = sigma.to(rays_o.dtype) * norm
     bg = None if background is None else background.to(rays_o.dtype)
@@ -126,34 +157,26 @@ def render_rays_marched(
     grid: OccupancyGrid,
     near: float | torch.Tensor = 0.0,
     far: float | torch.Tensor = float("inf"),
-    step_size: float | None = None,
+    options: MarchingOptions = MarchingOptions(),
+    *,
     stratified: bool = True,
     background: torch.Tensor | None = None,
-    early_stop_eps: float = 1e-4,
-    alpha_threshold: float = 0.0,
-    cone_angle: float = 0.0,
-    backend: str = "auto",
-    generator: torch.Generator | None = None,
     density_field: nn.Module | None = None,
+    generator: torch.Generator | None = None,
+    backend: str = "auto",
 ) -> MarchedResult:
     """Render rays through ``field`` evaluating it only where ``grid`` says there is something:
     :func:`march_samples`, then :func:`shade_samples`.
 
     Args:
-        field: ``field(x (N, 3), d (N, 3) unit) -> (sigma (N,), rgb (N, 3))``; a field whose forward
-            takes ``ray_indices`` (e.g. :class:`~mixer_nerf.model.MixerNeRF`, for its per-ray SE
-            squeeze) gets them with ``num_rays``, and one that takes ``offsets`` the samples' CSR
-            offsets ``(R+1,)``. ``field.density(x)`` is used for the no-grad
-            pre-pass when it exists (skips the colour branch).
+        field: see the module docstring. ``field.density(x)`` is used for the no-grad pre-pass
+            when it exists (skips the colour branch).
         rays_o, rays_d: ``(R, 3)``; depths are in units of ``|rays_d|``.
         grid: the occupancy grid (its box clips the rays).
         near, far: floats or ``(R,)`` tensors, further clipped to the box.
-        step_size: marching step in t (default: the grid's).
+        options: step size and what to skip (:class:`MarchingOptions`).
         stratified: jitter each ray's first sample (training).
         background: ``(3,)`` or ``(R, 3)``; None renders on black.
-        early_stop_eps: drop samples once transmittance is below this (0: keep them all).
-        alpha_threshold: drop samples whose alpha is below this (0: keep them all).
-        cone_angle: > 0 grows the step with distance (unbounded scenes).
         density_field: what the no-grad pre-pass evaluates (default ``field``), e.g. the same
             MLP under bf16 autocast: the pre-pass only decides which samples to keep.
 
@@ -161,8 +184,9 @@ def render_rays_marched(
         :class:`MarchedResult`; color, depth and opacity are differentiable through the field.
     """
     marched = march_samples(
-        rays_o, rays_d, grid, near, far, step_size, stratified, early_stop_eps, alpha_threshold,
-        cone_angle, backend, generator, field if density_field is None else density_field)
+        rays_o, rays_d, grid, near, far, options, stratified=stratified,
+        density_field=field if density_field is None else density_field, generator=generator,
+        backend=backend)
     color, depth, opacity, weights = shade_samples(
         field, rays_o, rays_d, marched.samples, background, backend)
     return MarchedResult(color, depth, opacity, marched.samples, weights, marched.num_marched)

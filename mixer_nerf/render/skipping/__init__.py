@@ -1,0 +1,35 @@
+"""Rendering that skips what a scene does not need: empty space (an occupancy grid), occluded
+samples (early ray termination) and rays that miss the scene (box clipping), on packed samples.
+
+- :class:`OccupancyGrid`: which cells of the scene box can hold anything.
+- :class:`MarchingOptions`, :func:`march_samples`, :func:`shade_samples`,
+  :func:`render_rays_marched`: marching through the grid and shading what survives.
+- :class:`SampleBudget`: ray batches sized to a number of samples per step.
+- :class:`OccupancySampler`: the grid, its refresh schedule, marching and the budget together, as
+  the trainer uses them.
+"""
+
+from .marching import (
+    MarchedResult,
+    MarchedSamples,
+    MarchingOptions,
+    march_samples,
+    render_rays_marched,
+    shade_samples,
+)
+from .occupancy_grid import OccupancyGrid
+from .occupancy_sampler import GridRefresh, OccupancySampler
+from .sample_budget import SampleBudget
+
+__all__ = [
+    "GridRefresh",
+    "MarchedResult",
+    "MarchedSamples",
+    "MarchingOptions",
+    "OccupancyGrid",
+    "OccupancySampler",
+    "SampleBudget",
+    "march_samples",
+    "render_rays_marched",
+    "shade_samples",
+]
