@@ -195,7 +195,7 @@ def test_rng_state_round_trip():
 # -- training, resume, output folder --------------------------------------------------------------
 
 
-@pytest.mark.parametrize("sampler", ["hierarchical", "occupancy"])
+@pytest.mark.parametrize("sampler", ["hierarchical", "occupancy", "proposal"])
 def test_resume_after_a_kill_is_bit_exact(tmp_path, monkeypatch, sampler):
     """2N steps straight == N steps, a kill at step N+2 (losing at most ckpt_every steps), resume."""
     straight = Trainer(tiny_config(tmp_path / "a", sampler=sampler), log=quiet)
@@ -279,14 +279,18 @@ def test_learning_rate_comes_from_the_samplers_recipe_unless_given():
     assert (given.lr, given.lr_final, given.lr_warmup) == (1e-3, pytest.approx(1e-4), 7)
     assert TrainConfig(lr_final=2e-3).with_recipe("occupancy").lr_final == 2e-3
     assert TrainConfig(lr=1e-3).with_recipe("occupancy").lr_final == pytest.approx(1e-4)
+    proposal = TrainConfig().with_recipe("proposal")
+    assert (proposal.lr, proposal.lr_final, proposal.lr_warmup) == (2e-3, pytest.approx(2e-4), 200)
 
 
-def test_auto_sampler_marches_bounded_scenes_and_samples_forward_facing_ones_hierarchically():
+def test_auto_sampler_marches_bounded_scenes_and_proposes_for_forward_facing_and_unbounded_ones():
     box = torch.tensor([[-1.0] * 3, [1.0] * 3])
     auto = TrainConfig(sampler="auto")
     assert resolve_sampler(auto, box, ndc=False).sampler == "occupancy"
-    assert resolve_sampler(auto, box, ndc=True).sampler == "hierarchical"  # LLFF in NDC
-    assert resolve_sampler(auto, None, ndc=False).sampler == "hierarchical"
+    assert resolve_sampler(auto, box, ndc=True).sampler == "proposal"  # LLFF in NDC
+    assert resolve_sampler(auto, None, ndc=False).sampler == "proposal"  # unbounded
+    assert not resolve_sampler(auto, None, ndc=False).fine_network
+    assert resolve_sampler(TrainConfig(sampler="hierarchical"), box, ndc=True).fine_network
     assert resolve_sampler(TrainConfig(sampler="occupancy"), box, ndc=True).sampler == "occupancy"
     with pytest.raises(ValueError, match="needs a scene box"):
         resolve_sampler(TrainConfig(sampler="occupancy"), None, ndc=False)
@@ -507,3 +511,19 @@ def test_write_video_reads_back():
         path = write_video(f"{folder}/clip", frames, fps=5)
         assert path.suffix in (".mp4", ".gif") and path.stat().st_size > 0
         assert len(list(iio.imiter(path))) == 4
+
+
+def test_proposal_sampler_trains_its_networks_and_renders_from_the_checkpoint(tmp_path):
+    trainer = Trainer(tiny_config(tmp_path, sampler="proposal", proposal_rounds=(12, 8), proposal_samples=6),
+                      log=quiet)
+    assert trainer.fields.fine is None and trainer.fields.grid is None
+    before = params_of(trainer)
+    assert any(k.startswith("proposal.") for k in before)
+    trainer.fit()
+    after = params_of(trainer)
+    assert all(not torch.equal(before[k], after[k]) for k in before if k.startswith("proposal.") and "center" not in k)
+    rows = trainer.train_log.rows()
+    assert all(float(r["samples_per_ray"]) == 6 for r in rows)  # the main field's samples only
+    run = load_trained(tmp_path / "checkpoint.pt")
+    rays_o, rays_d = trainer.val_scene.rays_for_image(0)
+    torch.testing.assert_close(run.render(rays_o, rays_d).color, trainer.render_rgb(rays_o, rays_d))

@@ -12,7 +12,7 @@ PRESETS = ("A", "B", "C", "D")
 PRECISIONS = ("bf16", "tf32", "fp32")
 BACKENDS = ("auto", "kernel", "torch")
 FORMATS = ("auto", "blender", "llff")
-SAMPLERS = ("auto", "occupancy", "hierarchical")
+SAMPLERS = ("auto", "occupancy", "proposal", "hierarchical")
 
 
 @dataclass
@@ -60,7 +60,8 @@ class TrainConfig:
     chunk: int = 8192  # rays per chunk when rendering whole images
     check_grads: bool = True  # the non-finite guard also checks every gradient
     # "occupancy": one marched pass over packed samples (mixer_nerf.render.skipping; no fine
-    # network). "hierarchical": NeRF's dense coarse + fine passes. "auto": see sampling.resolve_sampler.
+    # network). "proposal": proposal networks pick proposal_samples intervals per ray (no fine
+    # network). "hierarchical": NeRF's dense coarse + fine passes. "auto": sampling.resolve_sampler.
     sampler: str = "auto"
     grid_resolution: int = 128
     grid_every: int = 16  # refresh the grid from the model's density every N steps
@@ -78,6 +79,11 @@ class TrainConfig:
     # occupancy: the no-grad density passes (grid refreshes, the early-termination pre-pass) in bf16
     # whatever `precision` is: they only decide which samples to skip. None: on CUDA, off on CPU.
     bf16_density_passes: bool | None = None
+    # proposal: samples of each proposal network's round, then of the main field
+    proposal_rounds: tuple[int, ...] = (128, 64)
+    proposal_samples: int = 48
+    proposal_width: int = 64  # hidden width of each proposal network (2 layers)
+    proposal_loss_weight: float = 1.0
     progress: bool = True  # progress bar on stderr
 
     def __post_init__(self) -> None:
@@ -121,6 +127,12 @@ class TrainConfig:
         for name in ("lr", "lr_final"):
             if getattr(self, name) is not None and not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
+        self.proposal_rounds = tuple(int(n) for n in self.proposal_rounds)
+        if not self.proposal_rounds or min(self.proposal_rounds) < 1 or self.proposal_samples < 1:
+            raise ValueError(f"proposal_rounds and proposal_samples must be positive, got "
+                             f"{self.proposal_rounds}, {self.proposal_samples}")
+        if self.proposal_width < 1 or not self.proposal_loss_weight >= 0:
+            raise ValueError("proposal_width must be positive and proposal_loss_weight >= 0")
         if not self.adam_eps > 0:
             raise ValueError(f"adam_eps must be positive, got {self.adam_eps}")
         if self.time_budget is not None and self.time_budget <= 0:
@@ -170,6 +182,7 @@ class TrainConfig:
 SAMPLER_RECIPES: dict[str, dict[str, float]] = {
     # Chosen by time-to-quality screens on Lego (docs/training.md).
     "occupancy": {"lr": 4e-3, "lr_decay": 0.1, "lr_warmup": 200, "lr_hold": 0.5},
+    "proposal": {"lr": 2e-3, "lr_decay": 0.1, "lr_warmup": 200, "lr_hold": 0.5},
     # NeRF's recipe for dense coarse + fine batches: 5e-4 decaying 10x over the whole run.
     "hierarchical": {"lr": 5e-4, "lr_decay": 0.1, "lr_warmup": 0, "lr_hold": 0.0},
 }

@@ -11,23 +11,32 @@ from torch import nn
 
 from ..model import MixerNeRF, ModelConfig, preset_config
 from ..render.skipping import OccupancyGrid
+from ..render.skipping.proposal import ProposalSampler
 from .precision import MixedPrecisionField
 
 
 class RadianceFields(nn.Module):
     """Coarse and fine fields of one run. ``fine`` is None when the coarse field is reused.
-    ``grid`` is the occupancy grid of the occupancy sampler (None for hierarchical sampling).
+    ``grid`` is the occupancy sampler's grid, ``proposal`` the proposal sampler (each None when
+    the run uses another sampler).
 
-    ``state_dict`` holds the MLPs' parameters (under ``coarse.`` and ``fine.``) and the grid's
-    buffers, independent of the precision the MLPs run at.
+    ``state_dict`` holds the MLPs' parameters (under ``coarse.`` and ``fine.``), the grid's
+    buffers and the proposal networks, independent of the precision the MLPs run at.
     """
 
-    def __init__(self, model_cfg: ModelConfig, fine_network: bool, grid: OccupancyGrid | None = None) -> None:
+    def __init__(
+        self,
+        model_cfg: ModelConfig,
+        fine_network: bool,
+        grid: OccupancyGrid | None = None,
+        proposal: ProposalSampler | None = None,
+    ) -> None:
         super().__init__()
         self.model_cfg = model_cfg
         self.coarse = MixerNeRF(model_cfg)
         self.fine = MixerNeRF(model_cfg) if fine_network else None
         self.grid = grid
+        self.proposal = proposal
 
     def runners(self, precision: str, device: torch.device) -> tuple[nn.Module, nn.Module | None]:
         """(coarse, fine) callables for the renderers at ``precision``."""

@@ -12,9 +12,9 @@ import torch
 from .checkpoint import CheckpointError, load_checkpoint
 from .config import TrainConfig
 from ..render import ImageRenderer
-from .fields import RadianceFields, model_config_from_dict
+from .fields import model_config_from_dict
 from .precision import set_matmul_precision
-from .sampling import image_renderer, make_grid
+from .sampling import image_renderer, make_fields
 
 
 @dataclass
@@ -51,7 +51,7 @@ def load_trained(path: str | Path, device: str | None = None, backend: str | Non
     ).resolved(cuda)
     set_matmul_precision(cfg.precision)
     bbox = state["scene"].get("bbox")
-    fields = RadianceFields(model_cfg, cfg.fine_network, make_grid(cfg, bbox))
+    fields = make_fields(cfg, model_cfg, bbox)
     try:
         fields.load_state_dict(state["model"])
     except RuntimeError as e:

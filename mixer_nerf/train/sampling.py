@@ -7,8 +7,11 @@ import dataclasses
 
 import torch
 
+from ..model import ModelConfig
+from ..model.proposal_network import ProposalNetwork
 from ..render import ImageRenderer, chunk_result, render_rays
 from ..render.image_renderer import ChunkResult
+from ..render.skipping.proposal import ProposalOptions, ProposalSampler, render_rays_proposal
 from ..render.skipping import (
     GridRefresh,
     MarchingOptions,
@@ -23,20 +26,20 @@ from .fields import RadianceFields
 
 def resolve_sampler(cfg: TrainConfig, bbox: torch.Tensor | None, ndc: bool) -> TrainConfig:
     """``cfg`` with ``sampler="auto"`` decided by the scene and that sampler's learning-rate
-    recipe where ``cfg`` leaves it open. The occupancy sampler renders one marched pass, so it
-    trains no separate fine network.
+    recipe where ``cfg`` leaves it open. The occupancy and proposal samplers render one pass, so
+    they train no separate fine network.
 
-    "auto" marches an occupancy grid in bounded scenes (a box, world space) and samples
-    hierarchically in forward-facing NDC scenes, where the scene fills the box and a grid skips
-    little (docs/training.md)."""
+    "auto" marches an occupancy grid in bounded scenes (a box, world space); forward-facing NDC
+    scenes fill their box, so a grid skips little there, and unbounded scenes have no box: both get
+    the proposal sampler (docs/skipping.md)."""
     if cfg.sampler != "auto":
         sampler = cfg.sampler
     else:
-        sampler = "occupancy" if bbox is not None and not ndc else "hierarchical"
+        sampler = "occupancy" if bbox is not None and not ndc else "proposal"
     if sampler == "occupancy" and bbox is None:
         raise ValueError("sampler 'occupancy' needs a scene box (bbox); this scene has none")
     cfg = cfg.with_recipe(sampler)
-    return dataclasses.replace(cfg, fine_network=cfg.fine_network and sampler != "occupancy")
+    return dataclasses.replace(cfg, fine_network=cfg.fine_network and sampler == "hierarchical")
 
 
 def make_grid(cfg: TrainConfig, bbox: torch.Tensor | None) -> OccupancyGrid | None:
@@ -44,6 +47,26 @@ def make_grid(cfg: TrainConfig, bbox: torch.Tensor | None) -> OccupancyGrid | No
     if cfg.sampler != "occupancy":
         return None
     return OccupancyGrid(bbox, cfg.grid_resolution, cfg.step_size)
+
+
+def make_proposal(cfg: TrainConfig, model_cfg: ModelConfig, bounded: bool) -> ProposalSampler | None:
+    """The proposal sampler of a resolved ``cfg`` (None for the other samplers): its networks see
+    positions as the main field does; an unbounded scene (no box) is sampled in disparity and
+    contracted."""
+    if cfg.sampler != "proposal":
+        return None
+    networks = [ProposalNetwork(model_cfg.scene_center, model_cfg.scene_scale, width=cfg.proposal_width,
+                                contract_space=not bounded, backend=cfg.backend)
+                for _ in cfg.proposal_rounds]
+    options = ProposalOptions(cfg.proposal_rounds, cfg.proposal_samples,
+                              "linear" if bounded else "disparity")
+    return ProposalSampler(networks, options)
+
+
+def make_fields(cfg: TrainConfig, model_cfg: ModelConfig, bbox: torch.Tensor | None) -> RadianceFields:
+    """The fields of a resolved ``cfg``, with its sampler's grid or proposal networks."""
+    return RadianceFields(model_cfg, cfg.fine_network, make_grid(cfg, bbox),
+                          make_proposal(cfg, model_cfg, bounded=bbox is not None))
 
 
 def occupancy_sampler(cfg: TrainConfig, grid: OccupancyGrid) -> OccupancySampler:
@@ -68,7 +91,13 @@ def image_renderer(
     device = background.device
     coarse, fine = fields.runners(cfg.precision, device)
     grid = fields.grid if grid is None else grid
-    if grid is None:
+    if fields.proposal is not None:
+        def render_chunk(rays_o: torch.Tensor, rays_d: torch.Tensor) -> ChunkResult:
+            out, samples = render_rays_proposal(coarse, fields.proposal, rays_o, rays_d, near, far,
+                                                stratified=False, background=background, backend=cfg.backend)
+            shaded = samples.t_starts.numel()
+            return ChunkResult(out.color, out.depth, out.opacity, shaded, shaded)
+    elif grid is None:
         def render_chunk(rays_o: torch.Tensor, rays_d: torch.Tensor) -> ChunkResult:
             return chunk_result(render_rays(
                 coarse, rays_o, rays_d, near, far, cfg.num_coarse, cfg.num_fine, fine, stratified=False,

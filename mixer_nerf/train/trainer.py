@@ -15,9 +15,10 @@ import torch.nn.functional as F
 from ..metrics import psnr
 from ..render import render_rays
 from ..render.skipping import shade_samples
+from ..render.skipping.proposal import proposal_loss, render_rays_proposal
 from .checkpoint import capture_rng_state, load_checkpoint, restore_rng_state, save_checkpoint
 from .config import TrainConfig
-from .fields import RadianceFields, model_config, model_config_to_dict
+from .fields import model_config, model_config_to_dict
 from .guard import NonFiniteError, NonFiniteGuard
 from .logbook import CsvLog, plot_curves
 from .marched_batches import MarchedBatches
@@ -25,7 +26,7 @@ from .occupancy_batch import MarchedBatch, prepare_marched_batch
 from .output import RunFiles, prepare_run_folder
 from .precision import set_matmul_precision
 from .sampler import RaySampler
-from .sampling import image_renderer, make_grid, occupancy_sampler, resolve_sampler
+from .sampling import image_renderer, make_fields, occupancy_sampler, resolve_sampler
 from .scenes import held_out_split, load_split, scene_info, scene_source
 
 RESUMABLE_OVERRIDES = ("time_budget", "progress")
@@ -96,7 +97,7 @@ class Trainer:
 
         torch.manual_seed(cfg.seed)  # model initialisation
         self.model_cfg = model_config(cfg.preset, cfg.model_overrides, self.train_scene.bbox, cfg.backend)
-        self.fields = RadianceFields(self.model_cfg, cfg.fine_network, make_grid(cfg, self.train_scene.bbox))
+        self.fields = make_fields(cfg, self.model_cfg, self.train_scene.bbox)
         self.fields.to(self.device)
         self.coarse_field, self.fine_field = self.fields.runners(cfg.precision, self.device)
         # The no-grad density passes that decide what to skip (grid refreshes, early termination).
@@ -145,6 +146,10 @@ class Trainer:
             group["lr"] = lr
         if self.batches is not None:
             losses = self._marched_losses(self.batches.take(self.step))
+        elif self.fields.proposal is not None:
+            rays_o, rays_d, target = self.sampler.sample()
+            self.rays_seen += rays_o.shape[0]
+            losses = self._proposal_losses(rays_o, rays_d, target)
         else:
             rays_o, rays_d, target = self.sampler.sample()
             self.rays_seen += rays_o.shape[0]
@@ -185,6 +190,15 @@ class Trainer:
         if out.fine is not None:
             losses["loss_fine"] = F.mse_loss(out.fine.color, target)
         return losses
+
+    def _proposal_losses(self, rays_o, rays_d, target) -> dict[str, torch.Tensor]:
+        cfg = self.cfg
+        out, samples = render_rays_proposal(
+            self.coarse_field, self.fields.proposal, rays_o, rays_d, self.train_scene.near, self.train_scene.far,
+            stratified=True, background=self.background, generator=self.sampler.generator, backend=cfg.backend)
+        self.samples_seen += samples.t_starts.numel()
+        loss = proposal_loss(samples.rounds, samples.edges, out.weights)
+        return {"loss_coarse": F.mse_loss(out.color, target), "loss_proposal": cfg.proposal_loss_weight * loss}
 
     def _marched_losses(self, batch: MarchedBatch) -> dict[str, torch.Tensor]:
         cfg = self.cfg

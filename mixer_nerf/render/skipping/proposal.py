@@ -1,0 +1,174 @@
+"""The proposal sampler, for scenes an occupancy grid cannot prune (forward-facing in NDC, unbounded
+360 captures): small proposal density networks, trained with an interval-overlap loss, resample
+each ray in rounds so that the main field is evaluated at few samples near what it sees
+(mip-NeRF 360's online distillation; nerfacc calls it ``PropNetEstimator``).
+
+    uniform edges -> proposal 1 -> weights -> sample_pdf -> proposal 2 -> ... -> sample_pdf
+    -> ``num_samples`` intervals for the main field
+
+Positions along a ray are placed in a spacing coordinate ``s`` in [0, 1]: ``t`` linear in ``s``
+(NDC, bounded) or ``1/t`` linear in ``s`` (``"disparity"``: unbounded scenes, needs ``near > 0``).
+Sampling runs without gradient; the proposal networks get theirs from :func:`proposal_loss`, which
+asks each round's weights to bound the main field's (detached) weights from above.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from ...ops import composite, sample_pdf
+from ..volume import RayBundleResult, composite_samples, query_field
+
+SPACINGS = ("linear", "disparity")
+
+
+@dataclass(frozen=True)
+class ProposalOptions:
+    """Attributes:
+    samples_per_round: samples each proposal network is evaluated at, one entry per network.
+    num_samples: samples per ray of the main field.
+    spacing: ``"linear"`` or ``"disparity"`` (see the module docstring).
+    weight_padding: added to every proposal weight before resampling, so that no part of the
+        ray is ever given up entirely.
+    """
+
+    samples_per_round: tuple[int, ...] = (128, 64)
+    num_samples: int = 48
+    spacing: str = "linear"
+    weight_padding: float = 1e-4
+
+    def __post_init__(self) -> None:
+        if not self.samples_per_round or any(n < 1 for n in self.samples_per_round):
+            raise ValueError(f"samples_per_round must be positive counts, got {self.samples_per_round}")
+        if self.num_samples < 1:
+            raise ValueError(f"num_samples must be positive, got {self.num_samples}")
+        if self.spacing not in SPACINGS:
+            raise ValueError(f"spacing must be one of {SPACINGS}, got {self.spacing!r}")
+        if not self.weight_padding >= 0:
+            raise ValueError(f"weight_padding must be >= 0, got {self.weight_padding}")
+
+
+class ProposalRound(NamedTuple):
+    edges: torch.Tensor  # (R, n + 1) interval edges in s
+    weights: torch.Tensor  # (R, n) the proposal network's weights (with gradient when training)
+
+
+class ProposalSamples(NamedTuple):
+    t_starts: torch.Tensor  # (R, N) intervals of the main field's samples
+    t_ends: torch.Tensor  # (R, N)
+    edges: torch.Tensor  # (R, N + 1) the same intervals' edges in s
+    rounds: tuple[ProposalRound, ...]
+
+
+class ProposalSampler(nn.Module):
+    """``networks``: one density field per round (``net.density(x (R, n, 3)) -> (R, n)``); they
+    are this module's parameters (and checkpoint with it)."""
+
+    def __init__(self, networks: Sequence[nn.Module], options: ProposalOptions = ProposalOptions()) -> None:
+        super().__init__()
+        if len(networks) != len(options.samples_per_round):
+            raise ValueError(f"{len(networks)} proposal networks for {len(options.samples_per_round)} rounds")
+        self.networks = nn.ModuleList(networks)
+        self.options = options
+
+    def sample(
+        self,
+        rays_o: torch.Tensor,
+        rays_d: torch.Tensor,
+        near: float,
+        far: float,
+        *,
+        stratified: bool,
+        generator: torch.Generator | None = None,
+        backend: str = "auto",
+    ) -> ProposalSamples:
+        """Intervals for the main field along rays ``(R, 3)`` in ``[near, far]`` (depths in units
+        of ``|rays_d|``). The rounds' weights carry gradient to the networks if grad is enabled."""
+        opts = self.options
+        if opts.spacing == "disparity" and not near > 0:
+            raise ValueError(f"disparity spacing needs near > 0, got {near}")
+        if not near < far < float("inf"):
+            raise ValueError(f"need near < far < inf, got near={near}, far={far}")
+        num_rays = rays_o.shape[0]
+        edges = torch.tensor([[0.0, 1.0]], device=rays_o.device, dtype=rays_o.dtype).expand(num_rays, 2)
+        weights = torch.ones(num_rays, 1, device=rays_o.device, dtype=rays_o.dtype)
+        norm = torch.linalg.vector_norm(rays_d, dim=-1, keepdim=True)
+        rounds = []
+        for net, n in zip(self.networks, opts.samples_per_round, strict=True):
+            edges = self._resample(edges, weights, n + 1, stratified, generator, backend)
+            t = self._to_t(edges, near, far)
+            mids = 0.5 * (t[:, 1:] + t[:, :-1])
+            sigma = net.density(rays_o[:, None, :] + mids[..., None] * rays_d[:, None, :]).float() * norm
+            weights = _weights(sigma, t[:, :-1], t[:, 1:], backend)
+            rounds.append(ProposalRound(edges, weights))
+        edges = self._resample(edges, weights, opts.num_samples + 1, stratified, generator, backend)
+        t = self._to_t(edges, near, far)
+        return ProposalSamples(t[:, :-1], t[:, 1:], edges, tuple(rounds))
+
+    @torch.no_grad()
+    def _resample(self, edges, weights, count, stratified, generator, backend) -> torch.Tensor:
+        return sample_pdf(edges.contiguous(), weights.detach().contiguous(), count,
+                          deterministic=not stratified, weight_padding=self.options.weight_padding,
+                          generator=generator, backend=backend, check_values=False)
+
+    def _to_t(self, s: torch.Tensor, near: float, far: float) -> torch.Tensor:
+        if self.options.spacing == "linear":
+            return near + (far - near) * s
+        return torch.reciprocal(1 / near + (1 / far - 1 / near) * s)
+
+
+def _weights(sigma, t_starts, t_ends, backend) -> torch.Tensor:
+    """Volume-rendering weights ``(R, n)`` of densities on intervals, differentiable in sigma."""
+    dummy = sigma.new_zeros(*sigma.shape, 1)
+    return composite(sigma, dummy, t_starts.contiguous(), t_ends.contiguous(), backend=backend,
+                     check_values=False)[3]
+
+
+def proposal_loss(rounds: Sequence[ProposalRound], edges: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+    """mip-NeRF 360's interval-overlap loss: for each interval of the main field (``edges``
+    ``(R, N + 1)`` in s, ``weights`` ``(R, N)``, detached here), the summed weight of the proposal
+    intervals overlapping it must be at least its weight; the shortfall is penalised. Mean over
+    rays, summed over rounds."""
+    target = weights.detach()
+    lo_t, hi_t = edges[:, :-1].contiguous(), edges[:, 1:].contiguous()
+    total = weights.new_zeros(())
+    for r in rounds:
+        n = r.weights.shape[-1]
+        cumulative = F.pad(torch.cumsum(r.weights, dim=-1), (1, 0))  # (R, n + 1)
+        prop_edges = r.edges.contiguous()
+        first = (torch.searchsorted(prop_edges, lo_t, right=True) - 1).clamp(0, n)
+        last = torch.searchsorted(prop_edges, hi_t, right=False).clamp(0, n)
+        outer = cumulative.gather(-1, last) - cumulative.gather(-1, first)
+        shortfall = (target - outer).clamp_min(0)
+        total = total + (shortfall.square() / (target + 1e-7)).sum(-1).mean()
+    return total
+
+
+def render_rays_proposal(
+    field: nn.Module,
+    proposal: ProposalSampler,
+    rays_o: torch.Tensor,
+    rays_d: torch.Tensor,
+    near: float,
+    far: float,
+    *,
+    stratified: bool = True,
+    background: torch.Tensor | None = None,
+    generator: torch.Generator | None = None,
+    backend: str = "auto",
+) -> tuple[RayBundleResult, ProposalSamples]:
+    """Render rays ``(R, 3)`` through ``field`` at the intervals ``proposal`` picks (each sample at
+    its interval's midpoint): the result (differentiable through the field) and the samples, whose
+    rounds feed :func:`proposal_loss`."""
+    samples = proposal.sample(rays_o, rays_d, near, far, stratified=stratified, generator=generator,
+                              backend=backend)
+    mids = 0.5 * (samples.t_starts + samples.t_ends)
+    sigmas, rgbs = query_field(field, rays_o, rays_d, mids)
+    bg = None if background is None else background.to(rays_o.dtype)
+    return composite_samples(sigmas, rgbs, samples.t_starts, samples.t_ends, bg, backend), samples
