@@ -2,8 +2,9 @@
 
     python -m benchmarks.bench_ops [--device cuda|cpu] [--ops composite,sample_pdf] [--out DIR]
 
-Cases come from ``benchmarks/cases_<op>.py``. Writes ``ops_<device>.md`` and ``.json`` (and a
-time-against-error plot) under ``--out`` (default ``benchmarks/results``) and prints the table.
+Cases come from ``benchmarks/cases_<op>.py``. Writes ``<device>.md``, ``.json`` and ``.png`` (a
+time-against-error plot) under ``--out`` (default ``benchmarks/results/ops``; device ``cpu``, ``h100``,
+...) and prints the table.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ from pathlib import Path
 
 import torch
 
-from benchmarks.harness import Result, copy_bandwidth_gbps, run_case
+from benchmarks.harness import RESULTS, Result, copy_bandwidth_gbps, device_tag, run_case
 
 OPS = ("positional_encoding", "sample_pdf", "composite", "ray_marching", "mlca")
 
@@ -69,7 +70,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     parser.add_argument("--ops", default=",".join(OPS))
-    parser.add_argument("--out", default=str(Path(__file__).parent / "results"))
+    parser.add_argument("--out", default=str(RESULTS / "ops"))
     parser.add_argument("--repeats", type=int, default=None)
     args = parser.parse_args()
     device = torch.device(args.device)
@@ -89,18 +90,19 @@ def main() -> None:
 
 
 def write_results(results: list[Result], device: torch.device, repeats: int, copy_gbps: float | None, out: Path) -> str:
-    """Write ``ops_<device>.md``, ``.json`` and the time-against-error plot; return the markdown."""
+    """Write ``<device>.md``, ``.json`` and the time-against-error plot ``.png``; return the markdown."""
     stamp = datetime.date.today().isoformat()
     header = (f"# Op benchmarks on {device_name(device)}, {stamp}\n\ntorch {torch.__version__}; "
               f"median of {repeats} runs; errors against a float64 reference (rel: scaled by each output's max |truth|)"
               + (f"; device copy bandwidth {copy_gbps:.0f} GB/s (read + write)" if copy_gbps else "")
               + "\n\nCommand: `python -m benchmarks.bench_ops " + f"--device {device.type} --repeats {repeats}`\n\n")
     text = header + table(results, copy_gbps) + "\n"
-    (out / f"ops_{device.type}.md").write_text(text)
-    (out / f"ops_{device.type}.json").write_text(json.dumps({
+    tag = device_tag(device)
+    (out / f"{tag}.md").write_text(text)
+    (out / f"{tag}.json").write_text(json.dumps({
         "device": device_name(device), "date": stamp, "torch": torch.__version__, "copy_gbps": copy_gbps,
         "results": [dataclasses.asdict(r) for r in results]}, indent=1))
-    plot(results, out / f"ops_{device.type}_time_vs_error.png")
+    plot(results, out / f"{tag}.png")
     return text
 
 if __name__ == "__main__":

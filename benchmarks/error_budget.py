@@ -3,10 +3,11 @@ float32, float16 and bfloat16 inputs, over typical and stress input distribution
 reference path (``backend="torch"``) in the same dtype, and for compositing next to the classic NeRF
 formulation ``alpha = 1 - exp(-tau)``, ``T = cumprod(1 - alpha + 1e-10)``.
 
-    python benchmarks/error_budget.py                 # CPU kernels, < 1 minute on 2 cores
-    python benchmarks/error_budget.py --device cuda   # CUDA kernels (larger batches)
+    python -m benchmarks.error_budget                 # CPU kernels, < 1 minute on 2 cores
+    python -m benchmarks.error_budget --device cuda   # CUDA kernels (larger batches)
 
-Writes ``benchmarks/results/error_budget_<device>.md`` and ``.json`` and prints the table.
+Writes ``benchmarks/results/error_budget/<device>.md`` and ``.json`` (device ``cpu``, ``h100``, ...)
+and prints the table.
 
 Error metric: element-wise relative error ``|y - t| / max(|t|, tiny)``, with ``tiny`` the smallest
 normal number of the output dtype (values below it count as zero), except for sample positions,
@@ -32,11 +33,11 @@ from pathlib import Path
 
 import torch
 
+from benchmarks.harness import RESULTS, device_tag
 from mixer_nerf.ops import composite, hierarchical_samples, positional_encoding, sample_pdf
 from mixer_nerf.ops.sample_pdf_reference import hierarchical_samples_reference, sample_pdf_reference
 
 DTYPES = (torch.float32, torch.float16, torch.bfloat16)
-RESULTS = Path(__file__).resolve().parent / "results"
 
 
 @dataclass
@@ -396,7 +397,7 @@ def markdown(rows: list[Row], header: dict) -> str:
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--device", default="cpu", choices=("cpu", "cuda"))
-    parser.add_argument("--out", type=Path, default=RESULTS)
+    parser.add_argument("--out", type=Path, default=RESULTS / "error_budget")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
     device = torch.device(args.device)
@@ -424,8 +425,9 @@ def main(argv: list[str] | None = None) -> None:
     }
     table = markdown(rows, header)
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / f"error_budget_{device.type}.md").write_text(table)
-    (args.out / f"error_budget_{device.type}.json").write_text(
+    tag = device_tag(device)
+    (args.out / f"{tag}.md").write_text(table)
+    (args.out / f"{tag}.json").write_text(
         json.dumps({"header": header, "rows": [asdict(r) for r in rows]}, indent=1)
     )
     print(table)

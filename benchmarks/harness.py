@@ -8,13 +8,18 @@ and compared with a float64 truth; achieved bandwidth is ``min_bytes / time``.
 
 from __future__ import annotations
 
+import re
 import statistics
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import torch
+
+RESULTS = Path(__file__).resolve().parent / "results"
+"""Where each benchmark writes its current result: ``RESULTS/<benchmark>/<device>.*``."""
 
 
 @dataclass
@@ -45,6 +50,21 @@ class Result:
     max_rel_err: float | None
     error: str | None = None
     speedups: dict[str, float] = field(default_factory=dict)
+
+
+VENDOR_WORDS = {"nvidia", "geforce", "tesla", "quadro", "amd", "instinct", "radeon"}
+
+
+def device_tag(device: torch.device | str) -> str:
+    """Short device name for result file names: "cpu", or the GPU's model such as "h100" or
+    "a100" (the first words of ``torch.cuda.get_device_name`` up to the one with a digit)."""
+    device = torch.device(device)
+    if device.type != "cuda":
+        return device.type
+    name = torch.cuda.get_device_name(device).lower()
+    words = [w for w in re.split(r"[\s_-]+", name) if w not in VENDOR_WORDS]
+    model = next((i for i, w in enumerate(words) if any(c.isdigit() for c in w)), len(words) - 1)
+    return "".join(words[: model + 1]) or "cuda"
 
 
 def _flatten(value: Any) -> list[torch.Tensor]:

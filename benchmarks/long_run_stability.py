@@ -6,27 +6,32 @@
 2. Convergence: short runs with several seeds on Lego and Fern at the default learning rate;
    validation PSNR after N steps per seed, and its spread across seeds.
 
-    python benchmarks/long_run_stability.py                  # GPU defaults: <= 8 minutes on one H100
-    python benchmarks/long_run_stability.py --tiny           # CPU smoke test at toy size (~1 minute)
+    python -m benchmarks.long_run_stability                  # GPU defaults: <= 8 minutes on one H100
+    python -m benchmarks.long_run_stability --tiny           # CPU smoke test at toy size (~1 minute)
 
 Uses the project's trainer (:class:`mixer_nerf.train.Trainer`, one ``train_step`` at a time). The
 checks stay on the device (first bad step per watched tensor, as the trainer's own guard does) and
 are read back every ``--check-every`` steps, so they cost no host sync per step; the step they
 report is still exact. Every run stops at its step count or its share of ``--budget`` seconds,
-whichever comes first. Writes ``<out>/long_run_stability.json`` and prints a table last.
+whichever comes first. Writes ``<out>/<device>.json`` and ``.md`` (default
+``benchmarks/results/long_run_stability/``; device ``cpu``, ``h100``, ...), the runs' training folders
+under ``--runs``, and prints a table last.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import shlex
 import statistics
+import sys
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import torch
 
+from benchmarks.harness import RESULTS, device_tag
 from mixer_nerf.metrics import psnr
 from mixer_nerf.train import TrainConfig, Trainer
 from mixer_nerf.train.config import SAMPLER_RECIPES
@@ -199,7 +204,10 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--data", default=".data/lego_400", help="Lego (Blender) folder")
     parser.add_argument("--fern", default=".data/fern_8", help="Fern (LLFF) folder")
-    parser.add_argument("--out", type=Path, default=Path("runs/long_run_stability"))
+    parser.add_argument("--out", type=Path, default=RESULTS / "long_run_stability",
+                        help="folder of the result files")
+    parser.add_argument("--runs", type=Path, default=Path("runs/long_run_stability"),
+                        help="folder of the runs' training outputs")
     parser.add_argument(
         "--device", choices=("cpu", "cuda"), default="cuda" if torch.cuda.is_available() else "cpu"
     )
@@ -241,6 +249,24 @@ def parse_args(argv=None) -> argparse.Namespace:
     return args
 
 
+def write_results(args: argparse.Namespace, argv: list[str] | None, reports: list[RunReport]) -> str:
+    """Write ``<out>/<device>.json`` and ``.md`` (the command and the table); return the table."""
+    failed = [r for r in reports if r.first_failure]
+    text = (table(reports) + f"\n\n{len(failed)} of {len(reports)} runs went non-finite"
+            + ("" if failed else " (none expected)"))
+    given = sys.argv[1:] if argv is None else argv
+    command = shlex.join(["python", "-m", "benchmarks.long_run_stability", *given])
+    settings = {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()}
+    tag = device_tag(args.device)
+    args.out.mkdir(parents=True, exist_ok=True)
+    record = {"settings": settings, "runs": [asdict(r) for r in reports]}
+    (args.out / f"{tag}.json").write_text(json.dumps(record, indent=1))
+    (args.out / f"{tag}.md").write_text(
+        f"# Long-run stability and multi-seed convergence ({tag}, {time.strftime('%Y-%m-%d')})\n\n"
+        f"`{command}`\n\n```\n{text}\n```\n")
+    return text
+
+
 def main(argv=None) -> list[RunReport]:
     args = parse_args(argv)
     found = scenes(args)
@@ -255,7 +281,7 @@ def main(argv=None) -> list[RunReport]:
         cfg = base_config(
             args,
             found[name],
-            args.out / stamp / f"stability_{name}",
+            args.runs / stamp / f"stability_{name}",
             lr=args.stability_lr,
             lr_final=args.stability_lr / 10,
         )
@@ -266,22 +292,14 @@ def main(argv=None) -> list[RunReport]:
             cfg = base_config(
                 args,
                 found[name],
-                args.out / stamp / f"convergence_{name}_seed{seed}",
+                args.runs / stamp / f"convergence_{name}_seed{seed}",
                 steps=args.convergence_steps,
                 seed=seed,
             )
             reports.append(train_and_watch(cfg, "convergence", name, share, args.check_every, args.val_rays))
             print(row(reports[-1]), flush=True)
-    args.out.mkdir(parents=True, exist_ok=True)
-    record = {
-        "settings": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()},
-        "runs": [asdict(r) for r in reports],
-    }
-    (args.out / "long_run_stability.json").write_text(json.dumps(record, indent=1))
     print()
-    print(table(reports))
-    failed = [r for r in reports if r.first_failure]
-    print(f"\n{len(failed)} of {len(reports)} runs went non-finite" + ("" if failed else " (none expected)"))
+    print(write_results(args, argv, reports))
     return reports
 
 

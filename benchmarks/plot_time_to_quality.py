@@ -1,8 +1,10 @@
 """Plot and tabulate the curves written by ``benchmarks.time_to_quality``.
 
-    python -m benchmarks.plot_time_to_quality benchmarks/results/ttq [--targets 25,28,31]
-Writes ``time_to_quality.png`` and ``time_to_quality.md`` in that folder; ``--targets`` are the
-PSNRs (dB) whose time to reach the table gives.
+    python -m benchmarks.plot_time_to_quality [PATH ...] [--targets 25,28,31]
+
+Each PATH is a runs file (``<scene>_<device>.json``, a list of runs) or a folder of them (default
+``benchmarks/results/time_to_quality``); for each file, writes ``<scene>_<device>.png`` and ``.md``
+beside it. ``--targets`` are the PSNRs (dB) whose time to reach the table gives.
 """
 
 from __future__ import annotations
@@ -16,11 +18,14 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
+from benchmarks.harness import RESULTS  # noqa: E402
 
-def main(folder: str, targets_db: tuple[float, ...] = (25.0, 28.0, 31.0)) -> None:
-    """Time to quality: the first checkpoint at or above each of ``targets_db``."""
-    root = Path(folder)
-    records = [json.loads(p.read_text()) for p in sorted(root.glob("*.json"))]
+
+def plot(path: str | Path, targets_db: tuple[float, ...] = (25.0, 28.0, 31.0)) -> None:
+    """Plot and tabulate one runs file; the table gives each run's first checkpoint at or above each
+    of ``targets_db``."""
+    path = Path(path)
+    records = json.loads(path.read_text())
     fig, ax = plt.subplots(figsize=(6, 4))
     seconds = sorted({pt["seconds"] // 1 for r in records for pt in r["curve"]})
     rows = ["| method | " + " | ".join(f"~{int(s)} s" for s in seconds) + " | samples/ray | steps | "
@@ -42,15 +47,26 @@ def main(folder: str, targets_db: tuple[float, ...] = (25.0, 28.0, 31.0)) -> Non
     ax.grid(alpha=0.3)
     ax.legend()
     fig.tight_layout()
-    fig.savefig(root / "time_to_quality.png", dpi=120)
+    fig.savefig(path.with_suffix(".png"), dpi=120)
+    plt.close(fig)
     device = records[0]["device"] if records else ""
-    (root / "time_to_quality.md").write_text(f"# Validation PSNR against training time ({device})\n\n" + "\n".join(rows) + "\n")
+    path.with_suffix(".md").write_text(
+        f"# Validation PSNR against training time ({device})\n\n" + "\n".join(rows) + "\n")
+    print(path)
     print("\n".join(rows))
 
 
-if __name__ == "__main__":
+def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("folder", nargs="?", default="benchmarks/results/ttq")
+    parser.add_argument("paths", nargs="*", default=[str(RESULTS / "time_to_quality")],
+                        help="runs files or folders of them")
     parser.add_argument("--targets", default="25,28,31", help="comma-separated PSNRs in dB")
     args = parser.parse_args()
-    main(args.folder, tuple(float(t) for t in args.targets.split(",")))
+    targets = tuple(float(t) for t in args.targets.split(","))
+    for given in map(Path, args.paths):
+        for runs in sorted(given.glob("*.json")) if given.is_dir() else [given]:
+            plot(runs, targets)
+
+
+if __name__ == "__main__":
+    main()

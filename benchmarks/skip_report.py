@@ -16,7 +16,7 @@ import time
 
 import torch
 
-from benchmarks.time_to_quality import validate
+from benchmarks.validation import validate
 from mixer_nerf.metrics import psnr
 from mixer_nerf.ops import ray_marching
 from mixer_nerf.render.marching import render_rays_marched

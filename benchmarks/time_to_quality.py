@@ -1,7 +1,7 @@
 """Validation PSNR against training wall-clock time, one method per call (each call < 10 min).
 
     python -m benchmarks.time_to_quality --method nerfacc --data .data/lego_400 \
-        --checkpoints 30,60,120,240 --out benchmarks/results/ttq
+        --checkpoints 30,60,120,240 --label nerfacc
 
 Methods:
   nerfacc   nerfacc 0.5.3's vanilla-MLP recipe through its public API (OccGridEstimator 128^3
@@ -10,8 +10,10 @@ Methods:
   ours      our trainer (``mixer_nerf.train``), any preset, every skip switchable.
 The clock counts training only: it stops for validation, and JIT builds (nerfacc's and ours) and
 data loading happen before it starts. Validation renders every view of the val split.
-Writes ``<out>/<label>.json`` with the curve after every checkpoint (a run cut short keeps its points);
-``benchmarks/plot_time_to_quality.py`` plots them.
+Writes the run into ``<out>/<scene>_<device>.json`` (default
+``benchmarks/results/time_to_quality/lego_h100.json`` for Lego on an H100), a list of runs in which it
+replaces the run of its label or comes last, after every checkpoint (a run cut short keeps its
+points); ``benchmarks.plot_time_to_quality`` plots and tabulates that file.
 """
 
 from __future__ import annotations
@@ -25,20 +27,11 @@ from pathlib import Path
 import torch
 import torch.nn.functional as F
 
+from benchmarks.harness import RESULTS, device_tag
+from benchmarks.skip_report import skip_report
+from benchmarks.validation import validate
 from mixer_nerf.data import load_scene
-from mixer_nerf.metrics import psnr
 from mixer_nerf.train.trainer import TrainingClock
-
-
-@torch.no_grad()
-def validate(render: Callable, val, chunk: int = 1 << 15) -> float:
-    """Mean PSNR over every val view; ``render(rays_o, rays_d) -> rgb``."""
-    scores = []
-    for i in range(len(val)):
-        rays_o, rays_d = val.rays_for_image(i)
-        rgb = torch.cat([render(rays_o[j:j + chunk], rays_d[j:j + chunk]) for j in range(0, len(rays_o), chunk)])
-        scores.append(psnr(rgb.reshape(val.H, val.W, 3).clamp(0, 1), val.images[i]).item())
-    return sum(scores) / len(scores)
 
 
 def run_curve(step_fn: Callable[[int], dict], render: Callable, val, checkpoints: list[float], log: Callable,
@@ -166,6 +159,17 @@ def ours_method(args, train, val, device) -> tuple[Callable, Callable, object]:
     return step_fn, trainer.render_rgb, trainer
 
 
+def save_run(path: Path, record: dict) -> None:
+    """Write ``record`` into the list of runs in ``path``: in place of the run of its label, else last."""
+    runs = json.loads(path.read_text()) if path.exists() else []
+    labels = [run["label"] for run in runs]
+    if record["label"] in labels:
+        runs[labels.index(record["label"])] = record
+    else:
+        runs.append(record)
+    path.write_text(json.dumps(runs, indent=1))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--method", choices=["nerfacc", "ours"], required=True)
@@ -173,7 +177,10 @@ def main() -> None:
     parser.add_argument("--data", default=".data/lego_400")
     parser.add_argument("--checkpoints", default="30,60,120,240")
     parser.add_argument("--nominal-steps", type=int, default=50000, help="schedule length (nerfacc recipe)")
-    parser.add_argument("--out", default="benchmarks/results/ttq")
+    parser.add_argument("--out", default=str(RESULTS / "time_to_quality"))
+    parser.add_argument("--scene", default=None,
+                        help="scene name in the result file's name (default: the --data folder's name up to "
+                             "its first '_', e.g. lego for .data/lego_400)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--preset", default="D", help="ours: model preset")
     parser.add_argument("--sampler", default="occupancy", help="ours: occupancy | hierarchical")
@@ -227,24 +234,23 @@ def main() -> None:
     method = nerfacc_method if args.method == "nerfacc" else ours_method
     step_fn, render, trainer = method(args, train, val, device)
 
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    scene = args.scene or Path(args.data).name.split("_")[0]
+    path = Path(args.out) / f"{scene}_{device_tag(device)}.json"
+    path.parent.mkdir(parents=True, exist_ok=True)
     record = {"label": label, "method": args.method, "data": args.data, "device": torch.cuda.get_device_name(),
               "val_views": len(val), "curve": []}
 
     def log(point: dict) -> None:  # the file after every checkpoint: a run cut short keeps its points
         print(label, json.dumps(point), flush=True)
         record["curve"].append(point)
-        (out / f"{label}.json").write_text(json.dumps(record, indent=1))
+        save_run(path, record)
 
     clock = trainer.clock if trainer is not None else TrainingClock(device)
     run_curve(step_fn, render, val, checkpoints, log=log, clock=clock)
     if args.skip_report:
-        from benchmarks.skip_report import skip_report
-
         record["skip_report"] = skip_report(trainer, val)
         print(label, json.dumps(record["skip_report"]), flush=True)
-    (out / f"{label}.json").write_text(json.dumps(record, indent=1))
+        save_run(path, record)
 
 
 if __name__ == "__main__":

@@ -6,15 +6,16 @@
 #   racecheck     compute-sanitizer racecheck over those of the kernels with shared memory
 #                 ($RACECHECK_TESTS: some)
 #                 (both in the background, side by side with later stages: name them last)
-#   error_budget  python benchmarks/error_budget.py --device cuda
+#   error_budget  python -m benchmarks.error_budget --device cuda
 #   bench[:OPS]   python -m benchmarks.bench_ops --device cuda [--ops OPS]
-#   long_run      python benchmarks/long_run_stability.py (--budget $LONG_RUN_BUDGET, default 400 s)
+#   long_run      python -m benchmarks.long_run_stability (--budget $LONG_RUN_BUDGET, default 400 s)
 #   ncu           Nsight Compute sections of the composite forward and backward kernels
 #   field         python -m benchmarks.bench_field $FIELD_ARGS (the MLP's cost per preset and precision)
 #   crash         tools/diagnose_exception_crash.py (in the background, alongside later stages)
-# Logs and results are packed into $OUT/gpu_check.tgz (the device returns at most 8 files), the
-# builds into $OUT/gpu_cache.tar by tools/gpu_build.sh (unpack it into .gpu_cache and carry that to
-# skip the builds next time); a summary is printed last.
+# Logs and results are packed into $OUT/gpu_check.tgz (the device returns at most 8 files); its
+# results/ folder is laid out as benchmarks/results/ (<benchmark>/<device>.*), to be copied over it.
+# The builds go into $OUT/gpu_cache.tar by tools/gpu_build.sh (unpack it into .gpu_cache and carry
+# that to skip the builds next time); a summary is printed last.
 source tools/gpu_env.sh >/dev/null
 OUT=${OUT:-/tmp/gpu_check}; mkdir -p "$OUT/results"
 summary=$(mktemp)
@@ -44,16 +45,18 @@ for stage in "${stages[@]}"; do
       -p no:cacheprovider ${RACECHECK_TESTS:-tests/test_sample_pdf.py tests/test_positional_encoding.py \
       tests/test_segment_ops.py tests/test_mlca.py} -m cuda \
       -k "not opcheck and not 65536 and not 32_bit and not training_sized" & ;;
-    error_budget) step error_budget 150 python benchmarks/error_budget.py --device cuda --out "$OUT/results" ;;
+    error_budget) step error_budget 150 python -m benchmarks.error_budget --device cuda \
+      --out "$OUT/results/error_budget" ;;
     bench*) ops=${stage#bench}; step bench_ops 420 python -m benchmarks.bench_ops --device cuda --repeats 30 \
-      --out "$OUT/results" ${ops:+--ops ${ops#:}} ;;
-    long_run) step long_run 560 python benchmarks/long_run_stability.py --out "$OUT/results" \
-      --budget "${LONG_RUN_BUDGET:-400}" ;;
+      --out "$OUT/results/ops" ${ops:+--ops ${ops#:}} ;;
+    long_run) step long_run 560 python -m benchmarks.long_run_stability \
+      --out "$OUT/results/long_run_stability" --budget "${LONG_RUN_BUDGET:-400}" ;;
     ncu) step ncu 240 ncu --kernel-name regex:composite --launch-skip 4 --launch-count 2 \
       --section SpeedOfLight --section ComputeWorkloadAnalysis --section Occupancy --section WarpStateStats \
       --section MemoryWorkloadAnalysis python tools/profile_composite.py
-      cp "$OUT/ncu.log" "$OUT/results/ncu_composite.txt" ;;
-    field) step field 400 python -m benchmarks.bench_field --out "$OUT/results" $FIELD_ARGS ;;
+      tag=$(python -c "from benchmarks.harness import device_tag; print(device_tag('cuda'))")
+      mkdir -p "$OUT/results/ops" && cp "$OUT/ncu.log" "$OUT/results/ops/${tag}_composite_ncu.txt" ;;
+    field) step field 400 python -m benchmarks.bench_field --out "$OUT/results/field" $FIELD_ARGS ;;
     crash) timeout 400 python tools/diagnose_exception_crash.py >"$OUT/crash.log" 2>&1 & ;;
     *) echo "unknown stage $stage"; exit 2 ;;
   esac

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import torch
 
+from benchmarks.harness import RESULTS, device_tag
 from mixer_nerf.train import TrainConfig, Trainer
 
 
@@ -33,7 +34,9 @@ def main() -> None:
     parser.add_argument("--bf16-density-passes", action=argparse.BooleanOptionalAction, default=None,
                         help="default: the trainer's (on CUDA)")
     parser.add_argument("--empty-space-weight", type=float, default=None, help="default: the trainer's")
-    parser.add_argument("--out", default=None, help="write the table to DIR/train_step_<preset>_<precision>.txt")
+    parser.add_argument("--out", default=str(RESULTS / "train_step"),
+                        help="write the tables to DIR/<device>_<preset>_<precision>[_bf16pass]_step<N>.txt "
+                             "('' for none)")
     args = parser.parse_args()
 
     cfg = TrainConfig(data=args.data, preset=args.preset, precision=args.precision, device="cuda",
@@ -67,9 +70,12 @@ def main() -> None:
     table = events.table(sort_by="self_cuda_time_total", row_limit=30, max_name_column_width=70)
     print(header)
     print(table)
+    passes = "_bf16pass" * trainer.cfg.bf16_density_passes
+    # named by the step profiled, before the host profile's steps
+    name = f"{device_tag('cuda')}_{args.preset}_{args.precision}{passes}_step{trainer.step}.txt"
     host = _host_profile(trainer, args.steps)
     if args.out:
-        path = Path(args.out) / f"train_step_{args.preset}_{args.precision}{'_bf16pass' * trainer.cfg.bf16_density_passes}.txt"
+        path = Path(args.out) / name
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text(header + "\n" + table + "\n" + host + "\n")
 
