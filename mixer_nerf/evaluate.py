@@ -1,5 +1,6 @@
-"""Evaluating a checkpoint on held-out views: PSNR, SSIM and (offline only) LPIPS per image and
-on average, written as ``metrics.json`` and ``metrics.csv`` next to the rendered images."""
+"""Evaluating a checkpoint on held-out views: PSNR, SSIM and (when its weights are installed)
+LPIPS per image and on average, written as ``metrics.json`` and ``metrics.csv`` next to the
+rendered images."""
 
 from __future__ import annotations
 
@@ -60,6 +61,9 @@ def evaluate(
 
     n = len(scene) if max_images is None else min(max_images, len(scene))
     lpips_reason = metrics.lpips_unavailable_reason()
+    lpips_min = metrics.LPIPS_MIN_SIZE
+    if lpips_reason is None and min(scene.H, scene.W) < lpips_min:
+        lpips_reason = f"LPIPS skipped: images are smaller than {lpips_min}x{lpips_min}"
     notes = [lpips_reason] if lpips_reason else []
     if min(scene.H, scene.W) < SSIM_MIN_SIZE:
         notes.append(f"SSIM skipped: images are smaller than {SSIM_MIN_SIZE}x{SSIM_MIN_SIZE}")

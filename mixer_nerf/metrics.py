@@ -1,24 +1,21 @@
-"""Image quality metrics for rendered views: PSNR, SSIM and (when available offline) LPIPS.
+"""Image quality metrics for rendered views: PSNR, SSIM and (when its weights are installed) LPIPS.
 
 Images are float tensors in [0, 1], (H, W, 3) for one image or (N, H, W, 3) for a batch; every
 metric returns one value per image: a 0-d tensor or an (N,) tensor. Clamp predictions to [0, 1]
-first: the metrics do not, so that out-of-range renders are not hidden.
+first: the metrics do not, so that out-of-range renders are not hidden (LPIPS refuses them).
 """
 
 from __future__ import annotations
 
 import functools
-import importlib.util
 import warnings
-from pathlib import Path
 
 import torch
 
-LPIPS_BACKBONE_WEIGHTS = {
-    "alex": "AlexNet_Weights.IMAGENET1K_V1",
-    "vgg": "VGG16_Weights.IMAGENET1K_V1",
-    "squeeze": "SqueezeNet1_1_Weights.IMAGENET1K_V1",
-}
+from . import lpips_alex
+
+LPIPS_BACKBONES = ("alex",)
+LPIPS_MIN_SIZE = lpips_alex.MIN_SIZE
 
 
 def psnr(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
@@ -68,28 +65,14 @@ def ssim(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
 
 
 def lpips_unavailable_reason(net: str = "alex") -> str | None:
-    """None if LPIPS with backbone ``net`` can run offline, else a one-line reason why not.
+    """None if LPIPS with backbone ``net`` can run, else a one-line reason naming what to install.
 
-    LPIPS needs the ``lpips`` package (which ships its linear-layer weights), torchvision, and the
-    torchvision ImageNet weights of the backbone already in torch's hub cache: nothing is ever
-    downloaded here.
+    Only the AlexNet backbone ("alex", the usual choice for NeRF papers) is provided: see
+    :mod:`mixer_nerf.lpips_alex` for where its weights come from. Nothing is ever downloaded.
     """
-    if net not in LPIPS_BACKBONE_WEIGHTS:
-        return f"unknown LPIPS backbone {net!r} (choose from {sorted(LPIPS_BACKBONE_WEIGHTS)})"
-    for package in ("lpips", "torchvision"):
-        if importlib.util.find_spec(package) is None:
-            return f"LPIPS unavailable: the {package!r} package is not installed"
-    import lpips as lpips_pkg
-    import torchvision
-
-    linear = Path(lpips_pkg.__file__).parent / "weights" / "v0.1" / f"{net}.pth"
-    if not linear.is_file():
-        return f"LPIPS unavailable: linear-layer weights missing at {linear}"
-    url = torchvision.models.get_weight(LPIPS_BACKBONE_WEIGHTS[net]).url
-    backbone = Path(torch.hub.get_dir()) / "checkpoints" / Path(url).name
-    if not backbone.is_file():
-        return f"LPIPS unavailable: backbone weights not found at {backbone} (no download at run time)"
-    return None
+    if net not in LPIPS_BACKBONES:
+        return f"unknown LPIPS backbone {net!r} (choose from {list(LPIPS_BACKBONES)})"
+    return lpips_alex.unavailable_reason()
 
 
 def lpips_available(net: str = "alex") -> bool:
@@ -98,32 +81,38 @@ def lpips_available(net: str = "alex") -> bool:
 
 
 def lpips(pred: torch.Tensor, target: torch.Tensor, net: str = "alex") -> torch.Tensor | None:
-    """Learned perceptual distance (Zhang et al. 2018; lower is closer), or None with a warning
-    giving the reason when the package or its weights are not installed.
+    """Learned perceptual distance (Zhang et al. 2018, v0.1 linear heads; lower is closer), or None
+    with a warning giving the reason when its weights are not installed.
 
     Args:
-        pred, target: (H, W, 3) or (N, H, W, 3), values in [0, 1].
-        net: backbone, "alex" (the usual choice for NeRF papers), "vgg" or "squeeze".
+        pred, target: (H, W, 3) or (N, H, W, 3) with H, W >= LPIPS_MIN_SIZE, values in [0, 1].
+        net: backbone; only "alex".
 
     Returns:
-        () or (N,) float tensor, or None.
+        () or (N,) float tensor; 0 for identical images.
     """
     _check_images(pred, target)
+    if min(pred.shape[-3:-1]) < LPIPS_MIN_SIZE:
+        raise ValueError(
+            f"lpips needs images of at least {LPIPS_MIN_SIZE}x{LPIPS_MIN_SIZE} pixels, "
+            f"got shape {tuple(pred.shape)}"
+        )
+    for name, images in (("pred", pred), ("target", target)):
+        if not ((images >= 0) & (images <= 1)).all():
+            raise ValueError(f"lpips needs {name} values in [0, 1] (clamp renders first; NaN is refused)")
     reason = lpips_unavailable_reason(net)
     if reason is not None:
         warnings.warn(reason, RuntimeWarning, stacklevel=2)
         return None
-    model = _lpips_model(net, pred.device)
+    model = _lpips_model(pred.device)
     with torch.no_grad():
-        values = model(_to_nchw(pred).float(), _to_nchw(target).float(), normalize=True)
+        values = model(_to_nchw(pred).float(), _to_nchw(target).float())
     return values.reshape(pred.shape[:-3]).to(pred.dtype)
 
 
 @functools.cache
-def _lpips_model(net: str, device: torch.device) -> torch.nn.Module:
-    import lpips as lpips_pkg
-
-    return lpips_pkg.LPIPS(net=net, verbose=False).eval().to(device)
+def _lpips_model(device: torch.device) -> lpips_alex.AlexLPIPS:
+    return lpips_alex.load().to(device)
 
 
 def _check_images(pred: torch.Tensor, target: torch.Tensor) -> None:
