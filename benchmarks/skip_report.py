@@ -12,14 +12,14 @@ is given, not rendered.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import time
 
 import torch
 
 from benchmarks.validation import validate
 from mixer_nerf.metrics import psnr
-from mixer_nerf.ops import ray_marching
-from mixer_nerf.render.marching import render_rays_marched
+from mixer_nerf.train.sampling import image_renderer
 
 # (label, occupancy grid on, early termination on); box clipping is on in all of them.
 VARIANTS = [
@@ -30,20 +30,14 @@ VARIANTS = [
 ]
 
 
-@torch.no_grad()
 def _render(trainer, grid, early_stop_eps: float, rays_o, rays_d) -> tuple[torch.Tensor, int, int]:
     """(colour (R, 3), marched samples, shaded samples) of all rays, in the trainer's chunks."""
-    chunk, scene = trainer.cfg.chunk, trainer.train_scene
-    colors, marched, shaded = [], 0, 0
-    for i in range(0, rays_o.shape[0], chunk):
-        o, d = rays_o[i : i + chunk], rays_d[i : i + chunk]
-        marched += ray_marching(o, d, scene.near, scene.far, grid, grid.step_size, stratified=False).t_starts.shape[0]
-        out = render_rays_marched(
-            trainer.coarse_field, o, d, grid, scene.near, scene.far, stratified=False,
-            background=trainer.background, early_stop_eps=early_stop_eps, backend=trainer.cfg.backend)
-        shaded += out.samples.t_starts.shape[0]
-        colors.append(out.color)
-    return torch.cat(colors), marched, shaded
+    scene = trainer.train_scene
+    marching = dataclasses.replace(trainer.cfg.marching(), early_stop_eps=early_stop_eps)
+    renderer = image_renderer(trainer.cfg, trainer.fields, scene.near, scene.far, trainer.background,
+                              grid=grid, marching=marching)
+    result, shaded, marched = renderer.render_counted(rays_o, rays_d)
+    return result.color, marched, shaded
 
 
 def _sync() -> None:

@@ -128,7 +128,8 @@ def nerfacc_method(args, train, val, device) -> tuple[Callable, Callable, None]:
 
 TRAINER_OPTIONS = (
     "target_samples", "batch_rays", "precision", "lr", "lr_final", "lr_warmup", "lr_hold", "bf16_density_passes",
-    "adam_eps", "early_stop_eps", "empty_space_weight", "grid_warmup", "grid_every", "grid_threshold", "step_size")
+    "adam_eps", "early_stop_eps", "empty_space_weight", "grid_warmup", "grid_every", "grid_threshold", "step_size",
+    "proposal_width", "proposal_samples")
 """Options of ours passed to TrainConfig only when given: unset, they keep the trainer's defaults."""
 
 
@@ -183,7 +184,7 @@ def main() -> None:
                              "its first '_', e.g. lego for .data/lego_400)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--preset", default="D", help="ours: model preset")
-    parser.add_argument("--sampler", default="occupancy", help="ours: occupancy | hierarchical")
+    parser.add_argument("--sampler", default="occupancy", help="ours: occupancy | proposal | hierarchical")
     parser.add_argument("--target-samples", type=int, help="ours: MLP samples per step (default: the trainer's)")
     parser.add_argument("--batch-rays", type=int, default=None,
                         help="ours, hierarchical sampler: rays per step (default: the trainer's)")
@@ -199,6 +200,8 @@ def main() -> None:
     parser.add_argument("--bf16-density-passes", action=argparse.BooleanOptionalAction, default=None,
                         help="ours, occupancy sampler: grid refreshes and the early-termination pre-pass in bf16 "
                              "(default: the trainer's, on CUDA)")
+    parser.add_argument("--proposal-width", type=int, help="ours, proposal sampler: proposal networks' width")
+    parser.add_argument("--proposal-samples", type=int, help="ours, proposal sampler: main-field samples per ray")
     parser.add_argument("--adam-eps", type=float, help="ours: Adam's epsilon (default: the trainer's)")
     parser.add_argument("--early-stop-eps", type=float,
                         help="ours, occupancy sampler: early ray termination (0: off; default: the trainer's)")

@@ -69,7 +69,7 @@ def ray_marching(
         near, far: (R,) tensors or numbers; each ray is marched over [near, far] clipped to the
             grid's box. Rays that miss the box, or have a zero or non-finite direction, get no
             samples. ``far`` may be inf.
-        grid: an :class:`~mixer_nerf.occupancy_grid.OccupancyGrid`, or a tuple
+        grid: an :class:`~mixer_nerf.render.skipping.OccupancyGrid`, or a tuple
             ``(bitfield, aabb, resolution)``: (ceil(X*Y*Z / 8),) uint8 occupancy bits (cell
             ``(ix * Y + iy) * Z + iz`` is bit ``c % 8`` of byte ``c // 8``), (2, 3) box corners,
             and (X, Y, Z) or one int.
