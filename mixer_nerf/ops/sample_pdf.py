@@ -182,89 +182,6 @@ def hierarchical_samples(
     )
 
 
-def hierarchical_samples_packed(
-    z_coarse: torch.Tensor,
-    weights_coarse: torch.Tensor,
-    offsets: torch.Tensor,
-    num_fine: int,
-    deterministic: bool = False,
-    u: torch.Tensor | None = None,
-    weight_padding: float = 0.0,
-    generator: torch.Generator | None = None,
-    backend: str = "auto",
-    check_values: bool = True,
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """:func:`hierarchical_samples` for packed coarse depths: ray r owns rows
-    ``offsets[r]:offsets[r+1]`` of ``z_coarse`` and ``weights_coarse``.
-
-    Each ray's fine PDF is NeRF's (bins between the midpoints of its coarse depths, weights
-    ``weights_coarse[1:-1]`` of the ray), drawn by :func:`sample_pdf_packed` (the kernels), and
-    the fine depths are merged with the coarse ones. Rays too short for a PDF degrade gracefully:
-    with 2 coarse depths the fine ones are their midpoint, with 1 they repeat it, and a ray with
-    none gets no fine depths. No gradient flows (as in NeRF).
-
-    Args:
-        z_coarse: (N,) coarse depths, sorted within each ray.
-        weights_coarse: (N,) non-negative compositing weights of the coarse samples.
-        offsets: (R+1,) int64, non-decreasing from 0 to N.
-        num_fine, deterministic, u, weight_padding, generator, backend, check_values: as in
-            :func:`hierarchical_samples` (``u`` is (R, num_fine) or (num_fine,)).
-
-    Returns:
-        ``(depths, merged_offsets)``: (M,) sorted depths of every ray, packed, and their (R+1,)
-        offsets; ray r has its coarse depths and, unless it has none, ``num_fine`` more. Sizing
-        the output and the midpoint bins costs host syncs.
-    """
-    num_rays = _validate_packed_coarse(z_coarse, weights_coarse, offsets, check_values)
-    check_int("num_fine", num_fine)
-    z, w = z_coarse.detach(), weights_coarse.detach()
-    counts = offsets[1:] - offsets[:-1]
-    rays = torch.arange(num_rays, device=z.device)
-    edges, bin_weights, bin_offsets = _midpoint_bins(z, w, offsets, counts, rays)
-    fine = sample_pdf_packed(
-        edges, bin_weights, bin_offsets, num_fine, deterministic, u, weight_padding, generator, backend, False
-    )
-    # Merge: the fine depths of rays that have coarse ones, then one stable sort by depth and one
-    # by ray, so each ray's depths are sorted and in place (coarse first at ties).
-    has_depths = counts > 0
-    fine = fine[has_depths].reshape(-1)
-    fine_rays = rays[has_depths].repeat_interleave(num_fine)
-    depths = torch.cat([z, fine])
-    owners = torch.cat([torch.repeat_interleave(rays, counts, output_size=z.shape[0]), fine_rays])
-    by_depth = torch.sort(depths, stable=True).indices
-    order = by_depth[torch.sort(owners[by_depth], stable=True).indices]
-    merged_counts = counts + num_fine * has_depths
-    return depths[order], torch.nn.functional.pad(merged_counts.cumsum(0), (1, 0))
-
-
-def _midpoint_bins(z, w, offsets, counts, rays):
-    """Packed sample_pdf inputs of NeRF's fine PDF: ray r with S_r coarse depths has
-    max(S_r - 2, 0) bins weighted by its weights[1:-1] and max(S_r - 1, 1) edges: the midpoints,
-    its one depth if S_r == 1, 0 (unused) if S_r == 0."""
-    num_bins = (counts - 2).clamp_min(0)
-    num_edges = num_bins + 1
-    bin_offsets = torch.nn.functional.pad(num_bins.cumsum(0), (1, 0))
-    total_bins = int(bin_offsets[-1])
-    total_edges = total_bins + rays.numel()
-    padded_z = torch.cat([z, z.new_zeros(2)])  # gathers below stay in range for short rays
-    edge_ray = torch.repeat_interleave(rays, num_edges, output_size=total_edges)
-    first = (
-        offsets[:-1][edge_ray]
-        + torch.arange(total_edges, device=z.device)
-        - (bin_offsets[:-1] + rays)[edge_ray]
-    )
-    ray_len = counts[edge_ray]
-    mids = 0.5 * (padded_z[first] + padded_z[first + 1])
-    edges = torch.where(
-        ray_len >= 2, mids, torch.where(ray_len == 1, padded_z[first], torch.zeros_like(mids))
-    )
-    bin_ray = torch.repeat_interleave(rays, num_bins, output_size=total_bins)
-    bin_index = (
-        offsets[:-1][bin_ray] + 1 + torch.arange(total_bins, device=z.device) - bin_offsets[:-1][bin_ray]
-    )
-    return edges, w[bin_index], bin_offsets
-
-
 def _validate_pdf(bins: torch.Tensor, weights: torch.Tensor, check_values: bool) -> None:
     check_floating("bins", bins)
     check_floating("weights", weights)
@@ -302,27 +219,6 @@ def _validate_packed(
         descending[first_edges - 1] = False
         if bool(descending.any()):
             raise ValueError("bins must be sorted (non-decreasing) within each ray")
-    return num_rays
-
-
-def _validate_packed_coarse(z_coarse, weights_coarse, offsets, check_values: bool) -> int:
-    """Checks of hierarchical_samples_packed's inputs; returns the number of rays."""
-    check_floating("z_coarse", z_coarse)
-    check_floating("weights_coarse", weights_coarse)
-    check_ndim("z_coarse", z_coarse, 1)
-    check_shape("weights_coarse", weights_coarse, tuple(z_coarse.shape), " (like z_coarse)")
-    check_same_device(
-        z_coarse=z_coarse, weights_coarse=weights_coarse, offsets=check_tensor("offsets", offsets)
-    )
-    check_same_dtype(z_coarse=z_coarse, weights_coarse=weights_coarse)
-    num_rays = check_offsets("offsets", offsets, z_coarse.shape[0], check_values)
-    if check_values:
-        check_nonnegative("weights_coarse", weights_coarse)
-        descending = z_coarse[1:] < z_coarse[:-1]
-        starts = offsets[1:-1]  # steps from one ray's last depth to the next ray's first are free
-        descending[starts[(starts > 0) & (starts < z_coarse.shape[0])] - 1] = False
-        if bool(descending.any()):
-            raise ValueError("z_coarse must be sorted (non-decreasing) within each ray")
     return num_rays
 
 
