@@ -10,12 +10,7 @@ import torch
 from torch.library import opcheck
 
 from mixer_nerf.ops._dispatch import use_kernel
-from mixer_nerf.ops.sample_pdf import (
-    _register_fakes,
-    hierarchical_samples,
-    sample_pdf,
-    sample_pdf_packed,
-)
+from mixer_nerf.ops.sample_pdf import hierarchical_samples, sample_pdf, sample_pdf_packed
 from mixer_nerf.ops.sample_pdf_reference import (
     accumulation_dtype,
     hierarchical_samples_reference,
@@ -89,9 +84,9 @@ def assert_valid_samples(samples, bins):
 
 @pytest.fixture(scope="module", autouse=True)
 def kernels():
-    if not use_kernel("kernel", CPU):  # raises with the build error if the extension is missing
+    # Raises with the build error if the extension is missing; registers the fake kernels.
+    if not use_kernel("kernel", CPU):
         pytest.fail("no CPU kernels")
-    _register_fakes()
 
 
 # ---------------------------------------------------------------------------------------------

@@ -25,12 +25,9 @@ Positions ``u``:
 
 from __future__ import annotations
 
-import functools
 import math
-from typing import NamedTuple
 
 import torch
-from torch.autograd.function import once_differentiable
 
 from ._checks import (
     check_floating,
@@ -46,6 +43,7 @@ from ._checks import (
     check_tensor,
 )
 from ._dispatch import use_kernel
+from ._kernel_op import KernelOp
 from .sample_pdf_reference import (
     accumulation_dtype,
     hierarchical_samples_reference,
@@ -91,7 +89,7 @@ def sample_pdf(
     positions = _positions("bins", bins, num_samples, deterministic, u, generator, check_values)
     if not use_kernel(backend, bins.device):
         return sample_pdf_reference(bins, weights, positions, pad)
-    return _run_kernel(_DENSE_OPS, bins, weights, positions, pad)
+    return _SAMPLE_PDF(bins, weights, positions, pad)
 
 
 def sample_pdf_packed(
@@ -138,7 +136,7 @@ def sample_pdf_packed(
     positions = _positions("bins", bins, num_samples, deterministic, u, generator, check_values, num_rays)
     if not use_kernel(backend, bins.device):
         return sample_pdf_packed_reference(bins, weights, offsets, positions, pad)
-    return _run_kernel(_PACKED_OPS, bins, weights, positions, pad, offsets.contiguous())
+    return _SAMPLE_PDF_PACKED(bins, weights, offsets, positions, pad)
 
 
 def hierarchical_samples(
@@ -176,10 +174,7 @@ def hierarchical_samples(
     z_coarse, weights_coarse = z_coarse.detach(), weights_coarse.detach()
     if not use_kernel(backend, z_coarse.device):
         return hierarchical_samples_reference(z_coarse, weights_coarse, positions, pad)
-    _register_fakes()
-    return torch.ops.mixer_nerf.hierarchical_samples_fwd(
-        z_coarse.contiguous(), weights_coarse.contiguous(), positions, pad
-    )
+    return _HIERARCHICAL_SAMPLES(z_coarse, weights_coarse, positions, pad)
 
 
 def _validate_pdf(bins: torch.Tensor, weights: torch.Tensor, check_values: bool) -> None:
@@ -278,55 +273,15 @@ def _positions(
     return (strata + jitter) / num_samples
 
 
-class _Ops(NamedTuple):
-    """A layout's registered forward and backward; ``layout`` tensors (the packed offsets) follow
-    ``weights`` in both schemas and get no gradient."""
-
-    forward: str
-    backward: str
-
-
-_DENSE_OPS = _Ops("sample_pdf_fwd", "sample_pdf_bwd")
-_PACKED_OPS = _Ops("sample_pdf_packed_fwd", "sample_pdf_packed_bwd")
-
-
-def _run_kernel(ops: _Ops, bins, weights, positions, pad, *layout) -> torch.Tensor:
-    _register_fakes()
-    return _SamplePdfFunction.apply(ops, bins.contiguous(), weights.contiguous(), positions, pad, *layout)
-
-
-class _SamplePdfFunction(torch.autograd.Function):
-    @staticmethod
-    def forward(ctx, ops, bins, weights, u, weight_padding, *layout):
-        ctx.save_for_backward(bins, weights, u, *layout)
-        ctx.ops, ctx.weight_padding = ops, weight_padding
-        return getattr(torch.ops.mixer_nerf, ops.forward)(bins, weights, *layout, u, weight_padding)
-
-    @staticmethod
-    @once_differentiable
-    def backward(ctx, grad_samples):
-        bins, weights, u, *layout = ctx.saved_tensors
-        grad_bins, grad_weights = getattr(torch.ops.mixer_nerf, ctx.ops.backward)(
-            grad_samples.contiguous(), bins, weights, *layout, u, ctx.weight_padding
-        )
-        return None, grad_bins, grad_weights, None, None, *[None] * len(layout)
-
-
-@functools.cache
-def _register_fakes() -> None:
-    """Shape functions for torch.compile and opcheck; the ops exist only once the extension loaded."""
-    torch.library.register_fake("mixer_nerf::sample_pdf_fwd", _sample_pdf_fwd_fake)
-    torch.library.register_fake("mixer_nerf::sample_pdf_bwd", _sample_pdf_bwd_fake)
-    torch.library.register_fake("mixer_nerf::hierarchical_samples_fwd", _hierarchical_samples_fwd_fake)
-    torch.library.register_fake("mixer_nerf::sample_pdf_packed_fwd", _sample_pdf_packed_fwd_fake)
-    torch.library.register_fake("mixer_nerf::sample_pdf_packed_bwd", _sample_pdf_packed_bwd_fake)
-
-
 def _sample_pdf_fwd_fake(bins, weights, u, weight_padding):
     return bins.new_empty(bins.shape[0], u.shape[-1])
 
 
-def _sample_pdf_bwd_fake(grad_samples, bins, weights, u, weight_padding):
+def _sample_pdf_packed_fwd_fake(bins, weights, offsets, u, weight_padding):
+    return bins.new_empty(offsets.shape[0] - 1, u.shape[-1])
+
+
+def _sample_pdf_bwd_fake(grad_samples, bins, weights, *offsets_u_and_padding):
     return torch.empty_like(bins), torch.empty_like(weights)
 
 
@@ -334,9 +289,8 @@ def _hierarchical_samples_fwd_fake(z_coarse, weights, u, weight_padding):
     return z_coarse.new_empty(z_coarse.shape[0], z_coarse.shape[1] + u.shape[-1])
 
 
-def _sample_pdf_packed_fwd_fake(bins, weights, offsets, u, weight_padding):
-    return bins.new_empty(offsets.shape[0] - 1, u.shape[-1])
-
-
-def _sample_pdf_packed_bwd_fake(grad_samples, bins, weights, offsets, u, weight_padding):
-    return torch.empty_like(bins), torch.empty_like(weights)
+_SAMPLE_PDF = KernelOp("sample_pdf_fwd", _sample_pdf_fwd_fake, "sample_pdf_bwd", _sample_pdf_bwd_fake)
+_SAMPLE_PDF_PACKED = KernelOp(
+    "sample_pdf_packed_fwd", _sample_pdf_packed_fwd_fake, "sample_pdf_packed_bwd", _sample_pdf_bwd_fake
+)
+_HIERARCHICAL_SAMPLES = KernelOp("hierarchical_samples_fwd", _hierarchical_samples_fwd_fake)
