@@ -33,7 +33,8 @@ from pathlib import Path
 import torch
 
 from mixer_nerf.ops import composite, hierarchical_samples, positional_encoding, sample_pdf
-from mixer_nerf.ops.sample_pdf_reference import hierarchical_samples_reference, sample_pdf_reference
+from mixer_nerf.ops.hierarchical_samples_reference import hierarchical_samples_reference
+from mixer_nerf.ops.sample_pdf_reference import sample_pdf_reference
 
 DTYPES = (torch.float32, torch.float16, torch.bfloat16)
 RESULTS = Path(__file__).resolve().parent / "results"

@@ -33,7 +33,8 @@ from mixer_nerf.ops import (
     sample_pdf_packed,
 )
 from mixer_nerf.ops.composite import CompositeResult
-from mixer_nerf.ops.sample_pdf_reference import hierarchical_samples_reference, sample_pdf_reference
+from mixer_nerf.ops.hierarchical_samples_reference import hierarchical_samples_reference
+from mixer_nerf.ops.sample_pdf_reference import sample_pdf_reference
 
 settings.register_profile(
     "ci", max_examples=50, deadline=None, suppress_health_check=[HealthCheck.too_slow], print_blob=True

@@ -10,10 +10,11 @@ import torch
 from torch.library import opcheck
 
 from mixer_nerf.ops._dispatch import use_kernel
-from mixer_nerf.ops.sample_pdf import hierarchical_samples, sample_pdf, sample_pdf_packed
+from mixer_nerf.ops.hierarchical_samples import hierarchical_samples
+from mixer_nerf.ops.hierarchical_samples_reference import hierarchical_samples_reference
+from mixer_nerf.ops.sample_pdf import sample_pdf, sample_pdf_packed
 from mixer_nerf.ops.sample_pdf_reference import (
     accumulation_dtype,
-    hierarchical_samples_reference,
     sample_pdf_packed_reference,
     sample_pdf_reference,
 )

@@ -8,10 +8,9 @@ so they come out sorted and within ``[bins[:, 0], bins[:, -1]]``; bins of zero w
 sampled, and padded weights below the smallest normal number of the accumulation dtype
 (float32, or float64 for float64 inputs) count as zero; a ray whose weights are then all zero,
 or whose total overflows, samples uniformly between its first and last edge. A ray with a NaN
-weight samples NaN, and all its weights and edges get NaN gradients (other rays are untouched;
-``hierarchical_samples`` puts its NaN fine depths after its coarse ones, as ``torch.sort``
-puts NaN last). Gradients with respect to the weights scale like (bin width) / (bin weight):
-exact, and large where a sample falls in a light bin.
+weight samples NaN, and all its weights and edges get NaN gradients (other rays are
+untouched). Gradients with respect to the weights scale like (bin width) / (bin weight): exact,
+and large where a sample falls in a light bin.
 
 Positions ``u``:
   * explicit ``u``: ``(R, N)`` or ``(N,)`` shared by every ray, sorted, in [0, 1];
@@ -44,12 +43,7 @@ from ._checks import (
 )
 from ._dispatch import use_kernel
 from ._kernel_op import KernelOp
-from .sample_pdf_reference import (
-    accumulation_dtype,
-    hierarchical_samples_reference,
-    sample_pdf_packed_reference,
-    sample_pdf_reference,
-)
+from .sample_pdf_reference import accumulation_dtype, sample_pdf_packed_reference, sample_pdf_reference
 
 
 def sample_pdf(
@@ -85,8 +79,8 @@ def sample_pdf(
     """
     _validate_pdf(bins, weights, check_values)
     check_int("num_samples", num_samples)
-    pad = _check_padding(weight_padding)
-    positions = _positions("bins", bins, num_samples, deterministic, u, generator, check_values)
+    pad = check_weight_padding(weight_padding)
+    positions = sample_positions("bins", bins, num_samples, deterministic, u, generator, check_values)
     if not use_kernel(backend, bins.device):
         return sample_pdf_reference(bins, weights, positions, pad)
     return _SAMPLE_PDF(bins, weights, positions, pad)
@@ -132,49 +126,13 @@ def sample_pdf_packed(
     """
     num_rays = _validate_packed(bins, weights, offsets, check_values)
     check_int("num_samples", num_samples)
-    pad = _check_padding(weight_padding)
-    positions = _positions("bins", bins, num_samples, deterministic, u, generator, check_values, num_rays)
+    pad = check_weight_padding(weight_padding)
+    positions = sample_positions(
+        "bins", bins, num_samples, deterministic, u, generator, check_values, num_rays
+    )
     if not use_kernel(backend, bins.device):
         return sample_pdf_packed_reference(bins, weights, offsets, positions, pad)
     return _SAMPLE_PDF_PACKED(bins, weights, offsets, positions, pad)
-
-
-def hierarchical_samples(
-    z_coarse: torch.Tensor,
-    weights_coarse: torch.Tensor,
-    num_fine: int,
-    deterministic: bool = False,
-    u: torch.Tensor | None = None,
-    weight_padding: float = 0.0,
-    generator: torch.Generator | None = None,
-    backend: str = "auto",
-    check_values: bool = True,
-) -> torch.Tensor:
-    """NeRF's fine-pass depths: the coarse depths and ``num_fine`` new ones, merged and sorted.
-
-    As in NeRF, the fine samples are drawn from the PDF whose bins are the midpoints of
-    ``z_coarse`` (S-1 edges) and whose weights are ``weights_coarse[:, 1:-1]`` (S-2 bins), then
-    merged with ``z_coarse`` in one pass (the kernels do not sort). No gradient flows: NeRF
-    detaches the fine depths, so the result never requires grad.
-
-    Args:
-        z_coarse: (R, S) sorted coarse depths, S >= 3.
-        weights_coarse: (R, S) non-negative compositing weights of the coarse samples.
-        num_fine: N >= 0 fine samples per ray.
-        deterministic, u, weight_padding, generator, backend, check_values: as in
-            :func:`sample_pdf` (``u`` is (R, N) or (N,)).
-
-    Returns:
-        (R, S + N) sorted depths in the dtype of ``z_coarse``.
-    """
-    _validate_coarse(z_coarse, weights_coarse, check_values)
-    check_int("num_fine", num_fine)
-    pad = _check_padding(weight_padding)
-    positions = _positions("z_coarse", z_coarse, num_fine, deterministic, u, generator, check_values)
-    z_coarse, weights_coarse = z_coarse.detach(), weights_coarse.detach()
-    if not use_kernel(backend, z_coarse.device):
-        return hierarchical_samples_reference(z_coarse, weights_coarse, positions, pad)
-    return _HIERARCHICAL_SAMPLES(z_coarse, weights_coarse, positions, pad)
 
 
 def _validate_pdf(bins: torch.Tensor, weights: torch.Tensor, check_values: bool) -> None:
@@ -217,21 +175,8 @@ def _validate_packed(
     return num_rays
 
 
-def _validate_coarse(z_coarse: torch.Tensor, weights_coarse: torch.Tensor, check_values: bool) -> None:
-    check_floating("z_coarse", z_coarse)
-    check_floating("weights_coarse", weights_coarse)
-    check_ndim("z_coarse", z_coarse, 2)
-    if z_coarse.shape[1] < 3:
-        raise ValueError(f"z_coarse must have at least 3 samples per ray, got shape {tuple(z_coarse.shape)}")
-    check_shape("weights_coarse", weights_coarse, tuple(z_coarse.shape), " (like z_coarse)")
-    check_same_device(z_coarse=z_coarse, weights_coarse=weights_coarse)
-    check_same_dtype(z_coarse=z_coarse, weights_coarse=weights_coarse)
-    if check_values:
-        check_sorted("z_coarse", z_coarse)
-        check_nonnegative("weights_coarse", weights_coarse)
-
-
-def _check_padding(weight_padding: float) -> float:
+def check_weight_padding(weight_padding: float) -> float:
+    """``weight_padding`` as a float, else an error naming it."""
     if isinstance(weight_padding, bool) or not isinstance(weight_padding, (int, float)):
         raise TypeError(f"weight_padding must be a float, got {type(weight_padding).__name__}")
     if not (math.isfinite(weight_padding) and weight_padding >= 0):
@@ -239,7 +184,7 @@ def _check_padding(weight_padding: float) -> float:
     return float(weight_padding)
 
 
-def _positions(
+def sample_positions(
     like_name: str,
     like: torch.Tensor,
     num_samples: int,
@@ -285,12 +230,7 @@ def _sample_pdf_bwd_fake(grad_samples, bins, weights, *offsets_u_and_padding):
     return torch.empty_like(bins), torch.empty_like(weights)
 
 
-def _hierarchical_samples_fwd_fake(z_coarse, weights, u, weight_padding):
-    return z_coarse.new_empty(z_coarse.shape[0], z_coarse.shape[1] + u.shape[-1])
-
-
 _SAMPLE_PDF = KernelOp("sample_pdf_fwd", _sample_pdf_fwd_fake, "sample_pdf_bwd", _sample_pdf_bwd_fake)
 _SAMPLE_PDF_PACKED = KernelOp(
     "sample_pdf_packed_fwd", _sample_pdf_packed_fwd_fake, "sample_pdf_packed_bwd", _sample_pdf_bwd_fake
 )
-_HIERARCHICAL_SAMPLES = KernelOp("hierarchical_samples_fwd", _hierarchical_samples_fwd_fake)
