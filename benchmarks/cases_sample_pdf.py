@@ -23,12 +23,10 @@ from __future__ import annotations
 import torch
 
 from benchmarks.harness import Case, Variant
-from mixer_nerf.ops.sample_pdf import hierarchical_samples, sample_pdf, sample_pdf_packed
-from mixer_nerf.ops.sample_pdf_reference import (
-    hierarchical_samples_reference,
-    sample_pdf_packed_reference,
-    sample_pdf_reference,
-)
+from mixer_nerf.ops.hierarchical_samples import hierarchical_samples
+from mixer_nerf.ops.hierarchical_samples_reference import hierarchical_samples_reference
+from mixer_nerf.ops.sample_pdf import sample_pdf, sample_pdf_packed
+from mixer_nerf.ops.sample_pdf_reference import sample_pdf_packed_reference, sample_pdf_reference
 
 COARSE, FINE = 64, 128
 

@@ -35,7 +35,8 @@ import torch
 
 from benchmarks.harness import RESULTS, device_tag
 from mixer_nerf.ops import composite, hierarchical_samples, positional_encoding, sample_pdf
-from mixer_nerf.ops.sample_pdf_reference import hierarchical_samples_reference, sample_pdf_reference
+from mixer_nerf.ops.hierarchical_samples_reference import hierarchical_samples_reference
+from mixer_nerf.ops.sample_pdf_reference import sample_pdf_reference
 
 DTYPES = (torch.float32, torch.float16, torch.bfloat16)
 

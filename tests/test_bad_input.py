@@ -29,7 +29,6 @@ from mixer_nerf.ops import (
     composite,
     composite_packed,
     hierarchical_samples,
-    hierarchical_samples_packed,
     positional_encoding,
     ray_marching,
     ray_scale,
@@ -105,15 +104,6 @@ def packed_pdf_args(**changes):
     return {
         "bins": torch.tensor([0.0, 1, 2, 5, 0, 1, 2, 3]),
         "weights": torch.rand(5),
-        "offsets": OFFSETS,
-        **changes,
-    }
-
-
-def packed_coarse_args(**changes):
-    return {
-        "z_coarse": torch.tensor([0.0, 1, 0, 1, 2]),
-        "weights_coarse": torch.rand(5),
         "offsets": OFFSETS,
         **changes,
     }
@@ -214,7 +204,7 @@ OP_CASES = {
         ValueError,
         "background",
     ),
-    # sample_pdf_packed and hierarchical_samples_packed
+    # sample_pdf_packed
     "sample_pdf_packed unsorted ray": (
         lambda b: sample_pdf_packed(
             **packed_pdf_args(bins=torch.tensor([0.0, 2, 1, 5, 0, 1, 2, 3])), num_samples=4, backend=b
@@ -238,27 +228,6 @@ OP_CASES = {
         lambda b: sample_pdf_packed(**packed_pdf_args(weights=-torch.rand(5)), num_samples=4, backend=b),
         ValueError,
         "weights must be non-negative",
-    ),
-    "hierarchical_packed unsorted ray": (
-        lambda b: hierarchical_samples_packed(
-            **packed_coarse_args(z_coarse=torch.tensor([0.0, 1, 0, 2, 1])), num_fine=4, backend=b
-        ),
-        ValueError,
-        "z_coarse must be sorted",
-    ),
-    "hierarchical_packed offsets past N": (
-        lambda b: hierarchical_samples_packed(
-            **packed_coarse_args(offsets=torch.tensor([0, 2, 6])), num_fine=4, backend=b
-        ),
-        ValueError,
-        "offsets must start at 0 and end at 5",
-    ),
-    "hierarchical_packed weights on meta": (
-        lambda b: hierarchical_samples_packed(
-            **packed_coarse_args(weights_coarse=torch.rand(5, device=META)), num_fine=4, backend=b
-        ),
-        ValueError,
-        "weights_coarse on meta",
     ),
     # sample_pdf
     "sample_pdf unsorted bins": (

@@ -28,13 +28,13 @@ from mixer_nerf.ops import (
     composite,
     composite_packed,
     hierarchical_samples,
-    hierarchical_samples_packed,
     positional_encoding,
     sample_pdf,
     sample_pdf_packed,
 )
 from mixer_nerf.ops.composite import CompositeResult
-from mixer_nerf.ops.sample_pdf_reference import hierarchical_samples_reference, sample_pdf_reference
+from mixer_nerf.ops.hierarchical_samples_reference import hierarchical_samples_reference
+from mixer_nerf.ops.sample_pdf_reference import sample_pdf_reference
 
 settings.register_profile(
     "ci", max_examples=50, deadline=None, suppress_health_check=[HealthCheck.too_slow], print_blob=True
@@ -554,35 +554,6 @@ def test_sample_pdf_packed_matches_sample_pdf_ray_by_ray(case, data):
             bins[r : r + 1, : c + 1], weights[r : r + 1, :c], N, u=u[r : r + 1], backend="kernel"
         )
         torch.testing.assert_close(samples[r], alone[0], rtol=0, atol=0)
-
-
-@PROFILE
-@given(case=pdf_cases(), data=st.data())
-def test_hierarchical_samples_packed_matches_dense_and_short_rays(case, data):
-    """Rays of >= 3 coarse depths match hierarchical_samples on the ray alone; shorter ones follow
-    the documented fallbacks (2 depths: their midpoint, 1: repeated, none: no depth)."""
-    z, weights, N, _, gen = case
-    R, S = z.shape
-    weights_coarse = torch.cat([weights, weights[:, :1]], dim=1)  # (R, S)
-    counts = ray_counts(data.draw, R, S)
-    u = torch.sort(torch.rand(R, N, generator=gen), dim=-1).values
-    depths, merged_offsets = hierarchical_samples_packed(
-        pack_rows(z, counts), pack_rows(weights_coarse, counts), offsets_of(counts), N, u=u, backend="kernel"
-    )
-    assert torch.isfinite(depths).all()
-    for r, c in enumerate(counts):
-        ray = depths[merged_offsets[r] : merged_offsets[r + 1]]
-        assert ray.numel() == (c + N if c else 0)
-        assert (ray[1:] >= ray[:-1]).all()
-        if c >= 3:
-            alone = hierarchical_samples(
-                z[r : r + 1, :c], weights_coarse[r : r + 1, :c], N, u=u[r : r + 1], backend="kernel"
-            )
-            torch.testing.assert_close(ray, alone[0], rtol=0, atol=0)
-        elif c:
-            fine = 0.5 * (z[r, 0] + z[r, c - 1])  # the midpoint of 2 depths, or the single one
-            expected = torch.sort(torch.cat([z[r, :c], fine.expand(N)])).values
-            torch.testing.assert_close(ray, expected, rtol=0, atol=0)
 
 
 # ---------------------------------------------------------------------------------------------

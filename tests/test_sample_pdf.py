@@ -10,16 +10,11 @@ import torch
 from torch.library import opcheck
 
 from mixer_nerf.ops._dispatch import use_kernel
-from mixer_nerf.ops.sample_pdf import (
-    _register_fakes,
-    hierarchical_samples,
-    hierarchical_samples_packed,
-    sample_pdf,
-    sample_pdf_packed,
-)
+from mixer_nerf.ops.hierarchical_samples import hierarchical_samples
+from mixer_nerf.ops.hierarchical_samples_reference import hierarchical_samples_reference
+from mixer_nerf.ops.sample_pdf import sample_pdf, sample_pdf_packed
 from mixer_nerf.ops.sample_pdf_reference import (
     accumulation_dtype,
-    hierarchical_samples_reference,
     sample_pdf_packed_reference,
     sample_pdf_reference,
 )
@@ -90,9 +85,9 @@ def assert_valid_samples(samples, bins):
 
 @pytest.fixture(scope="module", autouse=True)
 def kernels():
-    if not use_kernel("kernel", CPU):  # raises with the build error if the extension is missing
+    # Raises with the build error if the extension is missing; registers the fake kernels.
+    if not use_kernel("kernel", CPU):
         pytest.fail("no CPU kernels")
-    _register_fakes()
 
 
 # ---------------------------------------------------------------------------------------------
@@ -905,98 +900,3 @@ def test_packed_cuda_adversarial_and_opcheck():
         torch.ops.mixer_nerf.sample_pdf_packed_bwd.default,
         (grad, bins, weights, offsets, sorted_u(5, 6, device=dev), 0.0),
     )
-
-
-# ---------------------------------------------------------------------------------------------
-# Packed coarse depths: hierarchical_samples_packed
-
-
-def random_packed_coarse(counts, dtype=torch.float32, device=CPU):
-    counts = torch.as_tensor(counts, dtype=torch.int64)
-    width = max(int(counts.max()) if counts.numel() else 0, 1)
-    z, w = random_coarse(counts.numel(), width, dtype, device)
-    keep = torch.arange(width, device=device) < counts.to(device)[:, None]
-    offsets = torch.nn.functional.pad(counts.cumsum(0), (1, 0)).to(device)
-    return z[keep].contiguous(), w[keep].contiguous(), offsets
-
-
-@pytest.mark.parametrize("backend", ["kernel", "torch"])
-@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-def test_hierarchical_packed_equals_dense_when_rays_have_S_depths(backend, dtype):
-    R, S, N = 7, 12, 9
-    z, w = random_coarse(R, S, dtype)
-    u = sorted_u(R, N, dtype)
-    offsets = torch.arange(R + 1) * S
-    depths, merged_offsets = hierarchical_samples_packed(
-        z.reshape(-1), w.reshape(-1), offsets, N, u=u, backend=backend
-    )
-    assert torch.equal(merged_offsets, torch.arange(R + 1) * (S + N))
-    dense = hierarchical_samples(z, w, N, u=u, backend=backend)
-    torch.testing.assert_close(depths.reshape(R, S + N), dense, atol=tolerance(dtype, S), rtol=0)
-
-
-@pytest.mark.parametrize("backend", ["kernel", "torch"])
-def test_hierarchical_packed_ragged_and_short_rays(backend):
-    counts = [0, 1, 2, 3, 8, 0, 30]
-    N = 5
-    z, w, offsets = random_packed_coarse(counts, torch.float64)
-    depths, merged_offsets = hierarchical_samples_packed(
-        z, w, offsets, N, deterministic=True, backend=backend
-    )
-    assert merged_offsets.tolist() == [0, *torch.tensor([c + N * (c > 0) for c in counts]).cumsum(0).tolist()]
-    for r, c in enumerate(counts):
-        ray = depths[merged_offsets[r] : merged_offsets[r + 1]]
-        coarse = z[offsets[r] : offsets[r + 1]]
-        assert (ray[1:] >= ray[:-1]).all()
-        assert torch.isin(coarse, ray).all()
-        fine = ray[~torch.isin(ray, coarse)] if c else ray
-        if c == 1:
-            assert torch.equal(ray, coarse.expand(N + 1))
-        elif c == 2:
-            assert torch.allclose(fine, coarse.mean().expand(N))
-        elif c >= 3:
-            mids = 0.5 * (coarse[1:] + coarse[:-1])
-            assert ((ray >= coarse[0]) & (ray <= coarse[-1])).all() and (
-                (fine >= mids[0]) & (fine <= mids[-1])
-            ).all()
-
-
-def test_hierarchical_packed_kernel_matches_reference_and_no_grad():
-    z, w, offsets = random_packed_coarse([4, 0, 9, 3, 2, 17])
-    u = sorted_u(6, 11)
-    zg, wg = z.clone().requires_grad_(), w.clone().requires_grad_()
-    ours = hierarchical_samples_packed(zg, wg, offsets, 11, u=u, backend="kernel")
-    ref = hierarchical_samples_packed(z.double(), w.double(), offsets, 11, u=u.double(), backend="torch")
-    assert not ours[0].requires_grad
-    assert torch.equal(ours[1], ref[1])
-    torch.testing.assert_close(ours[0], ref[0].float(), atol=tolerance(torch.float32, 15), rtol=0)
-
-
-@pytest.mark.parametrize(
-    "index, bad, error, name",
-    [
-        (0, torch.rand(6, 1), ValueError, "z_coarse"),
-        (0, torch.tensor([0.0, 1.0, 0.5, 0.0, 1.0, 2.0]), ValueError, "z_coarse"),
-        (1, torch.rand(5), ValueError, "weights_coarse"),
-        (1, -torch.rand(6), ValueError, "weights_coarse"),
-        (1, torch.rand(6, dtype=torch.float64), TypeError, "weights_coarse"),
-        (2, torch.tensor([0, 3, 5]), ValueError, "offsets"),
-        (2, torch.tensor([0, 3, 6], dtype=torch.int32), TypeError, "offsets"),
-    ],
-)
-def test_hierarchical_packed_bad_input(index, bad, error, name):
-    args = [torch.tensor([0.0, 1.0, 2.0, 0.0, 1.0, 2.0]), torch.rand(6), torch.tensor([0, 3, 6])]
-    args[index] = bad
-    with pytest.raises(error, match=name):
-        hierarchical_samples_packed(*args, 4, deterministic=True)
-
-
-@cuda
-@needs_cuda
-def test_hierarchical_packed_cuda_matches_cpu():
-    z, w, offsets = random_packed_coarse(torch.randint(0, 70, (3000,)).tolist())
-    u = sorted_u(3000, 32)
-    cpu = hierarchical_samples_packed(z, w, offsets, 32, u=u, backend="kernel")
-    gpu = hierarchical_samples_packed(z.cuda(), w.cuda(), offsets.cuda(), 32, u=u.cuda(), backend="kernel")
-    assert torch.equal(gpu[1].cpu(), cpu[1])
-    torch.testing.assert_close(gpu[0].cpu(), cpu[0], atol=1e-6, rtol=0)

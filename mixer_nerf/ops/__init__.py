@@ -6,10 +6,11 @@
 """
 
 from .composite import composite, composite_packed
+from .hierarchical_samples import hierarchical_samples
 from .mlca import mlca
 from .positional_encoding import positional_encoding
 from .ray_marching import PackedSamples, filter_by_transmittance, ray_marching
-from .sample_pdf import hierarchical_samples, hierarchical_samples_packed, sample_pdf, sample_pdf_packed
+from .sample_pdf import sample_pdf, sample_pdf_packed
 from .segment_ops import ray_scale, segment_mean
 
 __all__ = [
@@ -18,7 +19,6 @@ __all__ = [
     "composite_packed",
     "filter_by_transmittance",
     "hierarchical_samples",
-    "hierarchical_samples_packed",
     "mlca",
     "positional_encoding",
     "ray_marching",

@@ -6,13 +6,15 @@ import torch
 
 from .. import _extension
 from ._checks import check_backend
+from ._kernel_op import register_declared
 
 
 def use_kernel(backend: str, device: torch.device) -> bool:
     """True to run the compiled kernel, False for the reference path.
 
     ``"torch"``: never. ``"kernel"``: always, raising :class:`ExtensionUnavailable` if the
-    extension or a kernel for ``device`` is missing. ``"auto"``: when both are there.
+    extension or a kernel for ``device`` is missing. ``"auto"``: when both are there. Picking a
+    kernel registers the ops' fake kernels and backwards (see :mod:`mixer_nerf.ops._kernel_op`).
     """
     check_backend(backend)
     if backend == "torch":
@@ -26,4 +28,6 @@ def use_kernel(backend: str, device: torch.device) -> bool:
     if backend == "kernel" and not supported:
         _extension.load()  # raises with the build error if that is the reason
         raise _extension.ExtensionUnavailable(f"mixer_nerf has no kernels for device {device}")
+    if supported:
+        register_declared()
     return supported

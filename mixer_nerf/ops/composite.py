@@ -13,11 +13,9 @@ rays with different numbers of samples, packed ``(N,)`` with CSR offsets ``(R+1,
 
 from __future__ import annotations
 
-import functools
 from typing import NamedTuple
 
 import torch
-from torch.autograd.function import once_differentiable
 
 from ._checks import (
     check_floating,
@@ -30,6 +28,7 @@ from ._checks import (
     check_tensor,
 )
 from ._dispatch import use_kernel
+from ._kernel_op import KernelOp
 from .composite_reference import composite_packed_reference, composite_reference
 
 
@@ -68,7 +67,7 @@ def composite(
     _validate(sigmas, rgbs, t_starts, t_ends, background, check_values)
     if not use_kernel(backend, sigmas.device):
         return CompositeResult(*composite_reference(sigmas, rgbs, t_starts, t_ends, background))
-    return _run_kernel(_DENSE_OPS, sigmas, rgbs, t_starts, t_ends, background)
+    return CompositeResult(*_COMPOSITE(sigmas, rgbs, t_starts, t_ends, background))
 
 
 def composite_packed(
@@ -105,7 +104,7 @@ def composite_packed(
         return CompositeResult(
             *composite_packed_reference(sigmas, rgbs, t_starts, t_ends, offsets, background)
         )
-    return _run_kernel(_PACKED_OPS, sigmas, rgbs, t_starts, t_ends, background, offsets.contiguous())
+    return CompositeResult(*_COMPOSITE_PACKED(sigmas, rgbs, t_starts, t_ends, background, offsets))
 
 
 def _validate(sigmas, rgbs, t_starts, t_ends, background, check_values: bool) -> None:
@@ -157,59 +156,6 @@ def _check_samples(sigmas, rgbs, t_starts, t_ends, background, num_rays: int, ch
             raise ValueError("t_ends must be >= t_starts everywhere (intervals of non-negative length)")
 
 
-class _Ops(NamedTuple):
-    """A layout's registered forward and backward; ``layout`` tensors (the packed offsets) follow
-    ``background`` in both schemas and get no gradient."""
-
-    forward: str
-    backward: str
-
-
-_DENSE_OPS = _Ops("composite_fwd", "composite_bwd")
-_PACKED_OPS = _Ops("composite_packed_fwd", "composite_packed_bwd")
-
-
-def _run_kernel(ops: _Ops, sigmas, rgbs, t_starts, t_ends, background, *layout) -> CompositeResult:
-    _register_fakes()
-    tensors = [None if x is None else x.contiguous() for x in (sigmas, rgbs, t_starts, t_ends, background)]
-    if torch.is_grad_enabled() and any(x is not None and x.requires_grad for x in tensors):
-        return CompositeResult(*_CompositeFunction.apply(ops, *tensors, *layout))
-    # Inference: no autograd bookkeeping.
-    return CompositeResult(*getattr(torch.ops.mixer_nerf, ops.forward)(*tensors, *layout))
-
-
-class _CompositeFunction(torch.autograd.Function):
-    @staticmethod
-    def forward(ctx, ops, sigmas, rgbs, t_starts, t_ends, background, *layout):
-        outputs = getattr(torch.ops.mixer_nerf, ops.forward)(
-            sigmas, rgbs, t_starts, t_ends, background, *layout
-        )
-        ctx.save_for_backward(sigmas, rgbs, t_starts, t_ends, background, *layout)
-        ctx.ops = ops
-        ctx.set_materialize_grads(False)  # unused outputs arrive as None: the kernel reads no zeros
-        return outputs
-
-    @staticmethod
-    @once_differentiable
-    def backward(ctx, grad_color, grad_depth, grad_opacity, grad_weights):
-        saved = ctx.saved_tensors
-        upstream = [
-            None if g is None else g.contiguous()
-            for g in (grad_color, grad_depth, grad_opacity, grad_weights)
-        ]
-        interval_grads = ctx.needs_input_grad[3] or ctx.needs_input_grad[4]
-        grads = getattr(torch.ops.mixer_nerf, ctx.ops.backward)(*upstream, *saved, interval_grads)
-        return None, *grads, *[None] * (len(saved) - 5)
-
-
-@functools.cache
-def _register_fakes() -> None:
-    """Shape functions for torch.compile and opcheck; the ops exist only once the extension loaded."""
-    for ops in (_DENSE_OPS, _PACKED_OPS):
-        torch.library.register_fake(f"mixer_nerf::{ops.forward}", _composite_fwd_fake)
-        torch.library.register_fake(f"mixer_nerf::{ops.backward}", _composite_bwd_fake)
-
-
 def _composite_fwd_fake(sigmas, rgbs, t_starts, t_ends, background, *layout):
     num_rays = layout[0].shape[0] - 1 if layout else sigmas.shape[0]
     return (
@@ -237,3 +183,16 @@ def _composite_bwd_fake(
     grad_t_ends = torch.empty_like(t_ends) if interval_grads else None
     grad_background = None if background is None else torch.empty_like(background)
     return torch.empty_like(sigmas), torch.empty_like(rgbs), grad_t_starts, grad_t_ends, grad_background
+
+
+def _interval_grads(needs_input_grad: tuple[bool, ...]) -> tuple[bool]:
+    """The backward kernels' flag: whether t_starts or t_ends want gradients."""
+    return (needs_input_grad[2] or needs_input_grad[3],)
+
+
+_COMPOSITE = KernelOp(
+    "composite_fwd", _composite_fwd_fake, "composite_bwd", _composite_bwd_fake, _interval_grads
+)
+_COMPOSITE_PACKED = KernelOp(
+    "composite_packed_fwd", _composite_fwd_fake, "composite_packed_bwd", _composite_bwd_fake, _interval_grads
+)

@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
-import functools
-
 import torch
 
 from ._checks import check_floating, check_same_device, check_same_dtype, check_shape
 from ._dispatch import use_kernel
+from ._kernel_op import KernelOp
 from .mlca_reference import mlca_reference
 
 # Kernel limits: the CUDA kernel keeps a channel of all of a point's tokens in registers, and a
@@ -85,35 +84,23 @@ def mlca(
 
     if not use_kernel(backend, encoded.device):
         return mlca_reference(encoded, lift, token_weight, token_bias, channel_weight, channel_bias)
-    _register_fake_kernels()
-    flat = encoded.reshape(-1, num_tokens * token_dim).contiguous()
-    weights = (t.contiguous() for t in (lift, token_weight, token_bias, channel_weight, channel_bias))
-    out = _MLCA.apply(flat, *weights)
+    flat = encoded.reshape(-1, num_tokens * token_dim)
+    out = _MLCA(flat, lift, token_weight, token_bias, channel_weight, channel_bias)
     return out.view(*encoded.shape[:-1], num_tokens * channels)
 
 
-class _MLCA(torch.autograd.Function):
-    @staticmethod
-    def forward(ctx, encoded, lift, token_weight, token_bias, channel_weight, channel_bias):
-        ctx.save_for_backward(encoded, lift, token_weight, token_bias, channel_weight, channel_bias)
-        return torch.ops.mixer_nerf.mlca_fwd(encoded, lift, token_weight, token_bias, channel_weight, channel_bias)
-
-    @staticmethod
-    @torch.autograd.function.once_differentiable
-    def backward(ctx, grad_out):
-        # The encoding of positions needs no gradient in training: skip grad_encoded then.
-        return torch.ops.mixer_nerf.mlca_bwd(grad_out.contiguous(), *ctx.saved_tensors, ctx.needs_input_grad[0])
+def _mlca_fwd_fake(encoded, lift, token_weight, token_bias, channel_weight, channel_bias):
+    return encoded.new_empty(encoded.shape[0], token_weight.shape[0] * lift.shape[0])
 
 
-@functools.cache
-def _register_fake_kernels() -> None:
-    """Shape functions for torch.compile / opcheck; the ops exist once the extension is loaded."""
+def _mlca_bwd_fake(grad_out, encoded, *weights_and_flag):
+    *weights, input_grad = weights_and_flag
+    return (torch.empty_like(encoded) if input_grad else None, *(torch.empty_like(t) for t in weights))
 
-    @torch.library.register_fake("mixer_nerf::mlca_fwd")
-    def _fwd(encoded, lift, token_weight, token_bias, channel_weight, channel_bias):
-        return encoded.new_empty(encoded.shape[0], token_weight.shape[0] * lift.shape[0])
 
-    @torch.library.register_fake("mixer_nerf::mlca_bwd")
-    def _bwd(grad_out, encoded, lift, token_weight, token_bias, channel_weight, channel_bias, input_grad):
-        grads = (lift, token_weight, token_bias, channel_weight, channel_bias)
-        return (torch.empty_like(encoded) if input_grad else None, *(torch.empty_like(t) for t in grads))
+def _input_grad(needs_input_grad: tuple[bool, ...]) -> tuple[bool]:
+    """The backward kernel's flag: the encoding of positions needs no gradient in training."""
+    return (needs_input_grad[0],)
+
+
+_MLCA = KernelOp("mlca_fwd", _mlca_fwd_fake, "mlca_bwd", _mlca_bwd_fake, _input_grad)

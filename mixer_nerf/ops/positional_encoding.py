@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import functools
 import math
 import numbers
 
@@ -10,6 +9,7 @@ import torch
 
 from ._checks import check_floating
 from ._dispatch import use_kernel
+from ._kernel_op import KernelOp
 from .positional_encoding_reference import positional_encoding_reference
 
 MAX_FREQS = 64  # beyond this, scale * 2**k leaves the float32 range of the backward's factors
@@ -69,37 +69,20 @@ def positional_encoding(
 
     if not use_kernel(backend, x.device):
         return positional_encoding_reference(x, int(num_freqs), include_input, float(scale))
-    _register_fake_kernels()
-    return _PositionalEncoding.apply(x.contiguous(), int(num_freqs), include_input, float(scale))
+    return _POSITIONAL_ENCODING(x, int(num_freqs), include_input, float(scale))
 
 
-class _PositionalEncoding(torch.autograd.Function):
-    @staticmethod
-    def forward(ctx, x, num_freqs, include_input, scale):
-        ctx.save_for_backward(x)
-        ctx.encoding = (num_freqs, include_input, scale)
-        return torch.ops.mixer_nerf.positional_encoding_fwd(x, num_freqs, include_input, scale)
-
-    @staticmethod
-    @torch.autograd.function.once_differentiable
-    def backward(ctx, grad_out):
-        (x,) = ctx.saved_tensors
-        grad_x = torch.ops.mixer_nerf.positional_encoding_bwd(grad_out.contiguous(), x, *ctx.encoding)
-        return grad_x, None, None, None
+def _positional_encoding_fwd_fake(x, num_freqs, include_input, scale):
+    return x.new_empty(*x.shape[:-1], x.shape[-1] * (int(include_input) + 2 * num_freqs))
 
 
-def _encoded_shape(x: torch.Tensor, num_freqs: int, include_input: bool) -> tuple[int, ...]:
-    return (*x.shape[:-1], x.shape[-1] * (int(include_input) + 2 * num_freqs))
+def _positional_encoding_bwd_fake(grad_out, x, num_freqs, include_input, scale):
+    return torch.empty_like(x)
 
 
-@functools.cache
-def _register_fake_kernels() -> None:
-    """Shape functions for torch.compile / opcheck; the ops exist once the extension is loaded."""
-
-    @torch.library.register_fake("mixer_nerf::positional_encoding_fwd")
-    def _fwd(x, num_freqs, include_input, scale):
-        return x.new_empty(_encoded_shape(x, num_freqs, include_input))
-
-    @torch.library.register_fake("mixer_nerf::positional_encoding_bwd")
-    def _bwd(grad_out, x, num_freqs, include_input, scale):
-        return torch.empty_like(x)
+_POSITIONAL_ENCODING = KernelOp(
+    "positional_encoding_fwd",
+    _positional_encoding_fwd_fake,
+    "positional_encoding_bwd",
+    _positional_encoding_bwd_fake,
+)

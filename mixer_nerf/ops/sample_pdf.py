@@ -8,10 +8,9 @@ so they come out sorted and within ``[bins[:, 0], bins[:, -1]]``; bins of zero w
 sampled, and padded weights below the smallest normal number of the accumulation dtype
 (float32, or float64 for float64 inputs) count as zero; a ray whose weights are then all zero,
 or whose total overflows, samples uniformly between its first and last edge. A ray with a NaN
-weight samples NaN, and all its weights and edges get NaN gradients (other rays are untouched;
-``hierarchical_samples`` puts its NaN fine depths after its coarse ones, as ``torch.sort``
-puts NaN last). Gradients with respect to the weights scale like (bin width) / (bin weight):
-exact, and large where a sample falls in a light bin.
+weight samples NaN, and all its weights and edges get NaN gradients (other rays are
+untouched). Gradients with respect to the weights scale like (bin width) / (bin weight): exact,
+and large where a sample falls in a light bin.
 
 Positions ``u``:
   * explicit ``u``: ``(R, N)`` or ``(N,)`` shared by every ray, sorted, in [0, 1];
@@ -25,12 +24,9 @@ Positions ``u``:
 
 from __future__ import annotations
 
-import functools
 import math
-from typing import NamedTuple
 
 import torch
-from torch.autograd.function import once_differentiable
 
 from ._checks import (
     check_floating,
@@ -46,12 +42,8 @@ from ._checks import (
     check_tensor,
 )
 from ._dispatch import use_kernel
-from .sample_pdf_reference import (
-    accumulation_dtype,
-    hierarchical_samples_reference,
-    sample_pdf_packed_reference,
-    sample_pdf_reference,
-)
+from ._kernel_op import KernelOp
+from .sample_pdf_reference import accumulation_dtype, sample_pdf_packed_reference, sample_pdf_reference
 
 
 def sample_pdf(
@@ -87,11 +79,11 @@ def sample_pdf(
     """
     _validate_pdf(bins, weights, check_values)
     check_int("num_samples", num_samples)
-    pad = _check_padding(weight_padding)
-    positions = _positions("bins", bins, num_samples, deterministic, u, generator, check_values)
+    pad = check_weight_padding(weight_padding)
+    positions = sample_positions("bins", bins, num_samples, deterministic, u, generator, check_values)
     if not use_kernel(backend, bins.device):
         return sample_pdf_reference(bins, weights, positions, pad)
-    return _run_kernel(_DENSE_OPS, bins, weights, positions, pad)
+    return _SAMPLE_PDF(bins, weights, positions, pad)
 
 
 def sample_pdf_packed(
@@ -134,135 +126,13 @@ def sample_pdf_packed(
     """
     num_rays = _validate_packed(bins, weights, offsets, check_values)
     check_int("num_samples", num_samples)
-    pad = _check_padding(weight_padding)
-    positions = _positions("bins", bins, num_samples, deterministic, u, generator, check_values, num_rays)
+    pad = check_weight_padding(weight_padding)
+    positions = sample_positions(
+        "bins", bins, num_samples, deterministic, u, generator, check_values, num_rays
+    )
     if not use_kernel(backend, bins.device):
         return sample_pdf_packed_reference(bins, weights, offsets, positions, pad)
-    return _run_kernel(_PACKED_OPS, bins, weights, positions, pad, offsets.contiguous())
-
-
-def hierarchical_samples(
-    z_coarse: torch.Tensor,
-    weights_coarse: torch.Tensor,
-    num_fine: int,
-    deterministic: bool = False,
-    u: torch.Tensor | None = None,
-    weight_padding: float = 0.0,
-    generator: torch.Generator | None = None,
-    backend: str = "auto",
-    check_values: bool = True,
-) -> torch.Tensor:
-    """NeRF's fine-pass depths: the coarse depths and ``num_fine`` new ones, merged and sorted.
-
-    As in NeRF, the fine samples are drawn from the PDF whose bins are the midpoints of
-    ``z_coarse`` (S-1 edges) and whose weights are ``weights_coarse[:, 1:-1]`` (S-2 bins), then
-    merged with ``z_coarse`` in one pass (the kernels do not sort). No gradient flows: NeRF
-    detaches the fine depths, so the result never requires grad.
-
-    Args:
-        z_coarse: (R, S) sorted coarse depths, S >= 3.
-        weights_coarse: (R, S) non-negative compositing weights of the coarse samples.
-        num_fine: N >= 0 fine samples per ray.
-        deterministic, u, weight_padding, generator, backend, check_values: as in
-            :func:`sample_pdf` (``u`` is (R, N) or (N,)).
-
-    Returns:
-        (R, S + N) sorted depths in the dtype of ``z_coarse``.
-    """
-    _validate_coarse(z_coarse, weights_coarse, check_values)
-    check_int("num_fine", num_fine)
-    pad = _check_padding(weight_padding)
-    positions = _positions("z_coarse", z_coarse, num_fine, deterministic, u, generator, check_values)
-    z_coarse, weights_coarse = z_coarse.detach(), weights_coarse.detach()
-    if not use_kernel(backend, z_coarse.device):
-        return hierarchical_samples_reference(z_coarse, weights_coarse, positions, pad)
-    _register_fakes()
-    return torch.ops.mixer_nerf.hierarchical_samples_fwd(
-        z_coarse.contiguous(), weights_coarse.contiguous(), positions, pad
-    )
-
-
-def hierarchical_samples_packed(
-    z_coarse: torch.Tensor,
-    weights_coarse: torch.Tensor,
-    offsets: torch.Tensor,
-    num_fine: int,
-    deterministic: bool = False,
-    u: torch.Tensor | None = None,
-    weight_padding: float = 0.0,
-    generator: torch.Generator | None = None,
-    backend: str = "auto",
-    check_values: bool = True,
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """:func:`hierarchical_samples` for packed coarse depths: ray r owns rows
-    ``offsets[r]:offsets[r+1]`` of ``z_coarse`` and ``weights_coarse``.
-
-    Each ray's fine PDF is NeRF's (bins between the midpoints of its coarse depths, weights
-    ``weights_coarse[1:-1]`` of the ray), drawn by :func:`sample_pdf_packed` (the kernels), and
-    the fine depths are merged with the coarse ones. Rays too short for a PDF degrade gracefully:
-    with 2 coarse depths the fine ones are their midpoint, with 1 they repeat it, and a ray with
-    none gets no fine depths. No gradient flows (as in NeRF).
-
-    Args:
-        z_coarse: (N,) coarse depths, sorted within each ray.
-        weights_coarse: (N,) non-negative compositing weights of the coarse samples.
-        offsets: (R+1,) int64, non-decreasing from 0 to N.
-        num_fine, deterministic, u, weight_padding, generator, backend, check_values: as in
-            :func:`hierarchical_samples` (``u`` is (R, num_fine) or (num_fine,)).
-
-    Returns:
-        ``(depths, merged_offsets)``: (M,) sorted depths of every ray, packed, and their (R+1,)
-        offsets; ray r has its coarse depths and, unless it has none, ``num_fine`` more. Sizing
-        the output and the midpoint bins costs host syncs.
-    """
-    num_rays = _validate_packed_coarse(z_coarse, weights_coarse, offsets, check_values)
-    check_int("num_fine", num_fine)
-    z, w = z_coarse.detach(), weights_coarse.detach()
-    counts = offsets[1:] - offsets[:-1]
-    rays = torch.arange(num_rays, device=z.device)
-    edges, bin_weights, bin_offsets = _midpoint_bins(z, w, offsets, counts, rays)
-    fine = sample_pdf_packed(
-        edges, bin_weights, bin_offsets, num_fine, deterministic, u, weight_padding, generator, backend, False
-    )
-    # Merge: the fine depths of rays that have coarse ones, then one stable sort by depth and one
-    # by ray, so each ray's depths are sorted and in place (coarse first at ties).
-    has_depths = counts > 0
-    fine = fine[has_depths].reshape(-1)
-    fine_rays = rays[has_depths].repeat_interleave(num_fine)
-    depths = torch.cat([z, fine])
-    owners = torch.cat([torch.repeat_interleave(rays, counts, output_size=z.shape[0]), fine_rays])
-    by_depth = torch.sort(depths, stable=True).indices
-    order = by_depth[torch.sort(owners[by_depth], stable=True).indices]
-    merged_counts = counts + num_fine * has_depths
-    return depths[order], torch.nn.functional.pad(merged_counts.cumsum(0), (1, 0))
-
-
-def _midpoint_bins(z, w, offsets, counts, rays):
-    """Packed sample_pdf inputs of NeRF's fine PDF: ray r with S_r coarse depths has
-    max(S_r - 2, 0) bins weighted by its weights[1:-1] and max(S_r - 1, 1) edges: the midpoints,
-    its one depth if S_r == 1, 0 (unused) if S_r == 0."""
-    num_bins = (counts - 2).clamp_min(0)
-    num_edges = num_bins + 1
-    bin_offsets = torch.nn.functional.pad(num_bins.cumsum(0), (1, 0))
-    total_bins = int(bin_offsets[-1])
-    total_edges = total_bins + rays.numel()
-    padded_z = torch.cat([z, z.new_zeros(2)])  # gathers below stay in range for short rays
-    edge_ray = torch.repeat_interleave(rays, num_edges, output_size=total_edges)
-    first = (
-        offsets[:-1][edge_ray]
-        + torch.arange(total_edges, device=z.device)
-        - (bin_offsets[:-1] + rays)[edge_ray]
-    )
-    ray_len = counts[edge_ray]
-    mids = 0.5 * (padded_z[first] + padded_z[first + 1])
-    edges = torch.where(
-        ray_len >= 2, mids, torch.where(ray_len == 1, padded_z[first], torch.zeros_like(mids))
-    )
-    bin_ray = torch.repeat_interleave(rays, num_bins, output_size=total_bins)
-    bin_index = (
-        offsets[:-1][bin_ray] + 1 + torch.arange(total_bins, device=z.device) - bin_offsets[:-1][bin_ray]
-    )
-    return edges, w[bin_index], bin_offsets
+    return _SAMPLE_PDF_PACKED(bins, weights, offsets, positions, pad)
 
 
 def _validate_pdf(bins: torch.Tensor, weights: torch.Tensor, check_values: bool) -> None:
@@ -305,42 +175,8 @@ def _validate_packed(
     return num_rays
 
 
-def _validate_packed_coarse(z_coarse, weights_coarse, offsets, check_values: bool) -> int:
-    """Checks of hierarchical_samples_packed's inputs; returns the number of rays."""
-    check_floating("z_coarse", z_coarse)
-    check_floating("weights_coarse", weights_coarse)
-    check_ndim("z_coarse", z_coarse, 1)
-    check_shape("weights_coarse", weights_coarse, tuple(z_coarse.shape), " (like z_coarse)")
-    check_same_device(
-        z_coarse=z_coarse, weights_coarse=weights_coarse, offsets=check_tensor("offsets", offsets)
-    )
-    check_same_dtype(z_coarse=z_coarse, weights_coarse=weights_coarse)
-    num_rays = check_offsets("offsets", offsets, z_coarse.shape[0], check_values)
-    if check_values:
-        check_nonnegative("weights_coarse", weights_coarse)
-        descending = z_coarse[1:] < z_coarse[:-1]
-        starts = offsets[1:-1]  # steps from one ray's last depth to the next ray's first are free
-        descending[starts[(starts > 0) & (starts < z_coarse.shape[0])] - 1] = False
-        if bool(descending.any()):
-            raise ValueError("z_coarse must be sorted (non-decreasing) within each ray")
-    return num_rays
-
-
-def _validate_coarse(z_coarse: torch.Tensor, weights_coarse: torch.Tensor, check_values: bool) -> None:
-    check_floating("z_coarse", z_coarse)
-    check_floating("weights_coarse", weights_coarse)
-    check_ndim("z_coarse", z_coarse, 2)
-    if z_coarse.shape[1] < 3:
-        raise ValueError(f"z_coarse must have at least 3 samples per ray, got shape {tuple(z_coarse.shape)}")
-    check_shape("weights_coarse", weights_coarse, tuple(z_coarse.shape), " (like z_coarse)")
-    check_same_device(z_coarse=z_coarse, weights_coarse=weights_coarse)
-    check_same_dtype(z_coarse=z_coarse, weights_coarse=weights_coarse)
-    if check_values:
-        check_sorted("z_coarse", z_coarse)
-        check_nonnegative("weights_coarse", weights_coarse)
-
-
-def _check_padding(weight_padding: float) -> float:
+def check_weight_padding(weight_padding: float) -> float:
+    """``weight_padding`` as a float, else an error naming it."""
     if isinstance(weight_padding, bool) or not isinstance(weight_padding, (int, float)):
         raise TypeError(f"weight_padding must be a float, got {type(weight_padding).__name__}")
     if not (math.isfinite(weight_padding) and weight_padding >= 0):
@@ -348,7 +184,7 @@ def _check_padding(weight_padding: float) -> float:
     return float(weight_padding)
 
 
-def _positions(
+def sample_positions(
     like_name: str,
     like: torch.Tensor,
     num_samples: int,
@@ -382,65 +218,19 @@ def _positions(
     return (strata + jitter) / num_samples
 
 
-class _Ops(NamedTuple):
-    """A layout's registered forward and backward; ``layout`` tensors (the packed offsets) follow
-    ``weights`` in both schemas and get no gradient."""
-
-    forward: str
-    backward: str
-
-
-_DENSE_OPS = _Ops("sample_pdf_fwd", "sample_pdf_bwd")
-_PACKED_OPS = _Ops("sample_pdf_packed_fwd", "sample_pdf_packed_bwd")
-
-
-def _run_kernel(ops: _Ops, bins, weights, positions, pad, *layout) -> torch.Tensor:
-    _register_fakes()
-    return _SamplePdfFunction.apply(ops, bins.contiguous(), weights.contiguous(), positions, pad, *layout)
-
-
-class _SamplePdfFunction(torch.autograd.Function):
-    @staticmethod
-    def forward(ctx, ops, bins, weights, u, weight_padding, *layout):
-        ctx.save_for_backward(bins, weights, u, *layout)
-        ctx.ops, ctx.weight_padding = ops, weight_padding
-        return getattr(torch.ops.mixer_nerf, ops.forward)(bins, weights, *layout, u, weight_padding)
-
-    @staticmethod
-    @once_differentiable
-    def backward(ctx, grad_samples):
-        bins, weights, u, *layout = ctx.saved_tensors
-        grad_bins, grad_weights = getattr(torch.ops.mixer_nerf, ctx.ops.backward)(
-            grad_samples.contiguous(), bins, weights, *layout, u, ctx.weight_padding
-        )
-        return None, grad_bins, grad_weights, None, None, *[None] * len(layout)
-
-
-@functools.cache
-def _register_fakes() -> None:
-    """Shape functions for torch.compile and opcheck; the ops exist only once the extension loaded."""
-    torch.library.register_fake("mixer_nerf::sample_pdf_fwd", _sample_pdf_fwd_fake)
-    torch.library.register_fake("mixer_nerf::sample_pdf_bwd", _sample_pdf_bwd_fake)
-    torch.library.register_fake("mixer_nerf::hierarchical_samples_fwd", _hierarchical_samples_fwd_fake)
-    torch.library.register_fake("mixer_nerf::sample_pdf_packed_fwd", _sample_pdf_packed_fwd_fake)
-    torch.library.register_fake("mixer_nerf::sample_pdf_packed_bwd", _sample_pdf_packed_bwd_fake)
-
-
 def _sample_pdf_fwd_fake(bins, weights, u, weight_padding):
     return bins.new_empty(bins.shape[0], u.shape[-1])
-
-
-def _sample_pdf_bwd_fake(grad_samples, bins, weights, u, weight_padding):
-    return torch.empty_like(bins), torch.empty_like(weights)
-
-
-def _hierarchical_samples_fwd_fake(z_coarse, weights, u, weight_padding):
-    return z_coarse.new_empty(z_coarse.shape[0], z_coarse.shape[1] + u.shape[-1])
 
 
 def _sample_pdf_packed_fwd_fake(bins, weights, offsets, u, weight_padding):
     return bins.new_empty(offsets.shape[0] - 1, u.shape[-1])
 
 
-def _sample_pdf_packed_bwd_fake(grad_samples, bins, weights, offsets, u, weight_padding):
+def _sample_pdf_bwd_fake(grad_samples, bins, weights, *offsets_u_and_padding):
     return torch.empty_like(bins), torch.empty_like(weights)
+
+
+_SAMPLE_PDF = KernelOp("sample_pdf_fwd", _sample_pdf_fwd_fake, "sample_pdf_bwd", _sample_pdf_bwd_fake)
+_SAMPLE_PDF_PACKED = KernelOp(
+    "sample_pdf_packed_fwd", _sample_pdf_packed_fwd_fake, "sample_pdf_packed_bwd", _sample_pdf_bwd_fake
+)

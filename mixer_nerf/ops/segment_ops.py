@@ -13,10 +13,7 @@ produces them: ray r owns rows ``offsets[r]:offsets[r+1]``. Definitions are in
 
 from __future__ import annotations
 
-import functools
-
 import torch
-from torch.autograd.function import once_differentiable
 
 from ._checks import (
     check_floating,
@@ -28,6 +25,7 @@ from ._checks import (
     check_tensor,
 )
 from ._dispatch import use_kernel
+from ._kernel_op import KernelOp
 from .segment_ops_reference import ray_scale_reference, segment_mean_reference
 
 
@@ -52,11 +50,7 @@ def segment_mean(
     _check_offsets(offsets, "values", values, check_values)
     if not use_kernel(backend, values.device):
         return segment_mean_reference(values, offsets)
-    _register_fakes()
-    values, offsets = values.contiguous(), offsets.contiguous()
-    if torch.is_grad_enabled() and values.requires_grad:
-        return _SegmentMean.apply(values, offsets)
-    return torch.ops.mixer_nerf.segment_mean_fwd(values, offsets)
+    return _SEGMENT_MEAN(values, offsets)
 
 
 def ray_scale(
@@ -86,11 +80,7 @@ def ray_scale(
     check_shape("scale", scale, (num_rays, features.shape[1]), " (R, C)")
     if not use_kernel(backend, features.device):
         return ray_scale_reference(features, scale, offsets)
-    _register_fakes()
-    features, scale, offsets = features.contiguous(), scale.contiguous(), offsets.contiguous()
-    if torch.is_grad_enabled() and (features.requires_grad or scale.requires_grad):
-        return _RayScale.apply(features, scale, offsets)
-    return torch.ops.mixer_nerf.ray_scale_fwd(features, scale, offsets)
+    return _RAY_SCALE(features, scale, offsets)
 
 
 def _check_rows(name: str, rows: torch.Tensor) -> None:
@@ -104,43 +94,6 @@ def _check_offsets(offsets: torch.Tensor, name: str, rows: torch.Tensor, check_v
     """Returns R."""
     check_same_device(**{name: rows, "offsets": check_tensor("offsets", offsets)})
     return check_offsets("offsets", offsets, rows.shape[0], check_values)
-
-
-class _SegmentMean(torch.autograd.Function):
-    @staticmethod
-    def forward(ctx, values, offsets):
-        ctx.save_for_backward(offsets)
-        ctx.num_rows = values.shape[0]
-        return torch.ops.mixer_nerf.segment_mean_fwd(values, offsets)
-
-    @staticmethod
-    @once_differentiable
-    def backward(ctx, grad):
-        (offsets,) = ctx.saved_tensors
-        return torch.ops.mixer_nerf.segment_mean_bwd(grad.contiguous(), offsets, ctx.num_rows), None
-
-
-class _RayScale(torch.autograd.Function):
-    @staticmethod
-    def forward(ctx, features, scale, offsets):
-        ctx.save_for_backward(features, scale, offsets)
-        return torch.ops.mixer_nerf.ray_scale_fwd(features, scale, offsets)
-
-    @staticmethod
-    @once_differentiable
-    def backward(ctx, grad_out):
-        features, scale, offsets = ctx.saved_tensors
-        grads = torch.ops.mixer_nerf.ray_scale_bwd(grad_out.contiguous(), features, scale, offsets)
-        return *grads, None
-
-
-@functools.cache
-def _register_fakes() -> None:
-    """Shape functions for torch.compile and opcheck; the ops exist only once the extension loaded."""
-    torch.library.register_fake("mixer_nerf::segment_mean_fwd", _segment_mean_fwd_fake)
-    torch.library.register_fake("mixer_nerf::segment_mean_bwd", _segment_mean_bwd_fake)
-    torch.library.register_fake("mixer_nerf::ray_scale_fwd", _ray_scale_fwd_fake)
-    torch.library.register_fake("mixer_nerf::ray_scale_bwd", _ray_scale_bwd_fake)
 
 
 def _segment_mean_fwd_fake(values, offsets):
@@ -157,3 +110,22 @@ def _ray_scale_fwd_fake(features, scale, offsets):
 
 def _ray_scale_bwd_fake(grad_out, features, scale, offsets):
     return torch.empty_like(features), torch.empty_like(scale)
+
+
+class _SegmentMean(KernelOp):
+    """The backward kernel takes the number of rows, not the values: it spreads each ray's mean."""
+
+    def save(self, ctx, inputs: tuple) -> None:
+        values, offsets = inputs
+        ctx.save_for_backward(offsets)
+        ctx.num_rows = values.shape[0]
+
+    def backward(self, ctx, grad) -> tuple:
+        (offsets,) = ctx.saved_tensors
+        return torch.ops.mixer_nerf.segment_mean_bwd(grad.contiguous(), offsets, ctx.num_rows), None
+
+
+_SEGMENT_MEAN = _SegmentMean(
+    "segment_mean_fwd", _segment_mean_fwd_fake, "segment_mean_bwd", _segment_mean_bwd_fake
+)
+_RAY_SCALE = KernelOp("ray_scale_fwd", _ray_scale_fwd_fake, "ray_scale_bwd", _ray_scale_bwd_fake)

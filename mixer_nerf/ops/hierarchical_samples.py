@@ -1,0 +1,82 @@
+"""NeRF's fine-pass depths: ``hierarchical_samples`` draws fine depths from the PDF of the coarse
+pass (:func:`~mixer_nerf.ops.sample_pdf`'s formulation) and merges them with the coarse depths.
+The reference path is :mod:`mixer_nerf.ops.hierarchical_samples_reference`."""
+
+from __future__ import annotations
+
+import torch
+
+from ._checks import (
+    check_floating,
+    check_int,
+    check_ndim,
+    check_nonnegative,
+    check_same_device,
+    check_same_dtype,
+    check_shape,
+    check_sorted,
+)
+from ._dispatch import use_kernel
+from ._kernel_op import KernelOp
+from .hierarchical_samples_reference import hierarchical_samples_reference
+from .sample_pdf import check_weight_padding, sample_positions
+
+
+def hierarchical_samples(
+    z_coarse: torch.Tensor,
+    weights_coarse: torch.Tensor,
+    num_fine: int,
+    deterministic: bool = False,
+    u: torch.Tensor | None = None,
+    weight_padding: float = 0.0,
+    generator: torch.Generator | None = None,
+    backend: str = "auto",
+    check_values: bool = True,
+) -> torch.Tensor:
+    """NeRF's fine-pass depths: the coarse depths and ``num_fine`` new ones, merged and sorted.
+
+    As in NeRF, the fine samples are drawn from the PDF whose bins are the midpoints of
+    ``z_coarse`` (S-1 edges) and whose weights are ``weights_coarse[:, 1:-1]`` (S-2 bins), then
+    merged with ``z_coarse`` in one pass (the kernels do not sort). No gradient flows: NeRF
+    detaches the fine depths, so the result never requires grad. A ray with a NaN weight gets its
+    NaN fine depths after its coarse ones, as ``torch.sort`` puts NaN last.
+
+    Args:
+        z_coarse: (R, S) sorted coarse depths, S >= 3.
+        weights_coarse: (R, S) non-negative compositing weights of the coarse samples.
+        num_fine: N >= 0 fine samples per ray.
+        deterministic, u, weight_padding, generator, backend, check_values: as in
+            :func:`~mixer_nerf.ops.sample_pdf` (``u`` is (R, N) or (N,)).
+
+    Returns:
+        (R, S + N) sorted depths in the dtype of ``z_coarse``.
+    """
+    _validate(z_coarse, weights_coarse, check_values)
+    check_int("num_fine", num_fine)
+    pad = check_weight_padding(weight_padding)
+    positions = sample_positions("z_coarse", z_coarse, num_fine, deterministic, u, generator, check_values)
+    z_coarse, weights_coarse = z_coarse.detach(), weights_coarse.detach()
+    if not use_kernel(backend, z_coarse.device):
+        return hierarchical_samples_reference(z_coarse, weights_coarse, positions, pad)
+    return _HIERARCHICAL_SAMPLES(z_coarse, weights_coarse, positions, pad)
+
+
+def _validate(z_coarse: torch.Tensor, weights_coarse: torch.Tensor, check_values: bool) -> None:
+    check_floating("z_coarse", z_coarse)
+    check_floating("weights_coarse", weights_coarse)
+    check_ndim("z_coarse", z_coarse, 2)
+    if z_coarse.shape[1] < 3:
+        raise ValueError(f"z_coarse must have at least 3 samples per ray, got shape {tuple(z_coarse.shape)}")
+    check_shape("weights_coarse", weights_coarse, tuple(z_coarse.shape), " (like z_coarse)")
+    check_same_device(z_coarse=z_coarse, weights_coarse=weights_coarse)
+    check_same_dtype(z_coarse=z_coarse, weights_coarse=weights_coarse)
+    if check_values:
+        check_sorted("z_coarse", z_coarse)
+        check_nonnegative("weights_coarse", weights_coarse)
+
+
+def _hierarchical_samples_fwd_fake(z_coarse, weights, u, weight_padding):
+    return z_coarse.new_empty(z_coarse.shape[0], z_coarse.shape[1] + u.shape[-1])
+
+
+_HIERARCHICAL_SAMPLES = KernelOp("hierarchical_samples_fwd", _hierarchical_samples_fwd_fake)
