@@ -82,7 +82,7 @@ class TrainConfig:
     # proposal: samples of each proposal network's round, then of the main field
     proposal_rounds: tuple[int, ...] = (128, 64)
     proposal_samples: int = 48
-    proposal_width: int = 64  # hidden width of each proposal network (2 layers)
+    proposal_width: int = 128  # hidden width of each proposal network (2 layers)
     proposal_loss_weight: float = 1.0
     progress: bool = True  # progress bar on stderr
 
