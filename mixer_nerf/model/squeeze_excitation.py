@@ -23,8 +23,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from ..ops import ray_scale
-from ..ops import segment_mean
+from ..ops import ray_scale, segment_mean
 from ..ops._checks import check_backend
 
 

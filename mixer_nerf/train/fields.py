@@ -10,8 +10,7 @@ import torch
 from torch import nn
 
 from ..model import MixerNeRF, ModelConfig, preset_config
-from ..render.skipping import OccupancyGrid
-from ..render.skipping.proposal import ProposalSampler
+from ..render.skipping import OccupancyGrid, ProposalSampler
 from .precision import MixedPrecisionField
 
 

@@ -9,9 +9,9 @@ from typing import Any
 
 import torch
 
+from ..render import ImageRenderer
 from .checkpoint import CheckpointError, load_checkpoint
 from .config import TrainConfig
-from ..render import ImageRenderer
 from .fields import model_config_from_dict
 from .precision import set_matmul_precision
 from .sampling import image_renderer, make_fields

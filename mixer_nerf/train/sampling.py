@@ -11,14 +11,16 @@ from ..model import ModelConfig
 from ..model.proposal_network import ProposalNetwork
 from ..render import ImageRenderer, chunk_result, render_rays
 from ..render.image_renderer import ChunkResult
-from ..render.skipping.proposal import ProposalOptions, ProposalSampler, render_rays_proposal
 from ..render.skipping import (
     GridRefresh,
     MarchingOptions,
     OccupancyGrid,
     OccupancySampler,
+    ProposalOptions,
+    ProposalSampler,
     SampleBudget,
     render_rays_marched,
+    render_rays_proposal,
 )
 from .config import TrainConfig
 from .fields import RadianceFields

@@ -14,8 +14,7 @@ import torch.nn.functional as F
 
 from ..metrics import psnr
 from ..render import render_rays
-from ..render.skipping import shade_samples
-from ..render.skipping.proposal import proposal_loss, render_rays_proposal
+from ..render.skipping import proposal_loss, render_rays_proposal, shade_samples
 from .checkpoint import capture_rng_state, load_checkpoint, restore_rng_state, save_checkpoint
 from .config import TrainConfig
 from .fields import model_config, model_config_to_dict

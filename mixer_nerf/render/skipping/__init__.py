@@ -7,6 +7,8 @@ samples (early ray termination) and rays that miss the scene (box clipping), on 
 - :class:`SampleBudget`: ray batches sized to a number of samples per step.
 - :class:`OccupancySampler`: the grid, its refresh schedule, marching and the budget together, as
   the trainer uses them.
+- :class:`ProposalSampler`, :func:`render_rays_proposal`, :func:`proposal_loss`: proposal
+  networks for scenes a grid cannot prune (forward-facing, unbounded).
 """
 
 from .marching import (
@@ -19,6 +21,7 @@ from .marching import (
 )
 from .occupancy_grid import OccupancyGrid
 from .occupancy_sampler import GridRefresh, OccupancySampler
+from .proposal import ProposalOptions, ProposalSampler, proposal_loss, render_rays_proposal
 from .sample_budget import SampleBudget
 
 __all__ = [
@@ -28,8 +31,12 @@ __all__ = [
     "MarchingOptions",
     "OccupancyGrid",
     "OccupancySampler",
+    "ProposalOptions",
+    "ProposalSampler",
     "SampleBudget",
     "march_samples",
+    "proposal_loss",
     "render_rays_marched",
+    "render_rays_proposal",
     "shade_samples",
 ]
