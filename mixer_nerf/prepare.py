@@ -87,7 +87,8 @@ def prepare(
         raise
     finally:
         pycolmap.logging.minloglevel = level
-    log(f"done: train with  mixer-nerf train --data {out}")
+    stages = ", ".join(f"{name} {seconds:.1f} s" for name, seconds in summary["seconds"].items())
+    log(f"done ({stages}): train with  mixer-nerf train --data {out}")
     return summary
 
 
