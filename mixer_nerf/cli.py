@@ -113,7 +113,31 @@ def build_parser() -> argparse.ArgumentParser:
     )
     _add_train_options(demo, default_out=DEMO_OUT)
     demo.set_defaults(data=None)
+    _add_prepare_parser(commands)
     return parser
+
+
+def _add_prepare_parser(commands: argparse._SubParsersAction) -> None:
+    from .prepare import CAMERA_MODELS, DEFAULT_CAMERA_MODEL, DEFAULT_EVERY, EXHAUSTIVE_MAX, MATCHERS
+
+    prepare = commands.add_parser(
+        "prepare", help="solve the camera poses of your photos or video with COLMAP (needs .[prepare])"
+    )
+    prepare.add_argument("input", help="folder of photos (png/jpg) or a video file")
+    prepare.add_argument("out", help="new scene folder (COLMAP model + undistorted images) for train --data")
+    prepare.add_argument(
+        "--every", type=int, default=DEFAULT_EVERY, help="video: keep every N-th frame (default %(default)s)"
+    )
+    prepare.add_argument(
+        "--matcher", choices=MATCHERS, default="auto",
+        help=f"feature matching (auto: exhaustive for up to {EXHAUSTIVE_MAX} photos, sequential for more "
+        "or a video)",
+    )  # fmt: skip
+    prepare.add_argument(
+        "--camera-model", choices=CAMERA_MODELS, default=DEFAULT_CAMERA_MODEL,
+        help=f"COLMAP camera model to solve for (default {DEFAULT_CAMERA_MODEL})",
+    )  # fmt: skip
+    prepare.add_argument("--verbose", action="store_true", help="show COLMAP's own log")
 
 
 def train_config_from_args(args: argparse.Namespace) -> TrainConfig:
@@ -194,7 +218,16 @@ def run_render(args: argparse.Namespace) -> int:
     return 0
 
 
+def run_prepare(args: argparse.Namespace) -> int:
+    from .prepare import prepare
+
+    prepare(args.input, args.out, every=args.every, matcher=args.matcher, camera_model=args.camera_model,
+            verbose=args.verbose)  # fmt: skip
+    return 0
+
+
 COMMANDS = {"train": run_train, "eval": run_eval, "render": run_render, "demo": run_train}
+COMMANDS["prepare"] = run_prepare
 
 
 def _train(cfg: TrainConfig, resume: bool) -> dict[str, Any]:

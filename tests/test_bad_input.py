@@ -632,7 +632,7 @@ def test_load_scene_llff_names_the_broken_file(llff_scene, breakage, message):
 
 def test_load_scene_rejects_unknown_format_and_split(blender_scene):
     with pytest.raises(ValueError, match="format"):
-        load_scene(blender_scene, format="colmap")
+        load_scene(blender_scene, format="mesh")
     with pytest.raises(MissingFileError, match=r"transforms_nope\.json"):
         load_scene(blender_scene, split="nope")
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import time
@@ -23,8 +24,11 @@ from mixer_nerf.data import (
     load_scene,
     ndc_rays,
 )
+from mixer_nerf.data.images import check_downscale, downscaled_size
+from mixer_nerf.data.images import downscale as downscale_image
 from mixer_nerf.data.llff import BD_FACTOR, average_pose, llff_to_opengl, recenter_poses
 from mixer_nerf.data.procedural import render
+from mixer_nerf.train.sampler import RaySampler
 
 LLFF_FACTOR = 4  # the llff_scene fixture provides images_4/
 
@@ -119,6 +123,74 @@ def test_scene_ndc_override_gives_world_rays():
     torch.testing.assert_close(d, d_ref)
     o_ndc, _ = scene.rays_for_image(0)
     torch.testing.assert_close(o_ndc[:, 2], torch.full((15,), -1.0))  # all start on the near plane
+
+
+def _uint8_scene() -> data.Scene:
+    scene = _scene()
+    generator = torch.Generator().manual_seed(1)
+    images = torch.randint(0, 256, (2, 3, 5, 3), dtype=torch.uint8, generator=generator)
+    return dataclasses.replace(scene, images=images)
+
+
+def test_uint8_images_read_as_float_through_every_access_path():
+    scene = _uint8_scene().to("cpu")
+    assert scene.images.dtype == torch.uint8 and scene.device == torch.device("cpu")
+    expected = scene.images.float() / 255
+    img, pix = torch.tensor([1, 0, 1]), torch.tensor([0, 7, 14])
+    colors = scene.colors_at(img, pix)
+    assert colors.dtype == torch.float32
+    torch.testing.assert_close(colors, expected.reshape(2, 15, 3)[img, pix], rtol=0, atol=0)
+    torch.testing.assert_close(scene.image(1), expected[1], rtol=0, atol=0)
+    torch.testing.assert_close(scene.all_rays()[2], expected.reshape(-1, 3), rtol=0, atol=0)
+    o, d, rgb = RaySampler(scene, batch_rays=64, seed=0).sample()
+    assert o.dtype == d.dtype == rgb.dtype == torch.float32 and rgb.shape == (64, 3)
+    assert ((rgb * 255).round() == rgb * 255).all() and 0 <= rgb.min() and rgb.max() <= 1
+    with pytest.raises(ValueError, match="uint8 or float32"):
+        dataclasses.replace(scene, images=scene.images.double())
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU")
+def test_cuda_scene_keeps_images_pinned_on_the_host_and_sends_pixels():
+    scene = _uint8_scene().to("cuda")
+    assert scene.images.device.type == "cpu" and scene.images.is_pinned()
+    assert scene.images.dtype == torch.uint8
+    assert scene.poses.is_cuda and scene.device.type == "cuda"
+    img = torch.tensor([1, 0, 1], device="cuda")
+    pix = torch.tensor([0, 7, 14], device="cuda")
+    colors = scene.colors_at(img, pix)
+    assert colors.is_cuda and colors.dtype == torch.float32
+    torch.testing.assert_close(colors.cpu(), _uint8_scene().colors_at(img.cpu(), pix.cpu()))
+    assert scene.image(0).is_cuda
+    sampler = RaySampler(scene, batch_rays=32, seed=0)
+    assert all(t.is_cuda and t.dtype == torch.float32 for t in sampler.sample())
+
+
+def test_fractional_downscale_averages_exact_footprints():
+    img = np.random.default_rng(0).uniform(size=(10, 15, 3))
+    # Averaging 2.5 x 2.5 footprints is averaging 5 x 5 blocks of the image doubled in size.
+    doubled = np.repeat(np.repeat(img, 2, axis=0), 2, axis=1)
+    np.testing.assert_allclose(downscale_image(img, 2.5), downscale_image(doubled, 5), atol=1e-12)
+    assert downscale_image(img, 4.5).shape == (2, 3, 3)  # partial footprints at the edges are dropped
+    assert downscaled_size(15, 4.5) == 3 and downscaled_size(15, 2.5) == 6
+    for bad in (0.5, float("nan"), float("inf"), "2", True):
+        with pytest.raises(ValueError, match="downscale must be a number >= 1"):
+            check_downscale(bad)
+
+
+def test_blender_and_llff_take_fractional_downscales(blender_scene, llff_scene):
+    full = load_blender(blender_scene)
+    small = load_blender(blender_scene, downscale=2.5)
+    assert (small.H, small.W) == (3, 3)
+    # Pixel coordinates scale by 1 / 2.5: the cropped 7.5-pixel image keeps the principal point.
+    assert (small.focal, small.cx, small.cy) == pytest.approx((full.focal / 2.5, 1.6, 1.6))
+    expected = downscale_image(full.images[1].numpy(), 2.5)
+    np.testing.assert_allclose(small.images[1].numpy(), expected, atol=1e-6)
+    llff = load_llff(llff_scene, factor=LLFF_FACTOR, downscale=2.5)
+    ref = load_llff(llff_scene, factor=LLFF_FACTOR)
+    assert (llff.H, llff.W) == (3, 4) and llff.images.dtype == torch.uint8
+    assert (llff.focal, llff.cx, llff.cy) == pytest.approx((ref.focal / 2.5, 6 / 2.5, 4 / 2.5))
+    expected = downscale_image(ref.image(0).numpy(), 2.5)
+    np.testing.assert_allclose(llff.image(0).numpy(), expected, atol=0.5 / 255 + 1e-6)  # rounded to 8 bits
 
 
 def test_scene_rejects_inconsistent_shapes():
@@ -263,7 +335,8 @@ def test_llff_intrinsics_ndc_and_holdout(llff_scene):
     assert len(train) == 8 and "img_008.png" not in {p.name for p in train.image_paths}
     assert len(load_llff(llff_scene, factor=LLFF_FACTOR, split="all", holdout=0)) == 10
     expected = iio.imread(llff_scene / "images_4/img_003.png").astype(np.float32) / 255
-    np.testing.assert_allclose(train.images[2].numpy(), expected, atol=1e-6)
+    np.testing.assert_allclose(train.image(2).numpy(), expected, atol=1e-6)
+    assert train.images.dtype == torch.uint8
     assert train.ndc and (train.near, train.far) == (0.0, 1.0)
     assert train.bbox.tolist() == [[-1.0] * 3, [1.0] * 3]
     o, _ = train.rays_for_image(0)
@@ -365,7 +438,7 @@ def test_load_scene_detects_format(blender_scene, llff_scene, tmp_path, monkeypa
     with pytest.raises(FileNotFoundError, match="nowhere"):
         load_scene(tmp_path / "nowhere")
     with pytest.raises(ValueError, match="format"):
-        load_scene(blender_scene, format="colmap")
+        load_scene(blender_scene, format="mesh")
     tiny = ensure_procedural_scene(resolution=8, n_train=2, n_val=1, n_test=1, cache_dir=tmp_path)
     monkeypatch.setattr(data, "ensure_procedural_scene", lambda: tiny)
     assert load_scene(None, split="val").image_paths[0].is_relative_to(tiny)

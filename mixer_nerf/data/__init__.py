@@ -1,12 +1,15 @@
-"""Datasets: scene loaders (Blender, LLFF, built-in procedural scene), rays and the Scene type."""
+"""Datasets: scene loaders (Blender, LLFF, COLMAP, nerfstudio, built-in procedural scene), rays and
+the Scene type."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
 from .blender import load_blender
+from .colmap import find_model, load_colmap
 from .errors import DatasetError, MissingFileError
 from .llff import load_llff
+from .nerfstudio import TRANSFORMS, load_nerfstudio
 from .procedural import ensure_procedural_scene
 from .rays import camera_rays, ndc_rays, pixel_rays
 from .scene import Scene
@@ -19,18 +22,22 @@ __all__ = [
     "detect_format",
     "ensure_procedural_scene",
     "load_blender",
+    "load_colmap",
     "load_llff",
+    "load_nerfstudio",
     "load_scene",
     "ndc_rays",
     "pixel_rays",
 ]
 
-FORMATS = ("auto", "blender", "llff")
+LOADERS = {"blender": load_blender, "llff": load_llff, "colmap": load_colmap, "nerfstudio": load_nerfstudio}
+FORMATS = ("auto", *LOADERS)
 
 
 def detect_format(path: str | Path) -> str:
-    """Scene format of folder ``path``: "blender" (``transforms_train.json``) or "llff"
-    (``poses_bounds.npy``)."""
+    """Scene format of folder ``path``: "blender" (``transforms_train.json``), "llff"
+    (``poses_bounds.npy``), "nerfstudio" (``transforms.json``) or "colmap" (a sparse model in
+    ``sparse/0/``, ``sparse/`` or the folder), checked in that order."""
     path = Path(path)
     if not path.is_dir():
         raise MissingFileError(f"{path}: scene folder not found")
@@ -38,9 +45,13 @@ def detect_format(path: str | Path) -> str:
         return "blender"
     if (path / "poses_bounds.npy").is_file():
         return "llff"
+    if (path / TRANSFORMS).is_file():
+        return "nerfstudio"
+    if find_model(path) is not None:
+        return "colmap"
     raise DatasetError(
-        f"{path}: unknown scene format (expected transforms_train.json for Blender or "
-        "poses_bounds.npy for LLFF)"
+        f"{path}: unknown scene format (expected transforms_train.json for Blender, "
+        f"poses_bounds.npy for LLFF, {TRANSFORMS} for nerfstudio, or a COLMAP model in sparse/0/)"
     )
 
 
@@ -50,9 +61,10 @@ def load_scene(path: str | Path | None = None, format: str = "auto", split: str 
     Args:
         path: scene folder; None loads the built-in procedural scene (rendered on first use with
             :func:`ensure_procedural_scene`'s defaults; call it yourself for other settings).
-        format: "blender", "llff" or "auto" (detected from the files in ``path``).
+        format: "blender", "llff", "colmap", "nerfstudio" or "auto" (detected from the files in
+            ``path``).
         split: passed to the loader.
-        **kwargs: passed to :func:`load_blender` or :func:`load_llff`.
+        **kwargs: passed to the loader (every one takes ``downscale``).
     """
     if format not in FORMATS:
         raise ValueError(f"format must be one of {FORMATS}, got {format!r}")
@@ -60,5 +72,4 @@ def load_scene(path: str | Path | None = None, format: str = "auto", split: str 
         path, format = ensure_procedural_scene(), "blender"
     if format == "auto":
         format = detect_format(path)
-    loader = load_blender if format == "blender" else load_llff
-    return loader(path, split=split, **kwargs)
+    return LOADERS[format](path, split=split, **kwargs)

@@ -16,7 +16,7 @@ import numpy as np
 import torch
 
 from .errors import DatasetError, MissingFileError
-from .images import IMAGE_SUFFIXES, composite, read_image, stack_same_size, write_png
+from .images import IMAGE_SUFFIXES, check_downscale, composite, read_image, stack_same_size, write_png
 from .images import downscale as downscale_image
 from .scene import Scene
 
@@ -26,7 +26,7 @@ BACKGROUNDS = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}
 
 
 def load_blender(
-    root: str | Path, split: str = "train", background: str = "white", downscale: int = 1
+    root: str | Path, split: str = "train", background: str = "white", downscale: float = 1.0
 ) -> Scene:
     """Load one split of a Blender-format scene.
 
@@ -34,37 +34,41 @@ def load_blender(
         root: scene folder holding ``transforms_{split}.json``.
         split: "train", "val" or "test" (any name with a transforms file works).
         background: "white" or "black", the colour transparent pixels are composited on.
-        downscale: integer factor; images shrink by area averaging and the focal length with them.
+        downscale: any number >= 1; images shrink by area averaging (:func:`.images.downscale`)
+            and the intrinsics with them.
 
     Returns:
-        A Scene with bbox [-1.5, 1.5]^3, near 2 and far 6 (the nerf_synthetic conventions).
+        A Scene with bbox [-1.5, 1.5]^3, near 2 and far 6 (the nerf_synthetic conventions), and
+        float32 images (compositing makes values 8 bits would round).
     """
     root = Path(root)
     if background not in BACKGROUNDS:
         raise ValueError(f"background must be one of {sorted(BACKGROUNDS)}, got {background!r}")
-    if not isinstance(downscale, int) or downscale < 1:
-        raise ValueError(f"downscale must be a positive integer, got {downscale!r}")
+    downscale = check_downscale(downscale)
     bg = np.array(BACKGROUNDS[background], dtype=np.float32)
     meta_path = root / f"transforms_{split}.json"
     angle_x, frames = _read_transforms(meta_path)
 
     paths, images, poses = [], [], []
     for k, frame in enumerate(frames):
-        path = _image_path(root, frame["file_path"])
-        poses.append(_pose(frame["transform_matrix"], meta_path, k))
-        images.append(downscale_image(composite(read_image(path), bg), downscale, path))
+        path = frame_image_path(root, frame["file_path"])
+        poses.append(frame_pose(frame["transform_matrix"], meta_path, k))
+        images.append(composite(read_image(path), bg))
         paths.append(path)
     stacked = stack_same_size(images, paths)
+    _, full_h, full_w, _ = stacked.shape
+    if downscale != 1:
+        pairs = zip(stacked, paths, strict=True)
+        stacked = np.stack([downscale_image(img, downscale, path) for img, path in pairs])
     _, H, W, _ = stacked.shape
-    focal = 0.5 * W / math.tan(0.5 * angle_x)
     return Scene(
         images=torch.from_numpy(stacked),
         poses=torch.from_numpy(np.stack(poses)),
         H=H,
         W=W,
-        focal=focal,
-        cx=W / 2,
-        cy=H / 2,
+        focal=0.5 * full_w / math.tan(0.5 * angle_x) / downscale,
+        cx=full_w / 2 / downscale,
+        cy=full_h / 2 / downscale,
         near=BLENDER_NEAR,
         far=BLENDER_FAR,
         bbox=torch.tensor(BLENDER_BBOX, dtype=torch.float32),
@@ -106,6 +110,17 @@ def write_blender_split(
 
 def _read_transforms(path: Path) -> tuple[float, list[dict]]:
     """Parse and validate a transforms JSON: (camera_angle_x, non-empty frames)."""
+    meta = read_json_object(path)
+    if "camera_angle_x" not in meta:
+        raise DatasetError(f"{path}: missing key 'camera_angle_x'")
+    angle = meta["camera_angle_x"]
+    if not isinstance(angle, (int, float)) or not 0 < angle < math.pi:
+        raise DatasetError(f"{path}: camera_angle_x must be a number in (0, pi), got {angle!r}")
+    return float(angle), checked_frames(meta, path)
+
+
+def read_json_object(path: Path) -> dict:
+    """The JSON object in ``path`` (MissingFileError / DatasetError naming it otherwise)."""
     if not path.is_file():
         raise MissingFileError(f"{path}: transforms file not found")
     try:
@@ -114,12 +129,15 @@ def _read_transforms(path: Path) -> tuple[float, list[dict]]:
         raise DatasetError(f"{path}: not valid JSON ({exc})") from exc
     if not isinstance(meta, dict):
         raise DatasetError(f"{path}: expected a JSON object at the top level")
-    for key in ("camera_angle_x", "frames"):
-        if key not in meta:
-            raise DatasetError(f"{path}: missing key {key!r}")
-    angle, frames = meta["camera_angle_x"], meta["frames"]
-    if not isinstance(angle, (int, float)) or not 0 < angle < math.pi:
-        raise DatasetError(f"{path}: camera_angle_x must be a number in (0, pi), got {angle!r}")
+    return meta
+
+
+def checked_frames(meta: dict, path: Path) -> list[dict]:
+    """``meta["frames"]``: a non-empty list of objects, each with a string ``file_path`` and a
+    ``transform_matrix``."""
+    if "frames" not in meta:
+        raise DatasetError(f"{path}: missing key 'frames'")
+    frames = meta["frames"]
     if not isinstance(frames, list) or not frames:
         raise DatasetError(f"{path}: 'frames' must be a non-empty list (the dataset is empty)")
     for k, frame in enumerate(frames):
@@ -128,16 +146,16 @@ def _read_transforms(path: Path) -> tuple[float, list[dict]]:
                 raise DatasetError(f"{path}: frames[{k}] is missing key {key!r}")
         if not isinstance(frame["file_path"], str):
             raise DatasetError(f"{path}: frames[{k}].file_path must be a string")
-    return float(angle), frames
+    return frames
 
 
-def _image_path(root: Path, file_path: str) -> Path:
+def frame_image_path(root: Path, file_path: str) -> Path:
     """nerf_synthetic omits the extension; files that name one are taken as they are."""
     path = root / file_path
     return path if path.suffix.lower() in IMAGE_SUFFIXES else path.with_name(path.name + ".png")
 
 
-def _pose(matrix: object, path: Path, k: int) -> np.ndarray:
+def frame_pose(matrix: object, path: Path, k: int) -> np.ndarray:
     """A frame's transform_matrix as a finite float32 (4, 4) array."""
     try:
         pose = np.asarray(matrix, dtype=np.float32)

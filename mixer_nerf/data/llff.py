@@ -14,7 +14,8 @@ import numpy as np
 import torch
 
 from .errors import DatasetError, MissingFileError
-from .images import list_images, read_image, stack_same_size
+from .images import check_downscale, list_images, read_image, stack_same_size, to_uint8
+from .images import downscale as downscale_image
 from .scene import Scene
 
 BD_FACTOR = 0.75
@@ -25,7 +26,12 @@ SPLITS = ("train", "test", "val", "all")
 
 
 def load_llff(
-    root: str | Path, factor: int = 8, split: str = "train", holdout: int = 8, ndc: bool = True
+    root: str | Path,
+    factor: int = 8,
+    split: str = "train",
+    holdout: int = 8,
+    ndc: bool = True,
+    downscale: float = 1.0,
 ) -> Scene:
     """Load an LLFF scene.
 
@@ -41,12 +47,18 @@ def load_llff(
         holdout: test stride; 0 holds out nothing.
         ndc: use NDC rays (near 0, far 1, bbox [-1, 1]^3); otherwise world rays with near/far from
             the bounds (0.9 x nearest, farthest) and no bbox.
+        downscale: a further shrink of the ``images_{factor}/`` images, any number >= 1
+            (:func:`.images.downscale`).
+
+    Returns:
+        A Scene with uint8 images.
     """
     root = Path(root)
     if split not in SPLITS:
         raise ValueError(f"split must be one of {SPLITS}, got {split!r}")
     if not isinstance(factor, int) or factor < 1:
         raise ValueError(f"factor must be a positive integer, got {factor!r}")
+    downscale = check_downscale(downscale)
     pb_path = root / "poses_bounds.npy"
     llff_poses, bounds, hwf = read_poses_bounds(pb_path)
     image_dir = root / ("images" if factor == 1 else f"images_{factor}")
@@ -64,7 +76,7 @@ def load_llff(
 
     idx = split_indices(len(paths), split, holdout, root)
     chosen = [paths[i] for i in idx]
-    images = stack_same_size([read_image(p)[..., :3] for p in chosen], chosen)
+    images = stack_same_size([to_uint8(read_image(p)[..., :3]) for p in chosen], chosen)
     _, H, W, _ = images.shape
     full_h, full_w, full_focal = hwf[0]
     if abs(full_h / factor - H) >= 1 or abs(full_w / factor - W) >= 1:
@@ -72,15 +84,20 @@ def load_llff(
             f"{chosen[0]}: image is {W}x{H}, but {pb_path} gives {full_w:g}x{full_h:g} at full "
             f"resolution, i.e. {full_w / factor:g}x{full_h / factor:g} at factor {factor}"
         )
+    if downscale != 1:
+        pairs = zip(images, chosen, strict=True)
+        images = np.stack([to_uint8(downscale_image(img / 255.0, downscale, p)) for img, p in pairs])
+    focal, cx, cy = float(full_focal) / factor / downscale, W / 2 / downscale, H / 2 / downscale
+    _, H, W, _ = images.shape
     near, far = (0.0, 1.0) if ndc else (float(bounds.min()) * 0.9, float(bounds.max()))
     return Scene(
         images=torch.from_numpy(images),
         poses=torch.from_numpy(c2w[idx].astype(np.float32)),
         H=H,
         W=W,
-        focal=float(full_focal) / factor,
-        cx=W / 2,
-        cy=H / 2,
+        focal=focal,
+        cx=cx,
+        cy=cy,
         near=near,
         far=far,
         bbox=torch.tensor([[-1.0] * 3, [1.0] * 3]) if ndc else None,

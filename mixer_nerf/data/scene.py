@@ -19,8 +19,16 @@ rescaled so that the closest scene depth is ~1.33, beyond this plane)."""
 class Scene:
     """One split of a scene.
 
+    Images stay in host memory whatever device the scene is on (:meth:`to`), so that a capture
+    larger than the GPU's memory trains: only the pixels of a batch travel (:meth:`colors_at`),
+    and whole views for validation one at a time (:meth:`image`). Everything else lives on
+    :attr:`device`.
+
     Attributes:
-        images: (N, H, W, 3) float32 in [0, 1], already composited on ``background``.
+        images: (N, H, W, 3), already composited on ``background``: uint8 (photos, a quarter of
+            the memory of floats) or float32 in [0, 1] (values 8 bits would round, such as
+            alpha-composited renders). Read them through :meth:`image` / :meth:`colors_at`, which
+            give float32 in [0, 1] on :attr:`device`.
         poses: (N, 4, 4) float32 camera-to-world, OpenGL convention (x right, y up, looks down -z).
         H, W, focal, cx, cy: image size, focal length and principal point in pixels.
         near, far: ray sampling range. For ``ndc`` scenes this is the NDC range (0, 1).
@@ -51,6 +59,8 @@ class Scene:
         n = self.images.shape[0]
         if self.images.shape != (n, self.H, self.W, 3):
             raise ValueError(f"images must be (N, {self.H}, {self.W}, 3), got {tuple(self.images.shape)}")
+        if self.images.dtype not in (torch.uint8, torch.float32):
+            raise ValueError(f"images must be uint8 or float32, got {self.images.dtype}")
         if self.poses.shape != (n, 4, 4):
             raise ValueError(f"poses must be ({n}, 4, 4), got {tuple(self.poses.shape)}")
         if self.bbox is not None and self.bbox.shape != (2, 3):
@@ -59,14 +69,28 @@ class Scene:
     def __len__(self) -> int:
         return self.images.shape[0]
 
+    @property
+    def device(self) -> torch.device:
+        """Where rays, colours and whole images are returned (the images stay on the host)."""
+        return self.poses.device
+
     def to(self, device: torch.device | str) -> Scene:
-        """A copy with every tensor on ``device``."""
+        """A copy on ``device``: every tensor but the images, which stay on the host, in pinned
+        memory for a CUDA device (asynchronous copies of the gathered pixels)."""
+        device = torch.device(device)
         moved = {
             f.name: getattr(self, f.name).to(device)
             for f in dataclasses.fields(self)
-            if isinstance(getattr(self, f.name), torch.Tensor)
+            if isinstance(getattr(self, f.name), torch.Tensor) and f.name != "images"
         }
-        return dataclasses.replace(self, **moved)
+        images = self.images.cpu()
+        if device.type == "cuda" and not images.is_pinned():
+            images = images.pin_memory()
+        return dataclasses.replace(self, images=images, **moved)
+
+    def image(self, i: int) -> torch.Tensor:
+        """View ``i`` as (H, W, 3) float32 in [0, 1] on :attr:`device`."""
+        return self._as_float(self.images[i])
 
     def rays_at(
         self, image_idx: torch.Tensor, pixel_idx: torch.Tensor, ndc: bool | None = None
@@ -88,8 +112,10 @@ class Scene:
         return self._maybe_ndc(origins, dirs, ndc)
 
     def colors_at(self, image_idx: torch.Tensor, pixel_idx: torch.Tensor) -> torch.Tensor:
-        """Target colours (M, 3) of the pixels addressed as in :meth:`rays_at`."""
-        return self.images.reshape(len(self), self.H * self.W, 3)[image_idx, pixel_idx]
+        """Target colours (M, 3) float32 on :attr:`device` of the pixels addressed as in
+        :meth:`rays_at` (indices on any device; those on a GPU are copied to the host)."""
+        flat = (image_idx * (self.H * self.W) + pixel_idx).to(self.images.device)
+        return self._as_float(self.images.reshape(-1, 3)[flat])
 
     def rays_for_image(self, i: int, ndc: bool | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """Rays of every pixel of image ``i``, row-major: origins, dirs each (H*W, 3)."""
@@ -99,11 +125,17 @@ class Scene:
         """Every ray of the split with its target colour, for training on shuffled rays.
 
         Returns:
-            origins, dirs, rgb: each (N*H*W, 3), image-major then row-major (flat index
-            ``(i * H + row) * W + col``), so ``rgb`` is ``images.reshape(-1, 3)``.
+            origins, dirs, rgb: each (N*H*W, 3) on :attr:`device`, image-major then row-major
+            (flat index ``(i * H + row) * W + col``); ``rgb`` is float32 in [0, 1].
         """
         origins, dirs = self._flat_rays(self.poses, ndc)
-        return origins, dirs, self.images.reshape(-1, 3)
+        return origins, dirs, self._as_float(self.images.reshape(-1, 3))
+
+    def _as_float(self, pixels: torch.Tensor) -> torch.Tensor:
+        """Host pixels (any shape) -> float32 in [0, 1] on :attr:`device`, converted after the copy
+        (a quarter of the bytes to move for uint8)."""
+        pixels = pixels.to(self.device, non_blocking=True)
+        return pixels.float() / 255.0 if pixels.dtype == torch.uint8 else pixels
 
     def _flat_rays(self, c2w: torch.Tensor, ndc: bool | None) -> tuple[torch.Tensor, torch.Tensor]:
         origins, dirs = camera_rays(self.H, self.W, self.focal, c2w, self.cx, self.cy)

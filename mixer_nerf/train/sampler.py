@@ -11,14 +11,16 @@ class RaySampler:
     """Draws ``batch_rays`` pixels uniformly (with replacement) from all training images.
 
     Rays are made on the fly from the drawn pixels (``Scene.rays_at``), so nothing of size
-    N*H*W beyond the images is ever stored. The sampler owns its generator (on the scene's device);
-    its state goes into every checkpoint so a resumed run draws the same batches.
+    N*H*W beyond the images is ever stored; the images stay on the host and only the drawn pixels'
+    colours travel to the scene's device (``Scene.colors_at``). The sampler owns its generator (on
+    the scene's device, where the renderer draws its samples with it too); its state goes into
+    every checkpoint so a resumed run draws the same batches.
     """
 
     def __init__(self, scene: Scene, batch_rays: int, seed: int) -> None:
         self.scene = scene
         self.batch_rays = batch_rays
-        self.generator = torch.Generator(device=scene.images.device)
+        self.generator = torch.Generator(device=scene.device)
         self.generator.manual_seed(seed)
         self._pixels = scene.H * scene.W
         self._total = len(scene) * self._pixels

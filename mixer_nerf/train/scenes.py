@@ -29,7 +29,7 @@ def scene_source(cfg: TrainConfig) -> tuple[Path, str]:
 
 def load_split(folder: Path, format: str, split: str, downscale: int = 1) -> Scene:
     """One split, refusing an empty one (a loader may return zero views for a short capture)."""
-    kwargs = {"downscale": downscale} if format == "blender" else {}
+    kwargs = {"downscale": downscale}  # every loader takes it
     scene = load_scene(folder, format=format, split=split, **kwargs)
     if len(scene) == 0:
         raise DatasetError(f"{folder}: the {split!r} split has no images")
