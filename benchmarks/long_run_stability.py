@@ -127,7 +127,7 @@ def held_out_psnr(trainer: Trainer, num_rays: int) -> float:
     (whole validation images would cost minutes on a CPU and are not needed to compare seeds)."""
     scene = trainer.val_scene
     gen = torch.Generator().manual_seed(0)
-    flat = torch.randint(len(scene) * scene.H * scene.W, (num_rays,), generator=gen).to(scene.images.device)
+    flat = torch.randint(len(scene) * scene.H * scene.W, (num_rays,), generator=gen).to(scene.device)
     image_idx, pixel_idx = flat // (scene.H * scene.W), flat % (scene.H * scene.W)
     rays_o, rays_d = scene.rays_at(image_idx, pixel_idx)
     rgb = trainer.render_rgb(rays_o.float(), rays_d.float())

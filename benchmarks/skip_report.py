@@ -63,7 +63,7 @@ def skip_report(trainer, val) -> dict:
     full_grid = copy.deepcopy(grid)
     full_grid.occupied = torch.ones(grid.resolution, dtype=torch.bool)
     rays_o, rays_d = val.rays_for_image(0)
-    truth = val.images[0]
+    truth = val.image(0)
     num_rays = rays_o.shape[0]
     trainer.fields.eval()
     rows, images = [], {}

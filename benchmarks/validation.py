@@ -18,5 +18,5 @@ def validate(render: Callable, val, chunk: int = 1 << 15) -> float:
         rays_o, rays_d = val.rays_for_image(i)
         chunks = range(0, len(rays_o), chunk)
         rgb = torch.cat([render(rays_o[j:j + chunk], rays_d[j:j + chunk]) for j in chunks])
-        scores.append(psnr(rgb.reshape(val.H, val.W, 3).clamp(0, 1), val.images[i]).item())
+        scores.append(psnr(rgb.reshape(val.H, val.W, 3).clamp(0, 1), val.image(i)).item())
     return sum(scores) / len(scores)

@@ -14,7 +14,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from .train.config import BACKENDS, DEMO_SETTINGS, FORMATS, PRECISIONS, PRESETS, SAMPLERS, TrainConfig
+from .data import FORMATS
+from .train.config import BACKENDS, DEMO_SETTINGS, PRECISIONS, PRESETS, SAMPLERS, TrainConfig
 
 DEMO_OUT = "runs/demo"
 DEMO_VIDEO_FRAMES = 40
@@ -43,7 +44,7 @@ TRAIN_OPTIONS: dict[str, dict[str, Any]] = {
     "--val-every": {"type": int, "help": "validate every N steps"},
     "--ckpt-every": {"type": int, "help": "checkpoint every N steps (a killed run loses at most N)"},
     "--time-budget": {"type": float, "metavar": "SECONDS", "help": "stop after this much training time"},
-    "--downscale": {"type": int, "help": "integer image downscale (Blender scenes)"},
+    "--downscale": {"type": float, "help": "image downscale, any factor >= 1"},
     "--sampler": {
         "choices": SAMPLERS,
         "help": "occupancy (skip empty space, occluded samples, missed rays), "

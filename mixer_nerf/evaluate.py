@@ -78,7 +78,7 @@ def evaluate(
             result.depth.reshape(scene.H, scene.W).cpu(),
             result.opacity.reshape(scene.H, scene.W).cpu(),
         )
-        target = scene.images[i].cpu()
+        target = scene.image(i).cpu()
         stem = f"{i:03d}"
         write_png(out / "images" / f"{stem}.png", to_uint8(pred))
         lo, hi = depth_range([depth], [opacity], fallback=(scene.near, scene.far))

@@ -71,12 +71,13 @@ class Scene:
 
     @property
     def device(self) -> torch.device:
-        """Where rays, colours and whole images are returned (the images stay on the host)."""
+        """Where rays, colours and whole images are returned (the images may stay on the host)."""
         return self.poses.device
 
     def to(self, device: torch.device | str) -> Scene:
-        """A copy on ``device``: every tensor but the images, which stay on the host, in pinned
-        memory for a CUDA device (asynchronous copies of the gathered pixels)."""
+        """A copy on ``device``. The images go along when they take at most a quarter of a GPU's
+        free memory (gathering a batch then needs no host round trip); larger captures stay on the
+        host, pinned, and each batch's pixels are copied over."""
         device = torch.device(device)
         moved = {
             f.name: getattr(self, f.name).to(device)
@@ -84,8 +85,12 @@ class Scene:
             if isinstance(getattr(self, f.name), torch.Tensor) and f.name != "images"
         }
         images = self.images.cpu()
-        if device.type == "cuda" and not images.is_pinned():
-            images = images.pin_memory()
+        if device.type == "cuda":
+            free, _ = torch.cuda.mem_get_info(device)
+            if images.numel() * images.element_size() <= free // 4:
+                images = images.to(device)
+            elif not images.is_pinned():
+                images = images.pin_memory()
         return dataclasses.replace(self, images=images, **moved)
 
     def image(self, i: int) -> torch.Tensor:

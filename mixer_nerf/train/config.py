@@ -6,12 +6,12 @@ import dataclasses
 from dataclasses import dataclass, field
 from typing import Any
 
+from ..data import FORMATS
 from ..render.skipping import MarchingOptions
 
 PRESETS = ("A", "B", "C", "D")
 PRECISIONS = ("bf16", "tf32", "fp32")
 BACKENDS = ("auto", "kernel", "torch")
-FORMATS = ("auto", "blender", "llff")
 SAMPLERS = ("auto", "occupancy", "proposal", "hierarchical")
 
 
@@ -31,7 +31,7 @@ class TrainConfig:
 
     data: str | None = None  # scene folder; None = the built-in procedural scene
     format: str = "auto"
-    downscale: int = 1  # integer image downscale for real scenes
+    downscale: float = 1.0  # image downscale for real scenes, any factor >= 1
     procedural_resolution: int = 100  # image size of the built-in scene
     procedural_views: int = 100  # its number of training views
     preset: str = "D"
@@ -112,12 +112,13 @@ class TrainConfig:
             "empty_space_points",
             "log_every",
             "chunk",
-            "downscale",
             "procedural_resolution",
             "procedural_views",
         ):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
+        if not self.downscale >= 1:
+            raise ValueError(f"downscale must be >= 1, got {self.downscale}")
         if self.lr_hold is not None and not 0 <= self.lr_hold < 1:
             raise ValueError(f"lr_hold must be in [0, 1), got {self.lr_hold}")
         if self.lr_warmup is not None and self.lr_warmup < 0:

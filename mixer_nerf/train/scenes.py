@@ -27,7 +27,7 @@ def scene_source(cfg: TrainConfig) -> tuple[Path, str]:
     return folder, detect_format(folder) if cfg.format == "auto" else cfg.format
 
 
-def load_split(folder: Path, format: str, split: str, downscale: int = 1) -> Scene:
+def load_split(folder: Path, format: str, split: str, downscale: float = 1) -> Scene:
     """One split, refusing an empty one (a loader may return zero views for a short capture)."""
     kwargs = {"downscale": downscale}  # every loader takes it
     scene = load_scene(folder, format=format, split=split, **kwargs)
@@ -36,7 +36,7 @@ def load_split(folder: Path, format: str, split: str, downscale: int = 1) -> Sce
     return scene
 
 
-def held_out_split(folder: Path, format: str, preferred: str, downscale: int = 1) -> tuple[Scene, str]:
+def held_out_split(folder: Path, format: str, preferred: str, downscale: float = 1) -> tuple[Scene, str]:
     """``preferred`` split ("test" or "val"), else the other one when that one does not exist
     (e.g. a scene shipped without its test views). Returns the scene and the split used."""
     other = {"test": "val", "val": "test"}[preferred]

@@ -239,7 +239,7 @@ class Trainer:
         for i in views:
             rays_o, rays_d = scene.rays_for_image(i)
             rgb = self.render_rgb(rays_o.float(), rays_d.float()).reshape(scene.H, scene.W, 3)
-            scores.append(psnr(rgb.clamp(0, 1), scene.images[i]).item())
+            scores.append(psnr(rgb.clamp(0, 1), scene.image(i)).item())
         return sum(scores) / len(scores)
 
     # -- the loop ---------------------------------------------------------------------------
