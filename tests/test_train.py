@@ -268,6 +268,15 @@ def test_time_budget_stops_training(tmp_path):
     assert load_checkpoint(tmp_path / "checkpoint.pt")["step"] == summary["step"]
 
 
+def test_a_resume_that_does_not_retype_the_time_budget_keeps_the_checkpoints(tmp_path):
+    """`train --out RUN --resume` alone continues the run it was: same budget, same schedule."""
+    Trainer(tiny_config(tmp_path, steps=10_000, time_budget=600.0), log=quiet).save()
+    resumed = Trainer(tiny_config(tmp_path, steps=10_000), resume=True, log=quiet)
+    assert resumed.cfg.time_budget == 600.0
+    extended = Trainer(tiny_config(tmp_path, steps=10_000, time_budget=900.0), resume=True, log=quiet)
+    assert extended.cfg.time_budget == 900.0
+
+
 def test_learning_rate_comes_from_the_samplers_recipe_unless_given():
     occupancy, hierarchical = TrainConfig().with_recipe("occupancy"), TrainConfig().with_recipe("hierarchical")
     assert (occupancy.lr, occupancy.lr_final, occupancy.lr_warmup) == (4e-3, pytest.approx(4e-4), 200)

@@ -33,6 +33,13 @@ RESUMABLE_OVERRIDES = ("time_budget", "progress")
 continues exactly as it would have without the interruption."""
 
 
+def typed_overrides(cfg: TrainConfig) -> dict[str, Any]:
+    """The ``RESUMABLE_OVERRIDES`` of ``cfg`` that differ from the defaults: what a resumed run
+    was told anew (an option left out keeps the checkpoint's value, its time budget included)."""
+    default = TrainConfig()
+    return {k: getattr(cfg, k) for k in RESUMABLE_OVERRIDES if getattr(cfg, k) != getattr(default, k)}
+
+
 class TrainingClock:
     """Seconds spent training (validation and checkpointing excluded), across resumes."""
 
@@ -80,7 +87,7 @@ class Trainer:
             state = load_checkpoint(self.files.checkpoint)
             saved = TrainConfig.from_dict(state["train_config"])
             cfg = TrainConfig(
-                **{**saved.to_dict(), **{k: getattr(cfg, k) for k in RESUMABLE_OVERRIDES}, "out": cfg.out}
+                **{**saved.to_dict(), **typed_overrides(cfg), "out": cfg.out}
             )
         self.cfg = cfg = cfg.resolved(torch.cuda.is_available())
         self.device = torch.device(cfg.device)
