@@ -153,3 +153,9 @@ def test_parsers():
         "skips": [4], "density_activation": "relu", "width": 64}
     with pytest.raises(AblationError, match="no presets"):
         parse_presets(" ,")
+
+
+def test_eq7_with_the_occupancy_sampler_is_refused(tmp_path, capsys):
+    assert ablate(tmp_path / "eq7", "--presets", "D", "--seeds", "0", "--sampler", "occupancy",
+                  "--model-override", "mlca_concat_direction=true") == 1
+    assert "add --sampler proposal or --sampler hierarchical" in capsys.readouterr().err
