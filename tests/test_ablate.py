@@ -8,32 +8,28 @@ import json
 import math
 
 import pytest
+from test_cli import TINY_DEMO
 
 from mixer_nerf import cli
 from mixer_nerf.ablation import AblationError, parse_model_overrides, parse_presets, parse_seeds
 from mixer_nerf.train import Trainer
+from mixer_nerf.train import trainer as trainer_module
 
-TINY_SCENE = {
-    "procedural_resolution": 32,  # LPIPS needs 31x31 images or more
-    "procedural_views": 4,
-    "model_overrides": {"depth": 2, "width": 16, "skips": (), "view_width": 8, "pos_freqs": 2, "dir_freqs": 1,
-                        "mlca_channels": 3, "se_reduction": 4},
-    "sampler": "hierarchical",
-    "batch_rays": 32,
-    "num_coarse": 6,
-    "num_fine": 6,
-    "val_every": 2,
-    "val_images": 1,
-    "ckpt_every": 2,
-    "log_every": 1,
-}
+# test_cli's tiny demo, at 32x32 (LPIPS needs 31x31 images or more) and without a steps default.
+TINY_SCENE = {**{k: v for k, v in TINY_DEMO.items() if k != "steps"}, "procedural_resolution": 32,
+              "sampler": "hierarchical"}
 FLAGS = ["--backend", "torch", "--device", "cpu", "--no-progress", "--max-images", "1"]
+
+
+def shrink(mp: pytest.MonkeyPatch, basetemp) -> None:
+    mp.setenv("MIXER_NERF_CACHE", str(basetemp / "cache"))
+    mp.setattr(cli, "DEMO_SETTINGS", TINY_SCENE)
+    mp.setattr(trainer_module, "plot_curves", lambda *_: None)  # each run's own plot: tested in test_train
 
 
 @pytest.fixture(autouse=True)
 def tiny_scene(tmp_path_factory, monkeypatch):
-    monkeypatch.setenv("MIXER_NERF_CACHE", str(tmp_path_factory.getbasetemp() / "cache"))
-    monkeypatch.setattr(cli, "DEMO_SETTINGS", TINY_SCENE)
+    shrink(monkeypatch, tmp_path_factory.getbasetemp())
 
 
 def ablate(out, *extra: str) -> int:
@@ -45,8 +41,7 @@ def finished(tmp_path_factory):
     """One ablation of presets A and D over seeds 0 and 1, shared by the tests that read it."""
     out = tmp_path_factory.mktemp("ablate") / "AD"
     mp = pytest.MonkeyPatch()
-    mp.setenv("MIXER_NERF_CACHE", str(tmp_path_factory.getbasetemp() / "cache"))
-    mp.setattr(cli, "DEMO_SETTINGS", TINY_SCENE)
+    shrink(mp, tmp_path_factory.getbasetemp())
     try:
         assert ablate(out, "--presets", "AD", "--seeds", "0,1") == 0
     finally:
