@@ -59,15 +59,16 @@ class AblationPlan:
         return json.loads(json.dumps(shared))
 
     def claim_folder(self, resume: bool) -> None:
-        """Create ``out`` and write the plan, refusing a folder that holds another ablation (or
-        this one without ``resume``)."""
+        """Create ``out`` and write the plan, refusing a folder whose runs were started by another
+        ablation (or by this one, without ``resume``). A plan with no run started yet (e.g. refused
+        before training) is simply replaced."""
         path = self.out / PLAN_FILE
-        if path.exists():
+        if path.exists() and any(self.out.glob("*_seed*/checkpoint.pt")):
             if not resume:
                 raise AblationError(f"{self.out}: already holds an ablation; pass --resume to continue it "
                                     "or choose another --out")
-            saved = json.loads(path.read_text())["settings"]
-            differs = sorted(k for k in set(saved) | set(self.settings()) if saved.get(k) != self.settings().get(k))
+            saved, settings = json.loads(path.read_text())["settings"], self.settings()
+            differs = sorted(k for k in set(saved) | set(settings) if saved.get(k) != settings.get(k))
             if differs:
                 raise AblationError(f"{path}: the ablation there was started with other settings ({', '.join(differs)})")
         self.out.mkdir(parents=True, exist_ok=True)
