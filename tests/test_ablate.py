@@ -120,6 +120,8 @@ def test_model_overrides_are_recorded(tmp_path):
         (["--seeds", "0,one"], "seeds must be integers"),
         (["--model-override", "colour=1"], "unknown model setting 'colour'"),
         (["--model-override", "width"], "is not NAME=VALUE"),
+        (["--model-override", "se_per_point=False"], "se_per_point takes a value like false"),
+        (["--model-override", "width=wide"], "width takes a value like 256"),
     ],
 )
 def test_bad_arguments_give_one_line_errors(tmp_path, capsys, args, message):
@@ -144,8 +146,8 @@ def test_existing_ablation_needs_resume_and_the_same_settings(finished, capsys):
 def test_parsers():
     assert parse_presets("a, d,A") == ("A", "D")
     assert parse_seeds("2 0,2") == (2, 0)
-    assert parse_model_overrides(["skips=[4]", "density_activation=relu", "width=64"]) == {
-        "skips": [4], "density_activation": "relu", "width": 64}
+    assert parse_model_overrides(["skips=[4]", "density_activation=relu", "width=64", "pe_scale=3"]) == {
+        "skips": [4], "density_activation": "relu", "width": 64, "pe_scale": 3}
     with pytest.raises(AblationError, match="no presets"):
         parse_presets(" ,")
 

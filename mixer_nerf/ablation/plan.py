@@ -101,18 +101,32 @@ def parse_seeds(text: str) -> tuple[int, ...]:
 
 def parse_model_overrides(items: list[str]) -> dict[str, Any]:
     """["se_per_point=true", "width=128", "skips=[4]"] -> {"se_per_point": True, ...}: values are
-    JSON (true/false, numbers, lists), else strings; names must be ModelConfig fields."""
-    fields = {f.name for f in dataclasses.fields(ModelConfig)}
+    JSON (true/false, numbers, lists), else strings, and must have the type of the ModelConfig
+    field they set (so that "False" cannot pass for a true string)."""
+    defaults = {f.name: f.default for f in dataclasses.fields(ModelConfig)}
     overrides: dict[str, Any] = {}
     for item in items:
-        name, sep, value = item.partition("=")
+        name, sep, text = item.partition("=")
         name = name.strip()
         if not sep or not name:
             raise AblationError(f"model override {item!r} is not NAME=VALUE")
-        if name not in fields:
+        if name not in defaults:
             raise AblationError(f"unknown model setting {name!r} in --model-override (see ModelConfig)")
         try:
-            overrides[name] = json.loads(value)
+            value = json.loads(text)
         except json.JSONDecodeError:
-            overrides[name] = value
+            value = text
+        if not _same_kind(value, defaults[name]):
+            raise AblationError(f"model setting {name} takes a value like {json.dumps(defaults[name])}, got {text!r}")
+        overrides[name] = value
     return overrides
+
+
+def _same_kind(value: Any, default: Any) -> bool:
+    if isinstance(default, bool) or isinstance(value, bool):
+        return type(value) is type(default)
+    if isinstance(default, tuple):
+        return isinstance(value, list)
+    if isinstance(default, float):
+        return isinstance(value, (int, float))
+    return type(value) is type(default)

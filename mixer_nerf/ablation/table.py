@@ -12,6 +12,7 @@ from typing import Any
 
 from ..train.logbook import CsvLog
 from .curves import plot_curves, val_curve
+from .plan import AblationPlan
 
 PRESET_NAMES = {"A": "NeRF", "B": "NeRF + SE", "C": "NeRF + MLCA", "D": "Mixer-NeRF"}
 METRICS = ("psnr", "ssim", "lpips")
@@ -21,7 +22,7 @@ RUN_COLUMNS = ["preset", "seed", "status", "steps", "train_seconds", "steps_per_
                "seconds_to_target", "eval_split", "eval_views", "run"]
 
 
-def build_table(plan, records: list[dict[str, Any]]) -> dict[str, Any]:
+def build_table(plan: AblationPlan, records: list[dict[str, Any]]) -> dict[str, Any]:
     """The table of ``records`` (one per run, see ``runner.run_one``) for ``plan``.
 
     ``spread`` is the sample standard deviation over seeds (None with one seed); a mean ignores
