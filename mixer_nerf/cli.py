@@ -1,4 +1,4 @@
-"""The ``mixer-nerf`` command line: train, eval, render and demo.
+"""The ``mixer-nerf`` command line: train, eval, render, demo and ablate.
 
 Errors a user can fix (missing or malformed data, unwritable output, bad checkpoints, a run that
 went non-finite) print one line naming the file and exit with status 1; usage errors exit with 2.
@@ -115,6 +115,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_train_options(demo, default_out=DEMO_OUT)
     demo.set_defaults(data=None)
     _add_prepare_parser(commands)
+    _add_ablate_parser(commands)
     return parser
 
 
@@ -227,8 +228,32 @@ def run_prepare(args: argparse.Namespace) -> int:
     return 0
 
 
-COMMANDS = {"train": run_train, "eval": run_eval, "render": run_render, "demo": run_train}
-COMMANDS["prepare"] = run_prepare
+def run_ablate(args: argparse.Namespace) -> int:
+    import dataclasses
+
+    from .ablation import AblationPlan, parse_model_overrides, parse_presets, parse_seeds, run_ablation
+
+    if args.steps is None and args.time_budget is None:
+        raise UserError("give --steps N (equal steps) or --time-budget SECONDS (equal training time)")
+    if args.max_images is not None and args.max_images < 1:
+        raise UserError(f"--max-images must be positive, got {args.max_images}")
+    base = train_config_from_args(args)
+    overrides = {**base.model_overrides, **parse_model_overrides(args.model_override)}
+    plan = AblationPlan(
+        base=dataclasses.replace(base, model_overrides=overrides), presets=parse_presets(args.presets),
+        seeds=parse_seeds(args.seeds), out=Path(args.out), target_psnr=args.target_psnr, split=args.split,
+        max_images=args.max_images,
+    )
+    table = run_ablation(plan, resume=args.resume)
+    print(f"table: {Path(args.out) / 'ablation.md'}")
+    for row in table["presets"]:
+        psnr = "-" if row["psnr_mean"] is None else f"{row['psnr_mean']:.2f} dB"
+        print(f"  preset {row['preset']} ({row['model']}): held-out PSNR {psnr} over {row['seeds']} seed(s)")
+    return 0
+
+
+COMMANDS = {"train": run_train, "eval": run_eval, "render": run_render, "demo": run_train, "prepare": run_prepare,
+            "ablate": run_ablate}
 
 
 def _train(cfg: TrainConfig, resume: bool) -> dict[str, Any]:
@@ -296,6 +321,32 @@ def _add_train_options(parser: argparse.ArgumentParser, default_out: str) -> Non
     parser.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
     _add_device_options(parser)
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def _add_ablate_parser(commands: Any) -> None:
+    ablate = commands.add_parser(
+        "ablate", help="train presets x seeds for equal steps or equal time and tabulate held-out scores"
+    )
+    ablate.add_argument("--data", help="scene folder (default: the built-in procedural scene)")
+    ablate.add_argument("--presets", default="ABCD", help="presets to train, e.g. ABCD or A,D (default ABCD)")
+    ablate.add_argument("--seeds", default="0,1", help="seeds, comma-separated (default 0,1)")
+    ablate.add_argument(
+        "--model-override", action="append", default=[], metavar="NAME=VALUE",
+        help="a ModelConfig setting for every run, e.g. se_per_point=true (repeatable)",
+    )
+    ablate.add_argument("--target-psnr", type=float, metavar="DB",
+                        help="tabulate the training time to this validation PSNR (default: the lowest "
+                        "best validation PSNR among the runs)")
+    ablate.add_argument("--split", choices=("test", "val", "train"), help="held-out views scored (as eval)")
+    ablate.add_argument("--max-images", type=int, help="score only the first N held-out views")
+    for flag, options in TRAIN_OPTIONS.items():
+        if flag not in ("--preset", "--seed"):
+            ablate.add_argument(flag, default=None, **options)
+    ablate.add_argument("--out", required=True, help="ablation folder: one run folder per preset and seed")
+    ablate.add_argument("--resume", action="store_true",
+                        help="continue the ablation in --out: skip finished runs, resume unfinished ones")
+    _add_device_options(ablate)
+    ablate.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
 def _add_device_options(parser: argparse.ArgumentParser) -> None:

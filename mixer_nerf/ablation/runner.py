@@ -1,0 +1,125 @@
+"""Training, resuming and scoring the runs of an ablation, one after another."""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from ..train.checkpoint import load_checkpoint
+from ..train.config import TrainConfig
+from ..train.fields import model_config_from_dict
+from ..train.output import RunFiles
+from ..train.sampling import make_fields
+from .plan import AblationError, AblationPlan
+from .table import build_table, write_table
+
+RUN_RECORD = "ablation_run.json"
+COMPLETE = ("finished", "time budget reached")
+STALE_FILES = ("train_log.csv", "val_log.csv", "summary.json", "config.json")
+
+
+def run_ablation(plan: AblationPlan, resume: bool = False, log: Callable[[str], None] = print) -> dict[str, Any]:
+    """Train and score every preset x seed of ``plan`` (skipping those already done, resuming
+    those with a checkpoint), then write the table and the plot into ``plan.out``.
+
+    Returns the table (the content of ``table.json``).
+    Raises:
+        AblationError: ``plan.out`` holds another ablation, or ``resume`` is False and it holds one.
+    """
+    plan.claim_folder(resume)
+    runs = [(p, s) for p in plan.presets for s in plan.seeds]
+    records = []
+    for i, (preset, seed) in enumerate(runs, 1):
+        log(f"[{i}/{len(runs)}] preset {preset}, seed {seed}: {plan.run_folder(preset, seed)}")
+        records.append(run_one(plan, preset, seed, log))
+        r = records[-1]
+        log(f"[{i}/{len(runs)}] preset {preset}, seed {seed}: {r['status']} at step {r['steps']} "
+            f"({r['train_seconds']:.1f} s), held-out PSNR {_fmt(r['psnr'])}")
+    table = build_table(plan, records)
+    paths = write_table(table, plan.out)
+    log(f"ablation table: {', '.join(str(p) for p in paths)}")
+    return table
+
+
+def run_one(plan: AblationPlan, preset: str, seed: int, log: Callable[[str], None]) -> dict[str, Any]:
+    """One run's record (also ``<run>/ablation_run.json``): trained, resumed or read back."""
+    cfg = plan.run_config(preset, seed)
+    files = RunFiles(Path(cfg.out))
+    record_path = files.root / RUN_RECORD
+    if record_path.is_file():
+        log("  done earlier, skipped")
+        return json.loads(record_path.read_text())
+    summary = _read_summary(files)
+    if summary is None or not _ended(summary):
+        summary = _train(cfg, files, log)
+    record = {
+        "preset": preset,
+        "seed": seed,
+        "run": str(files.root),
+        "status": summary["status"],
+        "steps": summary["step"],
+        "train_seconds": summary["train_seconds"],
+        "steps_per_s": summary["step"] / summary["train_seconds"] if summary["train_seconds"] > 0 else None,
+        "params": count_parameters(files.checkpoint),
+        **_scores(plan, cfg, files, complete=summary["status"] in COMPLETE),
+    }
+    record_path.write_text(json.dumps(record, indent=1))
+    return record
+
+
+def count_parameters(ckpt: Path) -> int:
+    """Trainable parameters of a checkpoint's fields (both MLPs, proposal networks), not buffers."""
+    state = load_checkpoint(ckpt)
+    cfg = TrainConfig.from_dict(state["train_config"])
+    fields = make_fields(cfg, model_config_from_dict(state["model_config"]), state["scene"].get("bbox"))
+    return sum(p.numel() for p in fields.parameters() if p.requires_grad)
+
+
+def _train(cfg: TrainConfig, files: RunFiles, log: Callable[[str], None]) -> dict[str, Any]:
+    from ..train import NonFiniteError, Trainer
+
+    resume = files.checkpoint.is_file()
+    if not resume:  # a run killed before its first checkpoint left logs that a fresh start would extend
+        for name in STALE_FILES:
+            (files.root / name).unlink(missing_ok=True)
+    trainer = Trainer(cfg, resume=resume, log=lambda line: log(f"  {line}"))
+    if trainer.cfg.sampler == "occupancy" and trainer.model_cfg.mlca_concat_direction:
+        raise AblationError("mlca_concat_direction=true (the paper's Eq. 7) makes the density depend on "
+                            "the view direction, which the occupancy grid cannot query; add --sampler "
+                            "proposal or --sampler hierarchical")
+    log(f"  {'resuming at step ' + str(trainer.step) if resume else 'training'}: sampler {trainer.cfg.sampler}, "
+        f"{cfg.steps} steps" + (f" or {cfg.time_budget:g} s" if cfg.time_budget else ""))
+    try:
+        return trainer.fit()
+    except NonFiniteError as e:  # the table shows the run as failed; the other runs go on
+        log(f"  {e}")
+        return _read_summary(files)
+
+
+def _scores(plan: AblationPlan, cfg: TrainConfig, files: RunFiles, complete: bool) -> dict[str, Any]:
+    """Held-out means of a complete run (None for a failed one) and the notes of its evaluation."""
+    if not complete:
+        return {"psnr": None, "ssim": None, "lpips": None, "eval_split": None, "eval_views": 0, "notes": []}
+    from ..evaluate import evaluate
+
+    record = evaluate(files.checkpoint, split=plan.split, out=files.root / "eval", device=cfg.device,
+                      backend=cfg.backend, max_images=plan.max_images, log=lambda _: None)
+    s = record["summary"]
+    return {"psnr": s["mean_psnr"], "ssim": s["mean_ssim"], "lpips": s["mean_lpips"], "eval_split": s["split"],
+            "eval_views": s["images"], "notes": record["notes"]}
+
+
+def _read_summary(files: RunFiles) -> dict[str, Any] | None:
+    return json.loads(files.summary.read_text()) if files.summary.is_file() else None
+
+
+def _ended(summary: dict[str, Any]) -> bool:
+    """Finished, out of time, or failed for good (non-finite): nothing left to train."""
+    return summary["status"] in COMPLETE or summary["status"].startswith("non-finite")
+
+
+def _fmt(value: float | None) -> str:
+    return "-" if value is None or not math.isfinite(value) else f"{value:.2f} dB"

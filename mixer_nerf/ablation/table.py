@@ -1,0 +1,156 @@
+"""The ablation table: per-preset means and spreads over seeds, change against preset A, cost and
+time to a PSNR; written as markdown, JSON and CSV beside a plot of the validation curves."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import statistics
+from pathlib import Path
+from typing import Any
+
+from ..train.logbook import CsvLog
+from .curves import plot_curves, val_curve
+from .plan import AblationPlan
+
+PRESET_NAMES = {"A": "NeRF", "B": "NeRF + SE", "C": "NeRF + MLCA", "D": "Mixer-NeRF"}
+METRICS = ("psnr", "ssim", "lpips")
+PRESET_COLUMNS = ["preset", "model", "seeds", *(f"{m}_{k}" for m in METRICS for k in ("mean", "spread")),
+                  *(f"{m}_change_vs_A" for m in METRICS), "params", "steps_per_s", "seconds_to_target"]
+RUN_COLUMNS = ["preset", "seed", "status", "steps", "train_seconds", "steps_per_s", "params", *METRICS,
+               "seconds_to_target", "eval_split", "eval_views", "run"]
+
+
+def build_table(plan: AblationPlan, records: list[dict[str, Any]]) -> dict[str, Any]:
+    """The table of ``records`` (one per run, see ``runner.run_one``) for ``plan``.
+
+    ``spread`` is the sample standard deviation over seeds (None with one seed); a mean ignores
+    failed runs; ``seconds_to_target`` is the training time of the first validation at or above
+    ``target_psnr`` (None where a run never reached it; a preset's mean only when all its runs did).
+    """
+    curves = {(r["preset"], r["seed"]): val_curve(CsvLog(Path(r["run"]) / "val_log.csv")) for r in records}
+    target = plan.target_psnr if plan.target_psnr is not None else _reachable_target(curves.values())
+    runs = [{**r, "seconds_to_target": _seconds_to(curves[(r["preset"], r["seed"])], target)} for r in records]
+    presets = [_preset_row(p, [r for r in runs if r["preset"] == p]) for p in plan.presets]
+    reference = next((row for row in presets if row["preset"] == "A"), None)
+    for row in presets:
+        for m in METRICS:
+            row[f"{m}_change_vs_A"] = _difference(row[f"{m}_mean"], reference and reference[f"{m}_mean"])
+    base = plan.base
+    notes = sorted({n for r in runs for n in r.get("notes", [])})
+    if reference is None:
+        notes.append("preset A is not in this ablation: no change against A")
+    return {
+        "scene": base.data or "built-in procedural scene",
+        "budget": {"steps": base.steps, "time_budget_s": base.time_budget},
+        "seeds": list(plan.seeds),
+        "model_overrides": json.loads(json.dumps(base.model_overrides)),
+        "sampler": base.sampler,
+        "target_psnr": target,
+        "presets": presets,
+        "runs": runs,
+        "notes": notes,
+        "curves": {f"{p}_seed{s}": c for (p, s), c in curves.items()},
+    }
+
+
+def write_table(table: dict[str, Any], out: Path) -> list[Path]:
+    """``ablation.md``, ``table.json``, ``table.csv`` (one row per preset), ``runs.csv`` (one row
+    per run) and ``curves.png`` in ``out``; returns their paths."""
+    paths = [out / "ablation.md", out / "table.json", out / "table.csv", out / "runs.csv", out / "curves.png"]
+    paths[0].write_text(markdown(table))
+    paths[1].write_text(json.dumps(table, indent=1))
+    _write_csv(paths[2], PRESET_COLUMNS, table["presets"])
+    _write_csv(paths[3], RUN_COLUMNS, table["runs"])
+    plot_curves(table["curves"], paths[4])
+    return paths
+
+
+def markdown(table: dict[str, Any]) -> str:
+    budget = table["budget"]
+    limit = f"{budget['steps']} steps" + (f" or {budget['time_budget_s']:g} s of training, whichever comes first"
+                                          if budget["time_budget_s"] else "")
+    overrides = ", ".join(f"{k}={json.dumps(v)}" for k, v in table["model_overrides"].items()) or "none"
+    target = "-" if table["target_psnr"] is None else f"{table['target_psnr']:.1f} dB"
+    lines = [
+        f"# Ablation on {table['scene']}",
+        "",
+        f"Each run: {limit}; seeds {', '.join(map(str, table['seeds']))}; sampler {table['sampler']}; "
+        f"model overrides: {overrides}. Scores: mean ± spread (standard deviation) over seeds on the "
+        f"held-out views; change against preset A; s to {target}: training seconds to that validation PSNR.",
+        "",
+        f"| Preset | Model | PSNR ↑ | SSIM ↑ | LPIPS ↓ | ΔPSNR | ΔSSIM | ΔLPIPS | Params | Steps/s | s to {target} |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for row in table["presets"]:
+        lines.append("| " + " | ".join([
+            row["preset"], row["model"],
+            *(_pm(row[f"{m}_mean"], row[f"{m}_spread"], d) for m, d in zip(METRICS, (2, 3, 3))),
+            *(_num(row[f"{m}_change_vs_A"], d, signed=True) for m, d in zip(METRICS, (2, 3, 3))),
+            _num(row["params"], 0), _num(row["steps_per_s"], 1), _num(row["seconds_to_target"], 1),
+        ]) + " |")
+    lines += ["", "Runs:", "", f"| Preset | Seed | Status | Steps | Train s | Steps/s | PSNR | SSIM | LPIPS | s to {target} | Views |",
+              "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in table["runs"]:
+        lines.append("| " + " | ".join([
+            r["preset"], str(r["seed"]), r["status"], str(r["steps"]), _num(r["train_seconds"], 1),
+            _num(r["steps_per_s"], 1), _num(r["psnr"], 2), _num(r["ssim"], 3), _num(r["lpips"], 3),
+            _num(r["seconds_to_target"], 1), f"{r['eval_views']} {r['eval_split'] or ''}".strip(),
+        ]) + " |")
+    if table["notes"]:
+        lines += ["", *(f"Note: {n}" for n in table["notes"])]
+    return "\n".join(lines) + "\n"
+
+
+def _preset_row(preset: str, runs: list[dict[str, Any]]) -> dict[str, Any]:
+    row: dict[str, Any] = {"preset": preset, "model": PRESET_NAMES[preset], "seeds": len(runs)}
+    for m in METRICS:
+        row[f"{m}_mean"], row[f"{m}_spread"] = _mean_spread([r[m] for r in runs])
+    row["params"] = runs[0]["params"]
+    row["steps_per_s"] = _mean_spread([r["steps_per_s"] for r in runs])[0]
+    times = [r["seconds_to_target"] for r in runs]
+    row["seconds_to_target"] = None if None in times else statistics.fmean(times)
+    return row
+
+
+def _mean_spread(values: list[float | None]) -> tuple[float | None, float | None]:
+    present = [v for v in values if v is not None and math.isfinite(v)]
+    if not present:
+        return None, None
+    return statistics.fmean(present), statistics.stdev(present) if len(present) > 1 else None
+
+
+def _reachable_target(curves) -> float | None:
+    """The lowest best validation PSNR of the runs, rounded down to 0.1 dB: every run reaches it."""
+    bests = [max(psnr for _, _, psnr in c) for c in curves if c]
+    return math.floor(min(bests) * 10) / 10 if bests else None
+
+
+def _seconds_to(curve: list[tuple[int, float, float]], target: float | None) -> float | None:
+    if target is None:
+        return None
+    return next((seconds for _, seconds, psnr in curve if psnr >= target), None)
+
+
+def _difference(value: float | None, reference: float | None) -> float | None:
+    return None if value is None or reference is None else value - reference
+
+
+def _pm(mean: float | None, spread: float | None, digits: int) -> str:
+    if mean is None:
+        return "-"
+    return f"{mean:.{digits}f}" + ("" if spread is None else f" ± {spread:.{digits}f}")
+
+
+def _num(value: float | None, digits: int, signed: bool = False) -> str:
+    if value is None:
+        return "-"
+    return f"{value:{'+' if signed else ''}.{digits}f}" if digits else f"{value:,.0f}"
+
+
+def _write_csv(path: Path, columns: list[str], rows: list[dict[str, Any]]) -> None:
+    with path.open("w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=columns, extrasaction="ignore")
+        writer.writeheader()
+        writer.writerows(rows)

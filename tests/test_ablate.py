@@ -1,0 +1,161 @@
+"""`mixer-nerf ablate`: presets x seeds on the built-in scene with a 2-layer model and a few steps,
+in-process with ``--backend torch`` (no kernels needed)."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+
+import pytest
+from test_cli import TINY_DEMO
+
+from mixer_nerf import cli
+from mixer_nerf.ablation import AblationError, parse_model_overrides, parse_presets, parse_seeds
+from mixer_nerf.train import Trainer
+from mixer_nerf.train import trainer as trainer_module
+
+# test_cli's tiny demo, at 32x32 (LPIPS needs 31x31 images or more) and without a steps default.
+TINY_SCENE = {**{k: v for k, v in TINY_DEMO.items() if k != "steps"}, "procedural_resolution": 32,
+              "sampler": "hierarchical"}
+FLAGS = ["--backend", "torch", "--device", "cpu", "--no-progress", "--max-images", "1"]
+
+
+def shrink(mp: pytest.MonkeyPatch, basetemp) -> None:
+    mp.setenv("MIXER_NERF_CACHE", str(basetemp / "cache"))
+    mp.setattr(cli, "DEMO_SETTINGS", TINY_SCENE)
+    mp.setattr(trainer_module, "plot_curves", lambda *_: None)  # each run's own plot: tested in test_train
+
+
+@pytest.fixture(autouse=True)
+def tiny_scene(tmp_path_factory, monkeypatch):
+    shrink(monkeypatch, tmp_path_factory.getbasetemp())
+
+
+def ablate(out, *extra: str) -> int:
+    return cli.main(["ablate", "--out", str(out), "--steps", "4", *FLAGS, *extra])
+
+
+@pytest.fixture(scope="module")
+def finished(tmp_path_factory):
+    """One ablation of presets A and D over seeds 0 and 1, shared by the tests that read it."""
+    out = tmp_path_factory.mktemp("ablate") / "AD"
+    mp = pytest.MonkeyPatch()
+    shrink(mp, tmp_path_factory.getbasetemp())
+    try:
+        assert ablate(out, "--presets", "AD", "--seeds", "0,1") == 0
+    finally:
+        mp.undo()
+    return out
+
+
+def test_table_lists_every_preset_and_seed_with_finite_scores(finished):
+    table = json.loads((finished / "table.json").read_text())
+    assert [(r["preset"], r["seed"]) for r in table["runs"]] == [("A", 0), ("A", 1), ("D", 0), ("D", 1)]
+    for run in table["runs"]:
+        assert run["status"] == "finished" and run["steps"] == 4
+        assert math.isfinite(run["psnr"]) and math.isfinite(run["ssim"])
+        assert run["params"] > 0 and run["steps_per_s"] > 0
+        assert run["lpips"] is None and table["notes"] or math.isfinite(run["lpips"])
+    a, d = table["presets"]
+    assert (a["preset"], d["preset"], a["seeds"]) == ("A", "D", 2)
+    assert a["psnr_change_vs_A"] == 0 and d["psnr_change_vs_A"] == pytest.approx(d["psnr_mean"] - a["psnr_mean"])
+    assert a["psnr_spread"] >= 0 and d["params"] > a["params"]  # MLCA and SE add weights
+    assert table["target_psnr"] <= min(max(p for _, _, p in c) for c in table["curves"].values())
+    assert all(r["seconds_to_target"] is not None for r in table["runs"])
+
+
+def test_table_files_agree(finished):
+    md = (finished / "ablation.md").read_text()
+    assert "| A | NeRF |" in md and "| D | Mixer-NeRF |" in md and "model overrides: " in md
+    with (finished / "table.csv").open() as f:
+        assert [r["preset"] for r in csv.DictReader(f)] == ["A", "D"]
+    with (finished / "runs.csv").open() as f:
+        assert len(list(csv.DictReader(f))) == 4
+    assert (finished / "curves.png").stat().st_size > 0
+    assert (finished / "A_seed1" / "eval" / "metrics.json").is_file()
+
+
+def test_second_invocation_skips_finished_runs(finished, capsys):
+    before = (finished / "D_seed0" / "checkpoint.pt").stat().st_mtime_ns
+    assert ablate(finished, "--presets", "AD", "--seeds", "0,1", "--resume") == 0
+    assert capsys.readouterr().out.count("done earlier, skipped") == 4
+    assert (finished / "D_seed0" / "checkpoint.pt").stat().st_mtime_ns == before
+
+
+def test_interrupted_run_resumes(tmp_path, capsys, monkeypatch):
+    out = tmp_path / "ablation"
+    save = Trainer.save
+
+    def save_then_interrupt(trainer):
+        save(trainer)
+        raise KeyboardInterrupt  # as a kill right after the step-2 checkpoint
+
+    monkeypatch.setattr(Trainer, "save", save_then_interrupt)
+    assert ablate(out, "--presets", "B", "--seeds", "3") == 130
+    monkeypatch.setattr(Trainer, "save", save)
+    capsys.readouterr()
+    assert ablate(out, "--presets", "B", "--seeds", "3", "--resume") == 0
+    assert "resuming at step 2" in capsys.readouterr().out
+    record = json.loads((out / "B_seed3" / "ablation_run.json").read_text())
+    assert record["steps"] == 4 and record["status"] == "finished"
+
+
+def test_model_overrides_are_recorded(tmp_path):
+    out = tmp_path / "per_point"
+    assert ablate(out, "--presets", "D", "--seeds", "0", "--model-override", "se_per_point=true",
+                  "--model-override", "mlca_concat_direction=true") == 0
+    table = json.loads((out / "table.json").read_text())
+    assert table["model_overrides"]["se_per_point"] is True
+    assert table["model_overrides"]["mlca_concat_direction"] is True
+    assert "se_per_point=true" in (out / "ablation.md").read_text()
+    assert json.loads((out / "D_seed0" / "config.json").read_text())["model"]["se_per_point"] is True
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--presets", "AX"], "unknown preset(s) X"),
+        (["--seeds", ""], "no seeds given"),
+        (["--seeds", "0,one"], "seeds must be integers"),
+        (["--model-override", "colour=1"], "unknown model setting 'colour'"),
+        (["--model-override", "width"], "is not NAME=VALUE"),
+        (["--model-override", "se_per_point=False"], "se_per_point takes a value like false"),
+        (["--model-override", "width=wide"], "width takes a value like 256"),
+    ],
+)
+def test_bad_arguments_give_one_line_errors(tmp_path, capsys, args, message):
+    assert ablate(tmp_path / "bad", *args) == 1
+    err = capsys.readouterr().err
+    assert message in err and err.count("\n") == 1
+    assert not (tmp_path / "bad").exists()
+
+
+def test_budget_is_required(tmp_path, capsys):
+    assert cli.main(["ablate", "--out", str(tmp_path / "x"), *FLAGS]) == 1
+    assert "--steps N" in capsys.readouterr().err
+
+
+def test_existing_ablation_needs_resume_and_the_same_settings(finished, capsys):
+    assert ablate(finished, "--presets", "A") == 1
+    assert "pass --resume" in capsys.readouterr().err
+    assert ablate(finished, "--presets", "A", "--resume", "--lr", "1e-2") == 1
+    assert "other settings (lr)" in capsys.readouterr().err
+
+
+def test_parsers():
+    assert parse_presets("a, d,A") == ("A", "D")
+    assert parse_seeds("2 0,2") == (2, 0)
+    assert parse_model_overrides(["skips=[4]", "density_activation=relu", "width=64", "pe_scale=3"]) == {
+        "skips": [4], "density_activation": "relu", "width": 64, "pe_scale": 3}
+    with pytest.raises(AblationError, match="no presets"):
+        parse_presets(" ,")
+
+
+def test_eq7_with_the_occupancy_sampler_is_refused(tmp_path, capsys):
+    assert ablate(tmp_path / "eq7", "--presets", "D", "--seeds", "0", "--sampler", "occupancy",
+                  "--model-override", "mlca_concat_direction=true") == 1
+    assert "add --sampler proposal or --sampler hierarchical" in capsys.readouterr().err
+    # Nothing was trained, so the corrected command needs no --resume.
+    assert ablate(tmp_path / "eq7", "--presets", "D", "--seeds", "0", "--sampler", "hierarchical",
+                  "--model-override", "mlca_concat_direction=true") == 0
