@@ -300,6 +300,10 @@ def test_auto_sampler_marches_bounded_scenes_and_proposes_for_forward_facing_and
     assert resolve_sampler(auto, None, ndc=False).sampler == "proposal"  # unbounded
     assert not resolve_sampler(auto, None, ndc=False).fine_network
     assert resolve_sampler(TrainConfig(sampler="hierarchical"), box, ndc=True).fine_network
+    eq7 = TrainConfig(sampler="auto", model_overrides={"mlca_concat_direction": True})
+    assert resolve_sampler(eq7, box, ndc=False).sampler == "proposal"  # the grid needs a view-free density
+    with pytest.raises(ValueError, match="view-dependent"):
+        resolve_sampler(dataclasses.replace(eq7, sampler="occupancy"), box, ndc=False)
     assert resolve_sampler(TrainConfig(sampler="occupancy"), box, ndc=True).sampler == "occupancy"
     with pytest.raises(ValueError, match="needs a scene box"):
         resolve_sampler(TrainConfig(sampler="occupancy"), None, ndc=False)

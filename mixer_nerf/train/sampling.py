@@ -33,13 +33,18 @@ def resolve_sampler(cfg: TrainConfig, bbox: torch.Tensor | None, ndc: bool) -> T
 
     "auto" marches an occupancy grid in bounded scenes (a box, world space); forward-facing NDC
     scenes fill their box, so a grid skips little there, and unbounded scenes have no box: both get
-    the proposal sampler (docs/skipping.md)."""
+    the proposal sampler (docs/skipping.md), as does a model whose density depends on the view
+    direction (the paper's Eq. 7), which a grid cannot store."""
+    view_dependent = bool(cfg.model_overrides.get("mlca_concat_direction", False))
     if cfg.sampler != "auto":
         sampler = cfg.sampler
     else:
-        sampler = "occupancy" if bbox is not None and not ndc else "proposal"
+        sampler = "occupancy" if bbox is not None and not ndc and not view_dependent else "proposal"
     if sampler == "occupancy" and bbox is None:
         raise ValueError("sampler 'occupancy' needs a scene box (bbox); this scene has none")
+    if sampler == "occupancy" and view_dependent:
+        raise ValueError("sampler 'occupancy' needs a density without a view direction; "
+                         "mlca_concat_direction (Eq. 7) makes it view-dependent: use 'proposal' or 'hierarchical'")
     cfg = cfg.with_recipe(sampler)
     return dataclasses.replace(cfg, fine_network=cfg.fine_network and sampler == "hierarchical")
 
