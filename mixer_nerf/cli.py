@@ -19,7 +19,7 @@ from .train.config import DEMO_SETTINGS, TrainConfig
 
 DEMO_OUT = "runs/demo"
 DEMO_VIDEO_FRAMES = 40
-VIDEO_PATHS = ("auto", "turntable", "spiral")
+VIDEO_PATHS = ("auto", "turntable", "spiral", "train", "test")
 
 class UserError(Exception):
     """A problem the user can fix; printed as one line."""
@@ -47,14 +47,16 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--max-images", type=int, help="score only the first N views")
     _add_device_options(evaluate)
 
-    render = commands.add_parser("render", help="render a turntable/spiral video and depth maps")
+    render = commands.add_parser("render", help="render a video and depth maps along a camera path")
     render.add_argument("--ckpt", required=True, help="checkpoint file")
     render.add_argument("--frames", type=int, default=120, help="number of frames (default 120)")
     render.add_argument(
         "--path",
-        choices=VIDEO_PATHS,
+        type=_camera_path_arg,
         default="auto",
-        help="camera path (default: spiral for forward-facing scenes, else turntable)",
+        metavar="{" + ",".join(VIDEO_PATHS) + "} or FILE.json",
+        help="camera path: generated (default auto: spiral for forward-facing scenes, else turntable), the "
+        "dataset's own train or test cameras, or a nerfstudio camera-path JSON file",
     )
     render.add_argument("--fps", type=int, default=30)
     render.add_argument("--scale", type=float, default=1.0, help="resolution relative to the training images")
@@ -68,7 +70,32 @@ def build_parser() -> argparse.ArgumentParser:
     demo.set_defaults(data=None)
     _add_prepare_parser(commands)
     _add_ablate_parser(commands)
+    _add_export_parser(commands)
     return parser
+
+
+def _add_export_parser(commands: argparse._SubParsersAction) -> None:
+    export = commands.add_parser(
+        "export", help="a mesh, a point cloud or raw depth maps of a trained scene (mesh, points: .[export])"
+    )
+    kinds = export.add_subparsers(dest="what", metavar="WHAT", required=True)
+    mesh = kinds.add_parser("mesh", help="marching cubes over the density in the occupancy grid's box")
+    mesh.add_argument("--resolution", type=int, default=256, help="lattice points per axis (default 256)")
+    mesh.add_argument("--threshold", type=float, default=10.0, help="density of the surface (default 10)")
+    points = kinds.add_parser("points", help="coloured point cloud (PLY) from the depth of rendered views")
+    points.add_argument("--min-opacity", type=float, default=0.5, help="pixels kept (default 0.5)")
+    points.add_argument("--max-points", type=int, default=1_000_000, help="random subset (default 1,000,000)")
+    depth = kinds.add_parser("depth", help="raw depth and opacity (NPY, EXR with OpenEXR) and depth previews")
+    for parser, default_out in ((mesh, "export/mesh.ply"), (points, "export/points.ply"), (depth, "depth_<path>")):
+        parser.add_argument("--ckpt", required=True, help="checkpoint file")
+        parser.add_argument("--out", help=f"output (default: <checkpoint folder>/{default_out})")
+        _add_device_options(parser)
+    for parser, default_path, scale in ((points, "train", 0.5), (depth, "test", 1.0)):
+        parser.add_argument("--path", type=_camera_path_arg, default=default_path,
+                            help=f"cameras to render, as render --path (default {default_path})")
+        parser.add_argument("--frames", type=int, default=30, help="frames of a generated path (default 30)")
+        parser.add_argument("--scale", type=float, default=scale,
+                            help=f"resolution relative to the training images (default {scale})")
 
 
 def _add_prepare_parser(commands: argparse._SubParsersAction) -> None:
@@ -210,8 +237,34 @@ def run_ablate(args: argparse.Namespace) -> int:
     return 0
 
 
+def run_export(args: argparse.Namespace) -> int:
+    from .export import export_depth, export_mesh, export_points
+
+    device = {"device": args.device, "backend": args.backend}
+    default = Path(args.ckpt).parent / "export" / f"{'mesh' if args.what == 'mesh' else 'points'}.ply"
+    if args.what == "mesh":
+        r = export_mesh(args.ckpt, args.out or default, args.resolution, args.threshold, **device)
+        print(f"mesh: {r['mesh']} ({r['vertices']} vertices, {r['faces']} faces, "
+              f"{'watertight' if r['watertight'] else 'not watertight'})")
+    elif args.what == "points":
+        r = export_points(args.ckpt, args.out or default, args.path, args.frames, args.scale, args.min_opacity,
+                          args.max_points, **device)
+        print(f"points: {r['points']} ({r['count']} points from {r['views']} views)")
+    else:
+        r = export_depth(args.ckpt, args.out, args.path, args.frames, args.scale, **device)
+        print(f"depth: {r['out']} ({r['views']} views: depth_NNNN.npy, opacity_NNNN.npy, depth_NNNN.png"
+              f"{', depth_NNNN.exr' if r['exr'] else '; no EXR writer (pip install OpenEXR)'})")
+        return 0
+    print(f"  bounds {_box(r['bounds'])}" + (f", scene box {_box(r['scene_box'])}" if "scene_box" in r else ""))
+    return 0
+
+
+def _box(bounds: list[list[float]]) -> str:
+    return " to ".join("(" + ", ".join(f"{v:.3f}" for v in corner) + ")" for corner in bounds)
+
+
 COMMANDS = {"train": run_train, "eval": run_eval, "render": run_render, "demo": run_train, "prepare": run_prepare,
-            "ablate": run_ablate}
+            "ablate": run_ablate, "export": run_export}
 
 
 def _train(cfg: TrainConfig, resume: bool) -> dict[str, Any]:
@@ -310,8 +363,16 @@ def _add_device_options(parser: argparse.ArgumentParser) -> None:
     add_options(parser, DEVICE_FLAGS)
 
 
+def _camera_path_arg(value: str) -> str:
+    if value in VIDEO_PATHS or value.endswith(".json"):
+        return value
+    raise argparse.ArgumentTypeError(f"expected one of {', '.join(VIDEO_PATHS)} or a .json camera-path file, "
+                                     f"got {value!r}")
+
+
 def _is_user_error(e: Exception) -> bool:
     from .data import DatasetError
+    from .export import ExportError
     from .train import CheckpointError, NonFiniteError, OutputError
 
     return isinstance(
@@ -319,6 +380,7 @@ def _is_user_error(e: Exception) -> bool:
         (
             UserError,
             DatasetError,
+            ExportError,
             CheckpointError,
             NonFiniteError,
             OutputError,
