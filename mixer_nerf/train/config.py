@@ -65,7 +65,7 @@ class TrainConfig:
     val_every: int = option(2500, "validate every N steps")
     val_images: int = 3  # validation renders this many val views
     ckpt_every: int = option(1000, "checkpoint every N steps (a killed run loses at most N)")
-    log_every: int = 100
+    log_every: int = option(100, "log a training row (train_log.csv, TensorBoard) every N steps")
     # validation excluded; None: no limit
     time_budget: float | None = option(None, "stop after this much training time", metavar="SECONDS")
     chunk: int = 8192  # rays per chunk when rendering whole images
@@ -103,6 +103,8 @@ class TrainConfig:
     proposal_samples: int = 48
     proposal_width: int = 128  # hidden width of each proposal network (2 layers)
     proposal_loss_weight: float = 1.0
+    tensorboard: bool = option(False, "log losses, PSNR, learning rate, samples per ray, rays/s and validation "
+                               "renders to <out>/tensorboard (needs .[tensorboard])")
     progress: bool = True  # progress bar on stderr
 
     def __post_init__(self) -> None:
