@@ -71,6 +71,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_prepare_parser(commands)
     _add_ablate_parser(commands)
     _add_export_parser(commands)
+    commands.add_parser("doctor", help="versions, GPU, which kernels run and why, a 10 s accuracy check of each op")
     return parser
 
 
@@ -263,8 +264,14 @@ def _box(bounds: list[list[float]]) -> str:
     return " to ".join("(" + ", ".join(f"{v:.3f}" for v in corner) + ")" for corner in bounds)
 
 
+def run_doctor(args: argparse.Namespace) -> int:
+    from .doctor import run_doctor as doctor
+
+    return doctor()
+
+
 COMMANDS = {"train": run_train, "eval": run_eval, "render": run_render, "demo": run_train, "prepare": run_prepare,
-            "ablate": run_ablate, "export": run_export}
+            "ablate": run_ablate, "export": run_export, "doctor": run_doctor}
 
 
 def _train(cfg: TrainConfig, resume: bool) -> dict[str, Any]:
