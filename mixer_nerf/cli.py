@@ -58,7 +58,7 @@ TRAIN_OPTIONS: dict[str, dict[str, Any]] = {
     "--empty-space-weight": {
         "type": float,
         "help": "occupancy sampler: weight of the loss that keeps density out of the cells the grid "
-        "marks empty, applied at each grid refresh (default 1e-2; 0: off)",
+        "marks empty, applied at each grid refresh, for renders without the grid (default 0: off; e.g. 1e-2)",
     },
     "--bf16-density-passes": {
         "action": argparse.BooleanOptionalAction,
