@@ -140,7 +140,9 @@ def train_config_from_args(args: argparse.Namespace) -> TrainConfig:
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
+    argv = list(sys.argv[1:] if argv is None else argv)
     args = parser.parse_args(argv)
+    args.argv = argv  # --devices relaunches the same command under torchrun
     if args.command is None:
         parser.print_help()
         return 2
@@ -152,19 +154,25 @@ def main(argv: Sequence[str] | None = None) -> int:
     except Exception as e:
         if os.environ.get("MIXER_NERF_DEBUG") or not _is_user_error(e):
             raise
-        print(f"mixer-nerf: error: {e}", file=sys.stderr)
+        rank = f" (rank {os.environ['RANK']})" if "RANK" in os.environ else ""  # under torchrun
+        print(f"mixer-nerf: error{rank}: {e}", file=sys.stderr)
         return 1
 
 
 def run_train(args: argparse.Namespace) -> int:
     cfg = train_config_from_args(args)
-    if cfg.data is None and not args.resume:
+    if args.devices is not None and _relaunched(args, cfg):
+        return 0
+    rank = int(os.environ.get("RANK", "0"))
+    if cfg.data is None and not args.resume and rank == 0:
         chosen = {k: getattr(cfg, k) for k in DEMO_SETTINGS}
         print(
             "no --data: training on the built-in procedural scene with CPU-friendly settings:\n  "
             + ", ".join(f"{k}={v}" for k, v in chosen.items())
         )
     summary = _train(cfg, args.resume)
+    if rank:
+        return 0  # rank 0 evaluates and reports
     ckpt = Path(summary["checkpoint"])
     held_out = _evaluate(ckpt, device=cfg.device, backend=cfg.backend)
     video = (
@@ -274,11 +282,50 @@ COMMANDS = {"train": run_train, "eval": run_eval, "render": run_render, "demo": 
             "ablate": run_ablate, "export": run_export, "doctor": run_doctor}
 
 
+def _relaunched(args: argparse.Namespace, cfg: TrainConfig) -> bool:
+    """Run this same command under torchrun on ``--devices`` processes, unless it is one of them
+    already or N is 1 (False: train here).
+
+    Raises:
+        UserError: N is not positive, not torchrun's number of processes, or more than the GPUs.
+    """
+    import torch
+
+    from .train.distributed import NO_MULTICAST, launched_ranks
+
+    n, world = args.devices, launched_ranks()
+    if n < 1:
+        raise UserError(f"--devices must be positive, got {n}")
+    if "TORCHELASTIC_RUN_ID" in os.environ or world > 1:
+        if n != world:
+            raise UserError(f"--devices {n} under torchrun with {world} processes: leave --devices out there")
+        return False
+    if n == 1:
+        return False
+    device = cfg.resolved(torch.cuda.is_available()).device
+    if device.startswith("cuda") and n > torch.cuda.device_count():
+        raise UserError(f"--devices {n} but this machine has {torch.cuda.device_count()} GPU(s)")
+    from torch.distributed.elastic.multiprocessing.errors import ChildFailedError
+    from torch.distributed.run import parse_args, run
+
+    for name, value in NO_MULTICAST.items():
+        os.environ.setdefault(name, value)
+    try:
+        run(parse_args(["--standalone", f"--nproc-per-node={n}", "--module", "mixer_nerf", *args.argv]))
+    except ChildFailedError as e:
+        rank, failure = e.get_first_failure()
+        raise UserError(f"training process {rank} of {n} failed (exit code {failure.exitcode}); "
+                        "its error is printed above and the others were stopped") from e
+    return True
+
+
 def _train(cfg: TrainConfig, resume: bool) -> dict[str, Any]:
     from .train import Trainer
 
     trainer = Trainer(cfg, resume=resume)
     c = trainer.cfg
+    if trainer.rank:
+        return trainer.fit()
     sampling = (
         f"occupancy-grid sampling, ~{c.target_samples} samples per step"
         if c.sampler == "occupancy"
@@ -340,6 +387,9 @@ def _add_train_options(parser: argparse.ArgumentParser, default_out: str) -> Non
     add_options(parser, train_options())
     parser.add_argument("--out", help=f"run folder (default: {default_out})")
     parser.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
+    parser.add_argument("--devices", type=int, metavar="N",
+                        help="train on N processes under torchrun: one per GPU, or CPU processes with "
+                        "--device cpu (docs/distributed.md)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -381,6 +431,7 @@ def _is_user_error(e: Exception) -> bool:
     from .data import DatasetError
     from .export import ExportError
     from .train import CheckpointError, NonFiniteError, OutputError
+    from .train.distributed import DistributedError
 
     return isinstance(
         e,
@@ -391,6 +442,7 @@ def _is_user_error(e: Exception) -> bool:
             CheckpointError,
             NonFiniteError,
             OutputError,
+            DistributedError,
             FileNotFoundError,
             PermissionError,
             ValueError,

@@ -17,6 +17,7 @@ from ..render import render_rays
 from ..render.skipping import proposal_loss, render_rays_proposal, shade_samples
 from .checkpoint import capture_rng_state, load_checkpoint, restore_rng_state, save_checkpoint
 from .config import TrainConfig
+from .distributed import join, rank_seed, restore_rank_sampler
 from .fields import model_config, model_config_to_dict
 from .guard import NonFiniteError, NonFiniteGuard
 from .logbook import CsvLog, TensorBoardLog, plot_curves
@@ -90,6 +91,10 @@ class Trainer:
                 **{**saved.to_dict(), **typed_overrides(cfg), "out": cfg.out}
             )
         self.cfg = cfg = cfg.resolved(torch.cuda.is_available())
+        self.ranks = join(cfg.device)  # None: one process (no torchrun)
+        self.rank = 0 if self.ranks is None else self.ranks.rank
+        if self.rank:
+            self.log = lambda _: None  # rank 0 speaks and writes for all
         self.device = torch.device(cfg.device)
         self.tensorboard = TensorBoardLog(self.files.root / "tensorboard") if cfg.tensorboard else None
         set_matmul_precision(cfg.precision)
@@ -118,10 +123,10 @@ class Trainer:
         )
         near, far = self.train_scene.near, self.train_scene.far
         self.renderer = image_renderer(cfg, self.fields, near, far, self.background)
-        self.sampler = RaySampler(self.train_scene, cfg.batch_rays, cfg.seed)
+        self.sampler = RaySampler(self.train_scene, cfg.batch_rays, rank_seed(cfg.seed, self.rank))
         self.batches = None
         if self.fields.grid is not None:
-            occupancy = occupancy_sampler(cfg, self.fields.grid)
+            occupancy = occupancy_sampler(cfg, self.fields.grid, self.ranks and self.ranks.cell_share())
             if occupancy.budget is not None:
                 self.sampler.batch_rays = occupancy.budget.first_rays(cfg.batch_rays)
             empty_points = cfg.empty_space_points if cfg.empty_space_weight > 0 else 0
@@ -138,9 +143,10 @@ class Trainer:
         self.rays_seen = self.samples_seen = self.marched_seen = 0  # marched: before early termination
         if state is not None:
             self._load_state(state)
-        self.files.config.write_text(
-            json.dumps({"train": cfg.to_dict(), "model": model_config_to_dict(self.model_cfg)}, indent=1)
-        )
+        if not self.rank:
+            self.files.config.write_text(
+                json.dumps({"train": cfg.to_dict(), "model": model_config_to_dict(self.model_cfg)}, indent=1)
+            )
 
     # -- one step ---------------------------------------------------------------------------
 
@@ -166,10 +172,13 @@ class Trainer:
         loss.backward()
         step = self.step + 1
         self.guard.observe_losses(step, **losses)
-        if cfg.check_grads:
-            self.guard.observe_grads(step, [p.grad for p in self.params])
+        mean = self.ranks and self.ranks.start_gradient_mean(self.params)  # overlaps the prefetch
         if self.batches is not None:
             self.batches.prefetch(step)  # overlaps the backward pass; reads the weights before the update
+        if mean:
+            mean.finish()
+        if cfg.check_grads:
+            self.guard.observe_grads(step, [p.grad for p in self.params])
         self.optimizer.step()
         self.step = step
         return {"loss": loss.detach(), "mse": losses.get("loss_fine", losses["loss_coarse"]).detach()}
@@ -230,7 +239,7 @@ class Trainer:
         cfg = self.cfg
         progress = self.step / cfg.steps
         if cfg.time_budget is not None:
-            progress = max(progress, self.clock.now() / cfg.time_budget)
+            progress = max(progress, self._training_time() / cfg.time_budget)
         decay = min(1.0, max(0.0, (progress - cfg.lr_hold) / (1.0 - cfg.lr_hold)))
         warmup = min(1.0, (self.step + 1) / cfg.lr_warmup) if cfg.lr_warmup else 1.0
         return warmup * (cfg.lr_final / cfg.lr) ** decay
@@ -268,7 +277,7 @@ class Trainer:
         bar = tqdm(
             total=cfg.steps,
             initial=self.step,
-            disable=not cfg.progress,
+            disable=not cfg.progress or self.rank > 0,
             unit="step",
             dynamic_ncols=True,
             leave=False,
@@ -278,7 +287,7 @@ class Trainer:
         self.clock.start()
         try:
             while self.step < cfg.steps:
-                if cfg.time_budget is not None and self.clock.now() >= cfg.time_budget:
+                if cfg.time_budget is not None and self._training_time() >= cfg.time_budget:
                     status = "time budget reached"
                     break
                 stats = self.train_step()
@@ -316,6 +325,9 @@ class Trainer:
         self.guard.raise_if_bad()
         if self.batches is not None:
             self.batches.discard()  # a resumed run prepares its first batch with these weights
+        rank_samplers = self.ranks and self.ranks.gather_objects(self.sampler.generator.get_state())
+        if self.rank:
+            return
         save_checkpoint(
             self.files.checkpoint,
             {
@@ -327,6 +339,7 @@ class Trainer:
                 "model": self.fields.state_dict(),
                 "optimizer": self.optimizer.state_dict(),
                 "rng": capture_rng_state(self.sampler.generator),
+                "rank_samplers": rank_samplers or [],  # each rank's own rays (several processes)
                 # The occupancy sampler adapts the batch size; the counters feed samples_per_ray.
                 "progress": {
                     "batch_rays": self.sampler.batch_rays,
@@ -344,6 +357,9 @@ class Trainer:
         self.optimizer.load_state_dict(state["optimizer"])
         restore_rng_state(state["rng"], self.sampler.generator)
         self.step = int(state["step"])
+        if self.rank:
+            restore_rank_sampler(self.sampler.generator, state.get("rank_samplers", []), self.rank,
+                                 self.cfg.seed, self.step)
         progress = state.get("progress", {})
         self.sampler.batch_rays = int(progress.get("batch_rays", self.sampler.batch_rays))
         self.rays_seen = int(progress.get("rays_seen", 0))
@@ -351,9 +367,15 @@ class Trainer:
         self.marched_seen = int(progress.get("marched_seen", 0))
         self.clock = TrainingClock(self.device, float(state["elapsed"]))
         # Rows a killed run logged after its last checkpoint describe steps that will be redone.
-        self.train_log.truncate_after(self.step)
-        self.val_log.truncate_after(self.step)
+        if not self.rank:
+            self.train_log.truncate_after(self.step)
+            self.val_log.truncate_after(self.step)
         self.log(f"resumed {self.files.checkpoint} at step {self.step}")
+
+    def _training_time(self) -> float:
+        """The training clock; with several ranks rank 0's, so that they all decide alike."""
+        now = self.clock.now()
+        return now if self.ranks is None else self.ranks.decide(now)
 
     def _paused(self, action: Callable[[], Any]) -> None:
         """Run ``action`` with the training clock paused."""
@@ -362,6 +384,8 @@ class Trainer:
         self.clock.start()
 
     def _log_train(self, stats: dict[str, torch.Tensor], rays_per_s: float, bar: Any) -> None:
+        if self.rank:
+            return
         loss, mse = stats["loss"].item(), stats["mse"].item()
         row = {
             "step": self.step,
@@ -378,6 +402,8 @@ class Trainer:
         bar.set_postfix(loss=f"{loss:.4f}", psnr=f"{row['psnr']:.2f}", rays_s=f"{rays_per_s:,.0f}")
 
     def _log_validation(self) -> None:
+        if self.rank:
+            return  # the others wait for rank 0 at their next collective
         value = self.validate()
         self.val_log.append({"step": self.step, "seconds": round(self.clock.elapsed, 3), "psnr": value})
         if self.tensorboard is not None:
@@ -385,6 +411,8 @@ class Trainer:
         self.log(f"step {self.step}: validation PSNR {value:.2f} dB ({self.val_split} split)")
 
     def _finish(self, status: str) -> dict[str, Any]:
+        if self.rank:
+            return {"status": status, "step": self.step, "rank": self.rank}
         val = self.val_log.rows()
         summary = {
             "status": status,
