@@ -96,7 +96,7 @@ class Trainer:
         if self.rank:
             self.log = lambda _: None  # rank 0 speaks and writes for all
         self.device = torch.device(cfg.device)
-        self.tensorboard = TensorBoardLog(self.files.root / "tensorboard") if cfg.tensorboard else None
+        self.tensorboard = TensorBoardLog(self.files.root / "tensorboard") if cfg.tensorboard and not self.rank else None
         set_matmul_precision(cfg.precision)
 
         folder, fmt = scene_source(cfg)
