@@ -194,3 +194,20 @@ def test_devices_relaunches_under_torchrun(blender_scene, tmp_path):
     assert result.returncode == 0, result.stderr[-3000:]
     assert result.stdout.count("checkpoint:") == 1
     assert load_checkpoint(out / "checkpoint.pt")["step"] == 2
+
+
+def test_devices_reports_a_failed_rank_in_one_line(tmp_path, capsys, monkeypatch):
+    """What ``train --devices 2`` prints when torchrun reports a failed rank (no launch here)."""
+    import torch.distributed.run as torchrun_module
+    from torch.distributed.elastic.multiprocessing.errors import ChildFailedError, ProcessFailure
+
+    def failed_run(args):
+        raise ChildFailedError("mixer_nerf", {1: ProcessFailure(1, 4242, 1, "<N/A>")})
+
+    monkeypatch.delenv("WORLD_SIZE", raising=False)
+    monkeypatch.delenv("TORCHELASTIC_RUN_ID", raising=False)
+    monkeypatch.setattr(torchrun_module, "run", failed_run)
+    assert cli.main(["train", "--out", str(tmp_path), "--no-progress", "--device", "cpu", "--devices", "2"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err == ("mixer-nerf: error: training process 1 of 2 failed (exit code 1); its error is printed "
+                   "above and the others were stopped")
