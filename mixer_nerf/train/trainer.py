@@ -20,7 +20,7 @@ from .config import TrainConfig
 from .distributed import join, rank_seed, restore_rank_sampler
 from .fields import model_config, model_config_to_dict
 from .guard import NonFiniteError, NonFiniteGuard
-from .logbook import CsvLog, plot_curves
+from .logbook import CsvLog, TensorBoardLog, plot_curves
 from .marched_batches import MarchedBatches
 from .occupancy_batch import MarchedBatch, prepare_marched_batch
 from .output import RunFiles, prepare_run_folder
@@ -96,6 +96,7 @@ class Trainer:
         if self.rank:
             self.log = lambda _: None  # rank 0 speaks and writes for all
         self.device = torch.device(cfg.device)
+        self.tensorboard = TensorBoardLog(self.files.root / "tensorboard") if cfg.tensorboard else None
         set_matmul_precision(cfg.precision)
 
         folder, fmt = scene_source(cfg)
@@ -256,6 +257,8 @@ class Trainer:
             rays_o, rays_d = scene.rays_for_image(i)
             rgb = self.render_rgb(rays_o.float(), rays_d.float()).reshape(scene.H, scene.W, 3)
             scores.append(psnr(rgb.clamp(0, 1), scene.image(i)).item())
+            if self.tensorboard is not None:
+                self.tensorboard.image(self.step, f"validation/view_{i}", rgb)
         return sum(scores) / len(scores)
 
     # -- the loop ---------------------------------------------------------------------------
@@ -394,6 +397,8 @@ class Trainer:
             "samples_per_ray": round(self.samples_seen / max(self.rays_seen, 1), 2),
         }
         self.train_log.append(row)
+        if self.tensorboard is not None:
+            self.tensorboard.scalars(self.step, {f"train/{k}": v for k, v in row.items() if k not in ("step", "seconds")})
         bar.set_postfix(loss=f"{loss:.4f}", psnr=f"{row['psnr']:.2f}", rays_s=f"{rays_per_s:,.0f}")
 
     def _log_validation(self) -> None:
@@ -401,6 +406,8 @@ class Trainer:
             return  # the others wait for rank 0 at their next collective
         value = self.validate()
         self.val_log.append({"step": self.step, "seconds": round(self.clock.elapsed, 3), "psnr": value})
+        if self.tensorboard is not None:
+            self.tensorboard.scalars(self.step, {"validation/psnr": value})
         self.log(f"step {self.step}: validation PSNR {value:.2f} dB ({self.val_split} split)")
 
     def _finish(self, status: str) -> dict[str, Any]:
@@ -419,4 +426,6 @@ class Trainer:
             "precision": self.cfg.precision,
         }
         self.files.summary.write_text(json.dumps(summary, indent=1))
+        if self.tensorboard is not None:
+            self.tensorboard.close()
         return summary
