@@ -96,7 +96,8 @@ class Trainer:
         if self.rank:
             self.log = lambda _: None  # rank 0 speaks and writes for all
         self.device = torch.device(cfg.device)
-        self.tensorboard = TensorBoardLog(self.files.root / "tensorboard") if cfg.tensorboard else None
+        tensorboard = cfg.tensorboard and not self.rank
+        self.tensorboard = TensorBoardLog(self.files.root / "tensorboard") if tensorboard else None
         set_matmul_precision(cfg.precision)
 
         folder, fmt = scene_source(cfg)
