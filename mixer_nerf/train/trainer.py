@@ -96,7 +96,8 @@ class Trainer:
         if self.rank:
             self.log = lambda _: None  # rank 0 speaks and writes for all
         self.device = torch.device(cfg.device)
-        self.tensorboard = TensorBoardLog(self.files.root / "tensorboard") if cfg.tensorboard and not self.rank else None
+        tensorboard = cfg.tensorboard and not self.rank
+        self.tensorboard = TensorBoardLog(self.files.root / "tensorboard") if tensorboard else None
         set_matmul_precision(cfg.precision)
 
         folder, fmt = scene_source(cfg)
@@ -422,6 +423,7 @@ class Trainer:
             "checkpoint": str(self.files.checkpoint) if self.files.checkpoint.exists() else None,
             "curves": str(plot_curves(self.train_log, self.val_log, self.files.curves) or ""),
             "device": str(self.device),
+            "processes": 1 if self.ranks is None else self.ranks.world_size,
             "precision": self.cfg.precision,
         }
         self.files.summary.write_text(json.dumps(summary, indent=1))
