@@ -20,11 +20,9 @@ using acc_t = at::opmath_type<scalar_t>;
 // happens in Python (mixer_nerf/ops/_checks.py) before any kernel runs.
 //
 // MIXER_NERF_CHECK(cond, parts...) is TORCH_CHECK with the message built here, from string
-// pieces, integers, shapes, devices and dtypes, and handed to torch as one C string. On the GPU
-// machine (torch 2.11+cu130, extension built with g++ 13.3) a failing TORCH_CHECK whose message
-// streams a value (torch's c10::str / std::ostream path; a shape, say) killed the process with
-// SIGSEGV instead of raising, in any extension (tools/diagnose_exception_crash.py reproduces it);
-// a message of one C string takes torch's other path and raises a RuntimeError as it should.
+// pieces, integers, shapes, devices and dtypes, and handed to torch as one C string: on the GPU
+// machine a TORCH_CHECK whose message streams a value killed the process instead of raising
+// (docs/numerics.md, "Bad input"; tools/diagnose_exception_crash.py reproduces it).
 namespace check_message {
 inline void append(std::string& out, const char* part) { out += part; }
 inline void append(std::string& out, const std::string& part) { out += part; }
