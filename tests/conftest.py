@@ -69,11 +69,34 @@ def tiny_occupancy_run(tmp_path_factory) -> Path:
 
     out = tmp_path_factory.mktemp("occupancy") / "run"
     os.environ.setdefault("MIXER_NERF_CACHE", str(tmp_path_factory.getbasetemp() / "cache"))
-    model = {"depth": 2, "width": 16, "skips": (), "view_width": 8, "pos_freqs": 2, "dir_freqs": 1,
-             "mlca_channels": 3, "se_reduction": 4}  # fmt: skip
-    cfg = TrainConfig(procedural_resolution=16, procedural_views=4, model_overrides=model, steps=6,
-                      sampler="occupancy", grid_resolution=8, grid_warmup=2, grid_every=2, target_samples=512,
-                      val_every=6, val_images=1, ckpt_every=6, log_every=2, backend="torch", device="cpu",
-                      out=str(out), progress=False)  # fmt: skip
+    model = {
+        "depth": 2,
+        "width": 16,
+        "skips": (),
+        "view_width": 8,
+        "pos_freqs": 2,
+        "dir_freqs": 1,
+        "mlca_channels": 3,
+        "se_reduction": 4,
+    }
+    cfg = TrainConfig(
+        procedural_resolution=16,
+        procedural_views=4,
+        model_overrides=model,
+        steps=6,
+        sampler="occupancy",
+        grid_resolution=8,
+        grid_warmup=2,
+        grid_every=2,
+        target_samples=512,
+        val_every=6,
+        val_images=1,
+        ckpt_every=6,
+        log_every=2,
+        backend="torch",
+        device="cpu",
+        out=str(out),
+        progress=False,
+    )
     Trainer(cfg, log=lambda _: None).fit()
     return out
