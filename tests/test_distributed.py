@@ -1,8 +1,8 @@
 """Training on 2 CPU processes (gloo) under torchrun: ranks stay bit-identical, a killed run
 resumes on 1 and on 2 processes, a failing rank stops the others; and one process is untouched.
 
-Each torchrun launch costs a few seconds of process start-up, so one module-scoped run of each
-kind is shared by the tests that read it.
+Each torchrun launch costs seconds of process start-up, so there are three: an uninterrupted
+run, the same run with a rank failing, and its resume through ``train --devices 2``.
 """
 
 from __future__ import annotations
@@ -26,8 +26,6 @@ from mixer_nerf.train.distributed import join, rank_seed
 WORKER = Path(__file__).with_name("distributed_worker.py")
 LAUNCH_TIMEOUT = 240  # seconds; far above a healthy run, so only a hang reaches it
 TINY = {
-    "procedural_resolution": 16,
-    "procedural_views": 4,
     "model_overrides": {"depth": 2, "width": 16, "skips": [], "view_width": 8, "pos_freqs": 2, "dir_freqs": 1,
                         "mlca_channels": 3, "se_reduction": 4},
     "steps": 6,
@@ -49,19 +47,17 @@ TINY = {
 
 
 @pytest.fixture(scope="module")
-def cache(tmp_path_factory):
-    """The procedural scene, rendered once before any rank looks for it."""
-    root = tmp_path_factory.mktemp("cache")
-    ensure_procedural_scene(resolution=TINY["procedural_resolution"], n_train=TINY["procedural_views"],
-                            n_val=4, n_test=4, cache_dir=root)
-    return root
+def scene(tmp_path_factory):
+    """The procedural scene at 16x16 pixels (4 training views), as a Blender folder."""
+    return ensure_procedural_scene(resolution=16, n_train=4, n_val=4, n_test=4,
+                                   cache_dir=tmp_path_factory.mktemp("cache"))
 
 
-def torchrun(cache: Path, out: Path, *flags: str, nproc: int = 2) -> subprocess.CompletedProcess:
+def torchrun(scene: Path, out: Path, *flags: str, nproc: int = 2) -> subprocess.CompletedProcess:
     """tests/distributed_worker.py on ``nproc`` gloo processes training the TINY run in ``out``."""
     config = out.parent / f"{out.name}.json"
-    config.write_text(json.dumps({**TINY, "out": str(out)}))
-    env = {**os.environ, "MIXER_NERF_CACHE": str(cache), "OMP_NUM_THREADS": "1"}
+    config.write_text(json.dumps({**TINY, "data": str(scene), "out": str(out)}))
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
     command = [sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc-per-node={nproc}",
                str(WORKER), str(config), *flags]
     return subprocess.run(command, env=env, capture_output=True, text=True, timeout=LAUNCH_TIMEOUT)
@@ -78,19 +74,19 @@ def assert_identical(a: dict[str, torch.Tensor], b: dict[str, torch.Tensor]) -> 
 
 
 @pytest.fixture(scope="module")
-def uninterrupted(cache, tmp_path_factory):
+def uninterrupted(scene, tmp_path_factory):
     """6 steps on 2 ranks."""
     out = tmp_path_factory.mktemp("uninterrupted") / "run"
-    result = torchrun(cache, out)
+    result = torchrun(scene, out)
     assert result.returncode == 0, result.stderr[-3000:]
     return out
 
 
 @pytest.fixture(scope="module")
-def killed(cache, tmp_path_factory):
+def killed(scene, tmp_path_factory):
     """The same run with rank 1 failing before step 5: its last checkpoint is step 3's."""
     out = tmp_path_factory.mktemp("killed") / "run"
-    return out, torchrun(cache, out, "--fail-rank", "1", "--fail-step", "5")
+    return out, torchrun(scene, out, "--fail-rank", "1", "--fail-step", "5")
 
 
 def test_ranks_stay_bit_identical(uninterrupted):
@@ -117,20 +113,24 @@ def test_failing_rank_stops_the_others(killed):
     assert load_checkpoint(out / "checkpoint.pt")["step"] == 3
 
 
-def test_killed_run_resumes_on_2_processes_exactly(cache, killed, uninterrupted, tmp_path):
+def test_killed_run_resumes_on_2_processes_exactly(scene, killed, uninterrupted, tmp_path):
+    """Through ``train --resume --devices 2``: the relaunch under torchrun, rank 0's report."""
     out = tmp_path / "run"
     shutil.copytree(killed[0], out)
-    result = torchrun(cache, out, "--resume")
+    command = [sys.executable, "-m", "mixer_nerf", "train", "--data", str(scene), "--resume", "--devices", "2",
+               "--out", str(out), "--device", "cpu", "--backend", "torch", "--no-progress"]
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    result = subprocess.run(command, env=env, capture_output=True, text=True, timeout=LAUNCH_TIMEOUT)
     assert result.returncode == 0, result.stderr[-3000:]
-    resumed = fields_of(out / "rank0.pt")
-    assert_identical(resumed, fields_of(out / "rank1.pt"))
-    assert_identical(resumed, fields_of(uninterrupted / "rank0.pt"))
+    assert result.stdout.count("checkpoint:") == 1  # one report, rank 0's
+    resumed = load_checkpoint(out / "checkpoint.pt")
+    assert resumed["step"] == 6
+    assert_identical(resumed["model"], fields_of(uninterrupted / "rank0.pt"))
 
 
-def test_killed_run_resumes_on_1_process(cache, killed, tmp_path, monkeypatch):
+def test_killed_run_resumes_on_1_process(killed, tmp_path):
     out = tmp_path / "run"
     shutil.copytree(killed[0], out)
-    monkeypatch.setenv("MIXER_NERF_CACHE", str(cache))
     trainer = Trainer(TrainConfig(**{**TINY, "out": str(out)}), resume=True, log=lambda _: None)
     assert trainer.ranks is None and trainer.step == 3
     assert trainer.fit()["step"] == 6
@@ -182,15 +182,18 @@ def test_devices_must_match_torchrun(tmp_path, capsys, monkeypatch):
     assert "leave --devices out there" in capsys.readouterr().err
 
 
-def test_devices_relaunches_under_torchrun(blender_scene, tmp_path):
-    """``train --devices 2`` on CPU: two gloo processes, one report (rank 0's)."""
-    out = tmp_path / "run"
-    command = [sys.executable, "-m", "mixer_nerf", "train", "--data", str(blender_scene), "--devices", "2",
-               "--device", "cpu", "--backend", "torch", "--sampler", "hierarchical", "--preset", "A",
-               "--steps", "2", "--batch-rays", "16", "--num-coarse", "4", "--num-fine", "4",
-               "--val-every", "2", "--ckpt-every", "2", "--no-progress", "--out", str(out)]
-    env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    result = subprocess.run(command, env=env, capture_output=True, text=True, timeout=LAUNCH_TIMEOUT)
-    assert result.returncode == 0, result.stderr[-3000:]
-    assert result.stdout.count("checkpoint:") == 1
-    assert load_checkpoint(out / "checkpoint.pt")["step"] == 2
+def test_devices_reports_a_failed_rank_in_one_line(tmp_path, capsys, monkeypatch):
+    """What ``train --devices 2`` prints when torchrun reports a failed rank (no launch here)."""
+    import torch.distributed.run as torchrun_module
+    from torch.distributed.elastic.multiprocessing.errors import ChildFailedError, ProcessFailure
+
+    def failed_run(args):
+        raise ChildFailedError("mixer_nerf", {1: ProcessFailure(1, 4242, 1, "<N/A>")})
+
+    monkeypatch.delenv("WORLD_SIZE", raising=False)
+    monkeypatch.delenv("TORCHELASTIC_RUN_ID", raising=False)
+    monkeypatch.setattr(torchrun_module, "run", failed_run)
+    assert cli.main(["train", "--out", str(tmp_path), "--no-progress", "--device", "cpu", "--devices", "2"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err == ("mixer-nerf: error: training process 1 of 2 failed (exit code 1); its error is printed "
+                   "above and the others were stopped")

@@ -424,6 +424,7 @@ class Trainer:
             "checkpoint": str(self.files.checkpoint) if self.files.checkpoint.exists() else None,
             "curves": str(plot_curves(self.train_log, self.val_log, self.files.curves) or ""),
             "device": str(self.device),
+            "processes": 1 if self.ranks is None else self.ranks.world_size,
             "precision": self.cfg.precision,
         }
         self.files.summary.write_text(json.dumps(summary, indent=1))
