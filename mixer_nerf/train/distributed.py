@@ -117,19 +117,20 @@ def join(device: str) -> Ranks | None:
         return None
     for name, value in NO_MULTICAST.items():
         os.environ.setdefault(name, value)
-    on_cuda = device.startswith("cuda")
-    if on_cuda:
+    gpu = None
+    if device.startswith("cuda"):
         local_rank = int(os.environ.get("LOCAL_RANK", "0"))
         if local_rank >= torch.cuda.device_count():
             raise DistributedError(
                 f"rank {os.environ.get('RANK')} wants GPU {local_rank} but this machine has "
                 f"{torch.cuda.device_count()}; launch at most that many processes per node"
             )
-        torch.cuda.set_device(local_rank)
+        gpu = torch.device("cuda", local_rank)
+        torch.cuda.set_device(gpu)
     if not dist.is_initialized():
-        dist.init_process_group("nccl" if on_cuda else "gloo")
+        dist.init_process_group("gloo" if gpu is None else "nccl", device_id=gpu)
         atexit.register(_leave)
-    decisions = dist.new_group(backend="gloo") if on_cuda else dist.group.WORLD
+    decisions = dist.group.WORLD if gpu is None else dist.new_group(backend="gloo")
     return Ranks(dist.get_rank(), dist.get_world_size(), decisions)
 
 
