@@ -34,12 +34,14 @@ def main() -> None:
         trainer.train_step = failing_step
     trainer.fit()
     # The gradient mean on its own: rank r's gradient is r + 1; the second parameter has none on rank 0.
-    probe = [torch.zeros(3, requires_grad=True), torch.zeros(2, requires_grad=True)]
-    probe[0].grad = torch.full((3,), trainer.rank + 1.0)
+    device = trainer.device
+    probe = [torch.zeros(n, device=device, requires_grad=True) for n in (3, 2)]
+    probe[0].grad = torch.full((3,), trainer.rank + 1.0, device=device)
     if trainer.rank:
-        probe[1].grad = torch.ones(2)
+        probe[1].grad = torch.ones(2, device=device)
     trainer.ranks.start_gradient_mean(probe).finish()
-    torch.save({"step": trainer.step, "fields": trainer.fields.state_dict(), "probe": [p.grad for p in probe]},
+    probed = [p.grad.cpu() for p in probe]
+    torch.save({"step": trainer.step, "fields": trainer.fields.state_dict(), "probe": probed},
                Path(cfg.out) / f"rank{trainer.rank}.pt")
 
 

@@ -54,12 +54,12 @@ def scene(tmp_path_factory):
                                    cache_dir=tmp_path_factory.mktemp("cache"))
 
 
-def torchrun(scene: Path, out: Path, *flags: str, nproc: int = 2) -> subprocess.CompletedProcess:
-    """tests/distributed_worker.py on ``nproc`` gloo processes training the TINY run in ``out``."""
+def torchrun(scene: Path, out: Path, *flags: str, **settings) -> subprocess.CompletedProcess:
+    """tests/distributed_worker.py on 2 processes training the TINY run (with ``settings``) in ``out``."""
     config = out.parent / f"{out.name}.json"
-    config.write_text(json.dumps({**TINY, "data": str(scene), "out": str(out)}))
+    config.write_text(json.dumps({**TINY, **settings, "data": str(scene), "out": str(out)}))
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    command = [sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc-per-node={nproc}",
+    command = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node=2",
                str(WORKER), str(config), *flags]
     return subprocess.run(command, env=env, capture_output=True, text=True, timeout=LAUNCH_TIMEOUT)
 
@@ -97,6 +97,15 @@ def test_ranks_stay_bit_identical(uninterrupted):
     assert 0 < occupied < 1  # refreshed past warm-up: thresholded, not every cell
 
 
+@pytest.mark.cuda
+@pytest.mark.skipif(torch.cuda.device_count() < 2, reason="needs 2 CUDA GPUs")
+def test_nccl_ranks_stay_bit_identical(scene, tmp_path):
+    """The same on 2 GPUs: NCCL, the kernels, bf16 density passes."""
+    result = torchrun(scene, tmp_path / "run", device="cuda", backend="auto")
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert_identical(fields_of(tmp_path / "run" / "rank0.pt"), fields_of(tmp_path / "run" / "rank1.pt"))
+
+
 def test_gradients_are_averaged_over_ranks(uninterrupted):
     """Rank r's gradient r + 1 averages to 1.5; a gradient missing on one rank counts as zero."""
     for rank in (0, 1):
@@ -125,8 +134,8 @@ def test_killed_run_resumes_on_2_processes_exactly(scene, killed, uninterrupted,
     """Through ``train --resume --devices 2``: the relaunch under torchrun, rank 0's report."""
     out = tmp_path / "run"
     shutil.copytree(killed[0], out)
-    command = [sys.executable, "-m", "mixer_nerf", "train", "--data", str(scene), "--resume", "--devices", "2",
-               "--out", str(out), "--device", "cpu", "--backend", "torch", "--no-progress"]
+    command = [sys.executable, "-m", "mixer_nerf", "train", "--data", str(scene), "--resume",
+               "--devices", "2", "--out", str(out), "--device", "cpu", "--backend", "torch", "--no-progress"]
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     result = subprocess.run(command, env=env, capture_output=True, text=True, timeout=LAUNCH_TIMEOUT)
     assert result.returncode == 0, result.stderr[-3000:]
@@ -201,7 +210,8 @@ def test_devices_reports_a_failed_rank_in_one_line(tmp_path, capsys, monkeypatch
     monkeypatch.delenv("WORLD_SIZE", raising=False)
     monkeypatch.delenv("TORCHELASTIC_RUN_ID", raising=False)
     monkeypatch.setattr(torchrun_module, "run", failed_run)
-    assert cli.main(["train", "--out", str(tmp_path), "--no-progress", "--device", "cpu", "--devices", "2"]) == 1
+    argv = ["train", "--out", str(tmp_path), "--no-progress", "--device", "cpu", "--devices", "2"]
+    assert cli.main(argv) == 1
     err = capsys.readouterr().err.strip()
     assert err == ("mixer-nerf: error: training process 1 of 2 failed (exit code 1); its error is printed "
                    "above and the others were stopped")
