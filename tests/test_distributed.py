@@ -22,7 +22,7 @@ from mixer_nerf.data import ensure_procedural_scene
 from mixer_nerf.ops.bitfield import unpack_bits
 from mixer_nerf.render.skipping import CellShare, OccupancyGrid
 from mixer_nerf.train import TrainConfig, Trainer, load_checkpoint
-from mixer_nerf.train.distributed import join, rank_seed
+from mixer_nerf.train.distributed import join, rank_seed, restore_rank_sampler
 
 WORKER = Path(__file__).with_name("distributed_worker.py")
 LAUNCH_TIMEOUT = 240  # seconds; far above a healthy run, so only a hang reaches it
@@ -159,6 +159,15 @@ def test_one_process_without_torchrun_is_untouched(monkeypatch):
     assert join("cpu") is None
     assert rank_seed(7, 0) == 7  # rank 0 draws what one process always drew
     assert len({rank_seed(7, r, s) for r in range(3) for s in (0, 9)}) == 6
+
+
+def test_resume_gives_each_rank_its_saved_stream_or_a_fresh_one():
+    saved = [torch.Generator().manual_seed(s).get_state() for s in (1, 2)]
+    generator = torch.Generator()
+    restore_rank_sampler(generator, saved, 1, seed=0, step=9)
+    assert torch.equal(generator.get_state(), saved[1])
+    restore_rank_sampler(generator, saved, 2, seed=0, step=9)  # the saving run had 2 ranks
+    assert generator.initial_seed() == rank_seed(0, 2, 9)
 
 
 def test_shared_refresh_equals_the_max_of_its_shares():

@@ -44,6 +44,16 @@ def rank_seed(seed: int, rank: int, step: int = 0) -> int:
     return int(np.random.SeedSequence(seed, spawn_key=(rank, step)).generate_state(1, np.uint64)[0] >> 1)
 
 
+def restore_rank_sampler(generator: torch.Generator, saved: list[torch.Tensor], rank: int, seed: int,
+                         step: int) -> None:
+    """Give ``rank`` (> 0) its own ray stream back from a checkpoint's ``rank_samplers``, or a
+    fresh one when the run that saved it had fewer ranks."""
+    if rank < len(saved):
+        generator.set_state(saved[rank])
+    else:
+        generator.manual_seed(rank_seed(seed, rank, step))
+
+
 @dataclass
 class Ranks:
     """This process's place among ``world_size`` training processes (see :func:`join`)."""
@@ -51,10 +61,6 @@ class Ranks:
     rank: int
     world_size: int
     decisions: dist.ProcessGroup  # gloo: host-side values, no GPU synchronisation
-
-    @property
-    def is_main(self) -> bool:
-        return self.rank == 0
 
     def decide(self, value: float) -> float:
         """Rank 0's ``value`` on every rank (e.g. its training clock)."""
@@ -154,12 +160,3 @@ def _leave() -> None:
     if dist.is_initialized():
         dist.destroy_process_group()
 
-
-def restore_rank_sampler(generator: torch.Generator, saved: list[torch.Tensor], rank: int, seed: int,
-                         step: int) -> None:
-    """Give ``rank`` (> 0) its own ray stream back from a checkpoint's ``rank_samplers``, or a
-    fresh one when the run that saved it had fewer ranks."""
-    if rank < len(saved):
-        generator.set_state(saved[rank])
-    else:
-        generator.manual_seed(rank_seed(seed, rank, step))
