@@ -65,32 +65,14 @@ def tiny_occupancy_run(tmp_path_factory) -> Iterator[Path]:
     """A checkpoint of 6 occupancy-sampler steps on a 16x16 built-in scene (2-layer model, an 8^3
     grid), trained on the CPU with the reference ops; its folder is returned. The scene is cached
     in the session's temporary folder while the fixture lives."""
-    from test_cli import TINY_DEMO
+    from test_train import tiny_config
 
-    from mixer_nerf.train import TrainConfig, Trainer
+    from mixer_nerf.train import Trainer
 
     out = tmp_path_factory.mktemp("occupancy") / "run"
     env = pytest.MonkeyPatch()
     env.setenv("MIXER_NERF_CACHE", str(tmp_path_factory.getbasetemp() / "cache"))
-    cfg = TrainConfig(
-        procedural_resolution=16,
-        procedural_views=4,
-        model_overrides=TINY_DEMO["model_overrides"],
-        steps=6,
-        sampler="occupancy",
-        grid_resolution=8,
-        grid_warmup=2,
-        grid_every=2,
-        target_samples=512,
-        val_every=6,
-        val_images=1,
-        ckpt_every=6,
-        log_every=2,
-        backend="torch",
-        device="cpu",
-        out=str(out),
-        progress=False,
-    )
+    cfg = tiny_config(out, sampler="occupancy", val_every=6, ckpt_every=6)
     Trainer(cfg, log=lambda _: None).fit()
     yield out
     env.undo()
