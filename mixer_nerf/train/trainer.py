@@ -93,6 +93,7 @@ class Trainer:
         self.cfg = cfg = cfg.resolved(torch.cuda.is_available())
         self.ranks = join(cfg.device)  # None: one process (no torchrun)
         self.rank = 0 if self.ranks is None else self.ranks.rank
+        self._shared_time = (-1, 0.0)  # (step, rank 0's clock then)
         if self.rank:
             self.log = lambda _: None  # rank 0 speaks and writes for all
         self.device = torch.device(cfg.device)
@@ -374,9 +375,13 @@ class Trainer:
         self.log(f"resumed {self.files.checkpoint} at step {self.step}")
 
     def _training_time(self) -> float:
-        """The training clock; with several ranks rank 0's, so that they all decide alike."""
-        now = self.clock.now()
-        return now if self.ranks is None else self.ranks.decide(now)
+        """The training clock; with several ranks rank 0's, read once a step (one broadcast), so
+        that they all decide alike."""
+        if self.ranks is None:
+            return self.clock.now()
+        if self._shared_time[0] != self.step:
+            self._shared_time = (self.step, self.ranks.decide(self.clock.now()))
+        return self._shared_time[1]
 
     def _paused(self, action: Callable[[], Any]) -> None:
         """Run ``action`` with the training clock paused."""
