@@ -1,5 +1,5 @@
 // composite and composite_packed (volume rendering) on the CPU: one sequential scan per ray, rays
-// in parallel. A ray is a span of samples (composite.h), so both layouts run the same scans.
+// in parallel. A ray is a span of samples (ray_layout.h), so both layouts run the same scans.
 //
 // Per sample: tau = sigma * (t_end - t_start), E_i = sum_{j<i} tau_j, T_i = exp(-E_i),
 // alpha_i = -expm1(-tau_i), w_i = T_i * alpha_i. T is exp of an exclusive sum (never a product
@@ -145,105 +145,63 @@ void composite_backward_ray(const CompositeInputs<scalar_t>& in, const Composite
   }
 }
 
-using composite_layout::DenseRays;
-using composite_layout::PackedRays;
-
 int64_t ray_grain(int64_t samples, int64_t rays) {
   return std::max<int64_t>(1, 4096 * std::max<int64_t>(1, rays) / std::max<int64_t>(1, samples));
 }
 
-template <typename Rays>
-std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> composite_forward(
-    const at::Tensor& sigmas, const at::Tensor& rgbs, const at::Tensor& t_starts, const at::Tensor& t_ends,
-    const std::optional<at::Tensor>& background, int64_t R, Rays rays) {
-  auto outputs = empty_outputs(sigmas, rgbs, R);
-  auto& [color, depth, opacity, weights] = outputs;
-  const int64_t C = rgbs.size(-1);
-  MIXER_NERF_DISPATCH_FLOATING(sigmas.scalar_type(), "composite_fwd_cpu", [&] {
-    const auto in = inputs_of<scalar_t>(sigmas, rgbs, t_starts, t_ends, background);
-    at::parallel_for(0, R, ray_grain(sigmas.numel(), R), [&](int64_t begin, int64_t end) {
-      std::vector<ray_acc> color_acc(C);
-      for (int64_t r = begin; r < end; ++r) {
-        const composite_layout::RaySpan span = rays(r);
-        composite_forward_ray(in, r, span.offset, span.count, color_acc.data(), color.data_ptr<scalar_t>(),
-                              depth.data_ptr<scalar_t>(), opacity.data_ptr<scalar_t>(), weights.data_ptr<scalar_t>());
-      }
+// The composite ops' CPU kernels, for CompositeOps (composite.h).
+struct Cpu {
+  static constexpr at::DeviceType kind = at::kCPU;
+
+  template <typename Rays>
+  static CompositeForward forward(const at::Tensor& sigmas, const at::Tensor& rgbs, const at::Tensor& t_starts,
+                                  const at::Tensor& t_ends, const std::optional<at::Tensor>& background, int64_t R,
+                                  Rays rays) {
+    auto outputs = empty_outputs(sigmas, rgbs, R);
+    auto& [color, depth, opacity, weights] = outputs;
+    const int64_t C = rgbs.size(-1);
+    MIXER_NERF_DISPATCH_FLOATING(sigmas.scalar_type(), "composite_fwd_cpu", [&] {
+      const auto in = inputs_of<scalar_t>(sigmas, rgbs, t_starts, t_ends, background);
+      at::parallel_for(0, R, ray_grain(sigmas.numel(), R), [&](int64_t begin, int64_t end) {
+        std::vector<ray_acc> color_acc(C);
+        for (int64_t r = begin; r < end; ++r) {
+          const composite_layout::RaySpan span = rays(r);
+          composite_forward_ray(in, r, span.offset, span.count, color_acc.data(), color.data_ptr<scalar_t>(),
+                                depth.data_ptr<scalar_t>(), opacity.data_ptr<scalar_t>(), weights.data_ptr<scalar_t>());
+        }
+      });
     });
-  });
-  return outputs;
-}
+    return outputs;
+  }
 
-template <typename Rays>
-std::tuple<at::Tensor, at::Tensor, std::optional<at::Tensor>, std::optional<at::Tensor>, std::optional<at::Tensor>>
-composite_backward(const std::optional<at::Tensor>& grad_color, const std::optional<at::Tensor>& grad_depth,
-                   const std::optional<at::Tensor>& grad_opacity, const std::optional<at::Tensor>& grad_weights,
-                   const at::Tensor& sigmas, const at::Tensor& rgbs, const at::Tensor& t_starts,
-                   const at::Tensor& t_ends, const std::optional<at::Tensor>& background, bool interval_grads,
-                   int64_t R, Rays rays) {
-  check_upstream(grad_color, grad_depth, grad_opacity, grad_weights, sigmas, rgbs, R, at::kCPU);
-  CompositeGradTensors grads(sigmas, rgbs, background, R, interval_grads);
-  MIXER_NERF_DISPATCH_FLOATING(sigmas.scalar_type(), "composite_bwd_cpu", [&] {
-    const auto in = inputs_of<scalar_t>(sigmas, rgbs, t_starts, t_ends, background);
-    const auto g = grads.pointers<scalar_t>(grad_color, grad_depth, grad_opacity, grad_weights);
-    at::parallel_for(0, R, ray_grain(sigmas.numel(), R), [&](int64_t begin, int64_t end) {
-      std::vector<ray_acc> transmittance_after;
-      for (int64_t r = begin; r < end; ++r) {
-        const composite_layout::RaySpan span = rays(r);
-        if (static_cast<int64_t>(transmittance_after.size()) < span.count) transmittance_after.resize(span.count);
-        composite_backward_ray(in, g, r, span.offset, span.count, transmittance_after.data());
-      }
+  template <typename Rays>
+  static CompositeBackward backward(const std::optional<at::Tensor>& grad_color,
+                                    const std::optional<at::Tensor>& grad_depth,
+                                    const std::optional<at::Tensor>& grad_opacity,
+                                    const std::optional<at::Tensor>& grad_weights, const at::Tensor& sigmas,
+                                    const at::Tensor& rgbs, const at::Tensor& t_starts, const at::Tensor& t_ends,
+                                    const std::optional<at::Tensor>& background, bool interval_grads, int64_t R,
+                                    Rays rays) {
+    check_upstream(grad_color, grad_depth, grad_opacity, grad_weights, sigmas, rgbs, R, kind);
+    CompositeGradTensors grads(sigmas, rgbs, background, R, interval_grads);
+    MIXER_NERF_DISPATCH_FLOATING(sigmas.scalar_type(), "composite_bwd_cpu", [&] {
+      const auto in = inputs_of<scalar_t>(sigmas, rgbs, t_starts, t_ends, background);
+      const auto g = grads.pointers<scalar_t>(grad_color, grad_depth, grad_opacity, grad_weights);
+      at::parallel_for(0, R, ray_grain(sigmas.numel(), R), [&](int64_t begin, int64_t end) {
+        std::vector<ray_acc> transmittance_after;
+        for (int64_t r = begin; r < end; ++r) {
+          const composite_layout::RaySpan span = rays(r);
+          if (static_cast<int64_t>(transmittance_after.size()) < span.count) transmittance_after.resize(span.count);
+          composite_backward_ray(in, g, r, span.offset, span.count, transmittance_after.data());
+        }
+      });
     });
-  });
-  return grads.finish(background);
-}
-
-std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> composite_fwd_cpu(
-    const at::Tensor& sigmas, const at::Tensor& rgbs, const at::Tensor& t_starts, const at::Tensor& t_ends,
-    const std::optional<at::Tensor>& background) {
-  check_dense(sigmas);
-  check_composite_inputs(sigmas, rgbs, t_starts, t_ends, background, sigmas.size(0), at::kCPU);
-  return composite_forward(sigmas, rgbs, t_starts, t_ends, background, sigmas.size(0), DenseRays{sigmas.size(1)});
-}
-
-std::tuple<at::Tensor, at::Tensor, std::optional<at::Tensor>, std::optional<at::Tensor>, std::optional<at::Tensor>>
-composite_bwd_cpu(const std::optional<at::Tensor>& grad_color, const std::optional<at::Tensor>& grad_depth,
-                  const std::optional<at::Tensor>& grad_opacity, const std::optional<at::Tensor>& grad_weights,
-                  const at::Tensor& sigmas, const at::Tensor& rgbs, const at::Tensor& t_starts,
-                  const at::Tensor& t_ends, const std::optional<at::Tensor>& background, bool interval_grads) {
-  check_dense(sigmas);
-  check_composite_inputs(sigmas, rgbs, t_starts, t_ends, background, sigmas.size(0), at::kCPU);
-  return composite_backward(grad_color, grad_depth, grad_opacity, grad_weights, sigmas, rgbs, t_starts, t_ends,
-                            background, interval_grads, sigmas.size(0), DenseRays{sigmas.size(1)});
-}
-
-std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> composite_packed_fwd_cpu(
-    const at::Tensor& sigmas, const at::Tensor& rgbs, const at::Tensor& t_starts, const at::Tensor& t_ends,
-    const std::optional<at::Tensor>& background, const at::Tensor& offsets) {
-  const int64_t R = check_packed(sigmas, offsets, at::kCPU);
-  check_composite_inputs(sigmas, rgbs, t_starts, t_ends, background, R, at::kCPU);
-  return composite_forward(sigmas, rgbs, t_starts, t_ends, background, R,
-                           PackedRays{offsets.const_data_ptr<int64_t>(), sigmas.size(0)});
-}
-
-std::tuple<at::Tensor, at::Tensor, std::optional<at::Tensor>, std::optional<at::Tensor>, std::optional<at::Tensor>>
-composite_packed_bwd_cpu(const std::optional<at::Tensor>& grad_color, const std::optional<at::Tensor>& grad_depth,
-                         const std::optional<at::Tensor>& grad_opacity, const std::optional<at::Tensor>& grad_weights,
-                         const at::Tensor& sigmas, const at::Tensor& rgbs, const at::Tensor& t_starts,
-                         const at::Tensor& t_ends, const std::optional<at::Tensor>& background,
-                         const at::Tensor& offsets, bool interval_grads) {
-  const int64_t R = check_packed(sigmas, offsets, at::kCPU);
-  check_composite_inputs(sigmas, rgbs, t_starts, t_ends, background, R, at::kCPU);
-  return composite_backward(grad_color, grad_depth, grad_opacity, grad_weights, sigmas, rgbs, t_starts, t_ends,
-                            background, interval_grads, R, PackedRays{offsets.const_data_ptr<int64_t>(), sigmas.size(0)});
-}
+    return grads.finish(background);
+  }
+};
 
 }  // namespace
 
-TORCH_LIBRARY_IMPL(mixer_nerf, CPU, m) {
-  m.impl("composite_fwd", &composite_fwd_cpu);
-  m.impl("composite_bwd", &composite_bwd_cpu);
-  m.impl("composite_packed_fwd", &composite_packed_fwd_cpu);
-  m.impl("composite_packed_bwd", &composite_packed_bwd_cpu);
-}
+TORCH_LIBRARY_IMPL(mixer_nerf, CPU, m) { CompositeOps<Cpu>::register_ops(m); }
 
 }  // namespace mixer_nerf

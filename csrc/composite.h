@@ -1,10 +1,10 @@
-// What the CPU and CUDA kernels of composite and composite_packed share: where each ray's samples
-// lie, and the kernels' arguments. The per-ray scans take a ray's (offset, count), so one scan
-// serves the padded (R, S) layout and the packed (ragged, CSR) one.
+// What the CPU and CUDA kernels of composite and composite_packed share: the kernels' arguments
+// and host-side checks. The per-ray scans take a ray's (offset, count) from ray_layout.h, so one
+// scan serves the padded (R, S) layout and the packed (ragged, CSR) one.
 #pragma once
 
 #include <ATen/ATen.h>
-#include <c10/macros/Macros.h>
+#include <torch/library.h>
 
 #include <cstdint>
 #include <optional>
@@ -13,37 +13,9 @@
 #include <vector>
 
 #include "common.h"
+#include "ray_layout.h"
 
 namespace mixer_nerf {
-namespace composite_layout {
-
-// A ray's samples: `count` consecutive rows from `offset`.
-struct RaySpan {
-  int64_t offset;
-  int64_t count;
-};
-
-// Padded (R, S): ray r holds rows r * S .. r * S + S - 1.
-struct DenseRays {
-  int64_t samples_per_ray;
-  C10_HOST_DEVICE RaySpan operator()(int64_t ray) const { return {ray * samples_per_ray, samples_per_ray}; }
-};
-
-// Packed (CSR): ray r owns rows offsets[r] .. offsets[r+1] - 1 of N. Offsets are validated in
-// Python unless the caller opts out; clamping them into [0, N] (an end never before its start)
-// keeps even unchecked offsets from reading or writing outside the arrays.
-struct PackedRays {
-  const int64_t* offsets;  // (R + 1)
-  int64_t total;           // N
-  C10_HOST_DEVICE RaySpan operator()(int64_t ray) const {
-    const int64_t begin = clamp(offsets[ray], 0, total);
-    const int64_t end = clamp(offsets[ray + 1], begin, total);
-    return {begin, end - begin};
-  }
-  C10_HOST_DEVICE static int64_t clamp(int64_t x, int64_t lo, int64_t hi) { return x < lo ? lo : (x > hi ? hi : x); }
-};
-
-}  // namespace composite_layout
 
 template <typename scalar_t>
 struct CompositeInputs {
@@ -154,8 +126,14 @@ const scalar_t* data_or_null(const std::optional<at::Tensor>& t) {
   return t ? t->const_data_ptr<scalar_t>() : nullptr;
 }
 
-// The outputs of a forward: color (R, C), depth (R), opacity (R), weights like sigmas.
-inline std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> empty_outputs(const at::Tensor& sigmas,
+// What a forward returns: color (R, C), depth (R), opacity (R), weights like sigmas; and a
+// backward: the gradients of sigmas, rgbs, t_starts, t_ends (absent without interval_grads) and
+// background (absent without one).
+using CompositeForward = std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor>;
+using CompositeBackward =
+    std::tuple<at::Tensor, at::Tensor, std::optional<at::Tensor>, std::optional<at::Tensor>, std::optional<at::Tensor>>;
+
+inline CompositeForward empty_outputs(const at::Tensor& sigmas,
                                                                                const at::Tensor& rgbs, int64_t rays) {
   return {at::empty({rays, rgbs.size(-1)}, sigmas.options()), at::empty({rays}, sigmas.options()),
           at::empty({rays}, sigmas.options()), at::empty_like(sigmas)};
@@ -196,13 +174,68 @@ struct CompositeGradTensors {
             background_rows.defined() ? background_rows.data_ptr<acc_t<scalar_t>>() : nullptr};
   }
 
-  std::tuple<at::Tensor, at::Tensor, std::optional<at::Tensor>, std::optional<at::Tensor>, std::optional<at::Tensor>>
-  finish(const std::optional<at::Tensor>& background) const {
+  CompositeBackward finish(const std::optional<at::Tensor>& background) const {
     std::optional<at::Tensor> grad_background;
     if (background) {
       grad_background = (background->dim() == 1 ? background_rows.sum(0) : background_rows).to(sigmas.scalar_type());
     }
     return {sigmas, rgbs, t_starts, t_ends, grad_background};
+  }
+};
+
+// The four composite ops of one device: the checks both devices share and the choice of layout,
+// then Device::forward / Device::backward (templates over the layout, given R rays), which the
+// device's source registers with register_ops.
+template <typename Device>
+struct CompositeOps {
+  static CompositeForward dense_fwd(const at::Tensor& sigmas, const at::Tensor& rgbs, const at::Tensor& t_starts,
+                                    const at::Tensor& t_ends, const std::optional<at::Tensor>& background) {
+    check_dense(sigmas);
+    check_composite_inputs(sigmas, rgbs, t_starts, t_ends, background, sigmas.size(0), Device::kind);
+    return Device::forward(sigmas, rgbs, t_starts, t_ends, background, sigmas.size(0),
+                           composite_layout::DenseRays{sigmas.size(1)});
+  }
+
+  static CompositeBackward dense_bwd(const std::optional<at::Tensor>& grad_color,
+                                     const std::optional<at::Tensor>& grad_depth,
+                                     const std::optional<at::Tensor>& grad_opacity,
+                                     const std::optional<at::Tensor>& grad_weights, const at::Tensor& sigmas,
+                                     const at::Tensor& rgbs, const at::Tensor& t_starts, const at::Tensor& t_ends,
+                                     const std::optional<at::Tensor>& background, bool interval_grads) {
+    check_dense(sigmas);
+    check_composite_inputs(sigmas, rgbs, t_starts, t_ends, background, sigmas.size(0), Device::kind);
+    return Device::backward(grad_color, grad_depth, grad_opacity, grad_weights, sigmas, rgbs, t_starts, t_ends,
+                            background, interval_grads, sigmas.size(0), composite_layout::DenseRays{sigmas.size(1)});
+  }
+
+  static CompositeForward packed_fwd(const at::Tensor& sigmas, const at::Tensor& rgbs, const at::Tensor& t_starts,
+                                     const at::Tensor& t_ends, const std::optional<at::Tensor>& background,
+                                     const at::Tensor& offsets) {
+    const int64_t R = check_packed(sigmas, offsets, Device::kind);
+    check_composite_inputs(sigmas, rgbs, t_starts, t_ends, background, R, Device::kind);
+    return Device::forward(sigmas, rgbs, t_starts, t_ends, background, R,
+                           composite_layout::PackedRays{offsets.const_data_ptr<int64_t>(), sigmas.size(0)});
+  }
+
+  static CompositeBackward packed_bwd(const std::optional<at::Tensor>& grad_color,
+                                      const std::optional<at::Tensor>& grad_depth,
+                                      const std::optional<at::Tensor>& grad_opacity,
+                                      const std::optional<at::Tensor>& grad_weights, const at::Tensor& sigmas,
+                                      const at::Tensor& rgbs, const at::Tensor& t_starts, const at::Tensor& t_ends,
+                                      const std::optional<at::Tensor>& background, const at::Tensor& offsets,
+                                      bool interval_grads) {
+    const int64_t R = check_packed(sigmas, offsets, Device::kind);
+    check_composite_inputs(sigmas, rgbs, t_starts, t_ends, background, R, Device::kind);
+    return Device::backward(grad_color, grad_depth, grad_opacity, grad_weights, sigmas, rgbs, t_starts, t_ends,
+                            background, interval_grads, R,
+                            composite_layout::PackedRays{offsets.const_data_ptr<int64_t>(), sigmas.size(0)});
+  }
+
+  static void register_ops(torch::Library& m) {
+    m.impl("composite_fwd", &dense_fwd);
+    m.impl("composite_bwd", &dense_bwd);
+    m.impl("composite_packed_fwd", &packed_fwd);
+    m.impl("composite_packed_bwd", &packed_bwd);
   }
 };
 

@@ -12,6 +12,7 @@
 #include <vector>
 
 #include "common.h"
+#include "positional_encoding.h"
 #include "positional_encoding_math.h"
 
 namespace mixer_nerf {
@@ -34,12 +35,6 @@ struct Encoding {
   int64_t grain() const { return std::max<int64_t>(1, kGrainOutputs / std::max<int64_t>(1, width())); }
   int64_t tile_points() const { return std::max<int64_t>(1, kTileElements / dims); }
 };
-
-void check_args(const at::Tensor& x, int64_t num_freqs) {
-  MIXER_NERF_CHECK_INPUT(x, at::kCPU);
-  MIXER_NERF_CHECK(x.dim() >= 1 && x.size(-1) > 0, "x must have shape (..., D) with D > 0, got ", x.sizes());
-  MIXER_NERF_CHECK(num_freqs >= 0, "num_freqs must be non-negative, got ", num_freqs);
-}
 
 template <typename scalar_t>
 void encode_points(const scalar_t* x, scalar_t* out, int64_t begin, int64_t end, const Encoding& enc) {
@@ -113,11 +108,9 @@ void encode_points_backward(const scalar_t* grad, const scalar_t* x, scalar_t* g
 }
 
 at::Tensor positional_encoding_fwd_cpu(const at::Tensor& x, int64_t num_freqs, bool include_input, double scale) {
-  check_args(x, num_freqs);
+  positional_encoding::check_args(x, num_freqs, at::kCPU);
   const Encoding enc{x.size(-1), num_freqs, include_input, scale};
-  auto out_shape = x.sizes().vec();
-  out_shape.back() = enc.width();
-  at::Tensor out = at::empty(out_shape, x.options());
+  at::Tensor out = at::empty(positional_encoding::encoded_shape(x, enc.width()), x.options());
   const int64_t n = x.numel() / enc.dims;
   MIXER_NERF_DISPATCH_FLOATING(x.scalar_type(), "positional_encoding_fwd_cpu", [&] {
     const scalar_t* xp = x.const_data_ptr<scalar_t>();
@@ -129,14 +122,9 @@ at::Tensor positional_encoding_fwd_cpu(const at::Tensor& x, int64_t num_freqs, b
 
 at::Tensor positional_encoding_bwd_cpu(const at::Tensor& grad_out, const at::Tensor& x, int64_t num_freqs,
                                        bool include_input, double scale) {
-  check_args(x, num_freqs);
-  MIXER_NERF_CHECK_INPUT(grad_out, at::kCPU);
+  positional_encoding::check_args(x, num_freqs, at::kCPU);
   const Encoding enc{x.size(-1), num_freqs, include_input, scale};
-  auto out_shape = x.sizes().vec();
-  out_shape.back() = enc.width();
-  MIXER_NERF_CHECK(grad_out.sizes() == at::IntArrayRef(out_shape), "grad_out must have shape ", at::IntArrayRef(out_shape),
-              ", got ", grad_out.sizes());
-  MIXER_NERF_CHECK(grad_out.scalar_type() == x.scalar_type(), "grad_out must have the dtype of x");
+  positional_encoding::check_grad_out(grad_out, x, enc.width(), at::kCPU);
   at::Tensor grad_x = at::empty_like(x);
   const int64_t n = x.numel() / enc.dims;
   MIXER_NERF_DISPATCH_FLOATING(x.scalar_type(), "positional_encoding_bwd_cpu", [&] {

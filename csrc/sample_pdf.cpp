@@ -11,15 +11,18 @@
 #include <ATen/ATen.h>
 #include <ATen/Parallel.h>
 
+#include <optional>
 #include <tuple>
 #include <vector>
 
 #include "common.h"
+#include "sample_pdf.h"
 #include "sample_pdf_math.h"
 
 namespace mixer_nerf {
 namespace {
 
+using namespace sample_pdf;
 using namespace sample_pdf_math;
 
 int64_t grain_for(int64_t work_per_ray) {
@@ -47,138 +50,107 @@ void sample_ray(Weights weights, Edges edges, int num_bins, const acc_t* u, int6
   }
 }
 
-// sample_pdf of R rays whose bins `rows` places (DenseBins or PackedBins): samples (R, S).
-template <typename Rows>
-at::Tensor sample_forward(const at::Tensor& bins, const at::Tensor& weights, const at::Tensor& u,
-                          double weight_padding, const RayBatch& batch, Rows rows) {
-  at::Tensor samples = at::empty({batch.rays, batch.samples}, bins.options());
-  const int64_t bins_per_ray = weights.numel() / std::max<int64_t>(1, batch.rays);
-  MIXER_NERF_DISPATCH_FLOATING(bins.scalar_type(), "sample_pdf_fwd_cpu", [&] {
-    using acc = acc_t<scalar_t>;
-    const scalar_t* bins_p = bins.data_ptr<scalar_t>();
-    const scalar_t* weights_p = weights.data_ptr<scalar_t>();
-    const acc* u_p = u.data_ptr<acc>();
-    scalar_t* out_p = samples.data_ptr<scalar_t>();
-    at::parallel_for(0, batch.rays, grain_for(bins_per_ray + batch.samples), [&](int64_t begin, int64_t end) {
-      std::vector<cdf_t> cdf;
-      for (int64_t r = begin; r < end; ++r) {
-        const RayBins ray = rows(r);
-        if (cdf.size() < size_t(ray.num_bins) + 1) cdf.resize(size_t(ray.num_bins) + 1);
-        scalar_t* out = out_p + r * batch.samples;
-        sample_ray(PaddedWeights<acc, scalar_t>{weights_p + ray.weights, static_cast<acc>(weight_padding)},
-                   GivenEdges<acc, scalar_t>{bins_p + ray.edges}, ray.num_bins, u_p + r * batch.u_row_stride,
-                   batch.samples, cdf.data(), [&](int64_t n, acc s) { out[n] = static_cast<scalar_t>(s); });
-      }
+// The sample_pdf ops' CPU kernels, for SamplePdfOps (sample_pdf.h).
+struct Cpu {
+  static constexpr at::DeviceType kind = at::kCPU;
+
+  // sample_pdf of R rays whose bins `rows` places (DenseBins or PackedBins): samples (R, S).
+  template <typename Rows>
+  static at::Tensor forward(const at::Tensor& bins, const at::Tensor& weights, const at::Tensor& u,
+                            double weight_padding, const RayBatch& batch, Rows rows,
+                            const std::optional<at::Tensor>& /*offsets*/) {
+    at::Tensor samples = at::empty({batch.rays, batch.samples}, bins.options());
+    const int64_t bins_per_ray = weights.numel() / std::max<int64_t>(1, batch.rays);
+    MIXER_NERF_DISPATCH_FLOATING(bins.scalar_type(), "sample_pdf_fwd_cpu", [&] {
+      using acc = acc_t<scalar_t>;
+      const scalar_t* bins_p = bins.data_ptr<scalar_t>();
+      const scalar_t* weights_p = weights.data_ptr<scalar_t>();
+      const acc* u_p = u.data_ptr<acc>();
+      scalar_t* out_p = samples.data_ptr<scalar_t>();
+      at::parallel_for(0, batch.rays, grain_for(bins_per_ray + batch.samples), [&](int64_t begin, int64_t end) {
+        std::vector<cdf_t> cdf;
+        for (int64_t r = begin; r < end; ++r) {
+          const RayBins ray = rows(r);
+          if (cdf.size() < size_t(ray.num_bins) + 1) cdf.resize(size_t(ray.num_bins) + 1);
+          scalar_t* out = out_p + r * batch.samples;
+          sample_ray(PaddedWeights<acc, scalar_t>{weights_p + ray.weights, static_cast<acc>(weight_padding)},
+                     GivenEdges<acc, scalar_t>{bins_p + ray.edges}, ray.num_bins, u_p + r * batch.u_row_stride,
+                     batch.samples, cdf.data(), [&](int64_t n, acc s) { out[n] = static_cast<scalar_t>(s); });
+        }
+      });
     });
-  });
-  return samples;
-}
+    return samples;
+  }
 
-template <typename Rows>
-std::tuple<at::Tensor, at::Tensor> sample_backward(const at::Tensor& grad_samples, const at::Tensor& bins,
-                                                   const at::Tensor& weights, const at::Tensor& u,
-                                                   double weight_padding, const RayBatch& batch, Rows rows) {
-  check_grad(grad_samples, bins, batch);
-  at::Tensor grad_bins = at::empty_like(bins);
-  at::Tensor grad_weights = at::empty_like(weights);
-  const int64_t bins_per_ray = weights.numel() / std::max<int64_t>(1, batch.rays);
-  MIXER_NERF_DISPATCH_FLOATING(bins.scalar_type(), "sample_pdf_bwd_cpu", [&] {
-    using acc = acc_t<scalar_t>;
-    const scalar_t* grad_p = grad_samples.data_ptr<scalar_t>();
-    const scalar_t* bins_p = bins.data_ptr<scalar_t>();
-    const scalar_t* weights_p = weights.data_ptr<scalar_t>();
-    const acc* u_p = u.data_ptr<acc>();
-    scalar_t* grad_bins_p = grad_bins.data_ptr<scalar_t>();
-    scalar_t* grad_weights_p = grad_weights.data_ptr<scalar_t>();
-    at::parallel_for(0, batch.rays, grain_for(bins_per_ray + batch.samples), [&](int64_t begin, int64_t end) {
-      std::vector<cdf_t> scratch;
-      for (int64_t r = begin; r < end; ++r) {
-        const RayBins ray = rows(r);
-        if (scratch.size() < size_t(ray.num_bins) + 1) scratch.resize(size_t(ray.num_bins) + 1);
-        sample_pdf_ray_backward(grad_p + r * batch.samples, bins_p + ray.edges, weights_p + ray.weights,
-                                u_p + r * batch.u_row_stride, ray.num_bins, static_cast<int>(batch.samples),
-                                static_cast<acc>(weight_padding), scratch.data(), grad_bins_p + ray.edges,
-                                grad_weights_p + ray.weights);
-      }
+  template <typename Rows>
+  static std::tuple<at::Tensor, at::Tensor> backward(const at::Tensor& grad_samples, const at::Tensor& bins,
+                                                     const at::Tensor& weights, const at::Tensor& u,
+                                                     double weight_padding, const RayBatch& batch, Rows rows,
+                                                     const std::optional<at::Tensor>& /*offsets*/) {
+    check_grad(grad_samples, bins, batch);
+    at::Tensor grad_bins = at::empty_like(bins);
+    at::Tensor grad_weights = at::empty_like(weights);
+    const int64_t bins_per_ray = weights.numel() / std::max<int64_t>(1, batch.rays);
+    MIXER_NERF_DISPATCH_FLOATING(bins.scalar_type(), "sample_pdf_bwd_cpu", [&] {
+      using acc = acc_t<scalar_t>;
+      const scalar_t* grad_p = grad_samples.data_ptr<scalar_t>();
+      const scalar_t* bins_p = bins.data_ptr<scalar_t>();
+      const scalar_t* weights_p = weights.data_ptr<scalar_t>();
+      const acc* u_p = u.data_ptr<acc>();
+      scalar_t* grad_bins_p = grad_bins.data_ptr<scalar_t>();
+      scalar_t* grad_weights_p = grad_weights.data_ptr<scalar_t>();
+      at::parallel_for(0, batch.rays, grain_for(bins_per_ray + batch.samples), [&](int64_t begin, int64_t end) {
+        std::vector<cdf_t> scratch;
+        for (int64_t r = begin; r < end; ++r) {
+          const RayBins ray = rows(r);
+          if (scratch.size() < size_t(ray.num_bins) + 1) scratch.resize(size_t(ray.num_bins) + 1);
+          sample_pdf_ray_backward(grad_p + r * batch.samples, bins_p + ray.edges, weights_p + ray.weights,
+                                  u_p + r * batch.u_row_stride, ray.num_bins, static_cast<int>(batch.samples),
+                                  static_cast<acc>(weight_padding), scratch.data(), grad_bins_p + ray.edges,
+                                  grad_weights_p + ray.weights);
+        }
+      });
     });
-  });
-  return {grad_bins, grad_weights};
-}
+    return {grad_bins, grad_weights};
+  }
 
-at::Tensor sample_pdf_fwd_cpu(const at::Tensor& bins, const at::Tensor& weights, const at::Tensor& u,
-                              double weight_padding) {
-  const RayBatch batch = check_batch(bins, weights, u, at::kCPU);
-  check_bins(bins, weights);
-  return sample_forward(bins, weights, u, weight_padding, batch, DenseBins{static_cast<int>(weights.size(1))});
-}
-
-std::tuple<at::Tensor, at::Tensor> sample_pdf_bwd_cpu(const at::Tensor& grad_samples, const at::Tensor& bins,
-                                                      const at::Tensor& weights, const at::Tensor& u,
-                                                      double weight_padding) {
-  const RayBatch batch = check_batch(bins, weights, u, at::kCPU);
-  check_bins(bins, weights);
-  return sample_backward(grad_samples, bins, weights, u, weight_padding, batch,
-                         DenseBins{static_cast<int>(weights.size(1))});
-}
-
-at::Tensor sample_pdf_packed_fwd_cpu(const at::Tensor& bins, const at::Tensor& weights, const at::Tensor& offsets,
-                                     const at::Tensor& u, double weight_padding) {
-  const RayBatch batch = check_packed_batch(bins, weights, offsets, u, at::kCPU);
-  return sample_forward(bins, weights, u, weight_padding, batch,
-                        PackedBins{offsets.const_data_ptr<int64_t>(), weights.size(0)});
-}
-
-std::tuple<at::Tensor, at::Tensor> sample_pdf_packed_bwd_cpu(const at::Tensor& grad_samples, const at::Tensor& bins,
-                                                             const at::Tensor& weights, const at::Tensor& offsets,
-                                                             const at::Tensor& u, double weight_padding) {
-  const RayBatch batch = check_packed_batch(bins, weights, offsets, u, at::kCPU);
-  return sample_backward(grad_samples, bins, weights, u, weight_padding, batch,
-                         PackedBins{offsets.const_data_ptr<int64_t>(), weights.size(0)});
-}
-
-at::Tensor hierarchical_samples_fwd_cpu(const at::Tensor& z_coarse, const at::Tensor& weights, const at::Tensor& u,
-                                        double weight_padding) {
-  const RayBatch batch = check_batch(z_coarse, weights, u, at::kCPU);
-  check_coarse(z_coarse, weights);
-  const int64_t coarse = z_coarse.size(1);
-  const int64_t num_bins = coarse - 2;  // edges: the S-1 midpoints; weights: weights[:, 1:-1]
-  const int64_t merged = coarse + batch.samples;
-  at::Tensor out = at::empty({batch.rays, merged}, z_coarse.options());
-  MIXER_NERF_DISPATCH_FLOATING(z_coarse.scalar_type(), "hierarchical_samples_fwd_cpu", [&] {
-    using acc = acc_t<scalar_t>;
-    const scalar_t* z_p = z_coarse.data_ptr<scalar_t>();
-    const scalar_t* weights_p = weights.data_ptr<scalar_t>();
-    const acc* u_p = u.data_ptr<acc>();
-    scalar_t* out_p = out.data_ptr<scalar_t>();
-    at::parallel_for(0, batch.rays, grain_for(merged), [&](int64_t begin, int64_t end) {
-      std::vector<cdf_t> cdf(num_bins + 1);
-      for (int64_t r = begin; r < end; ++r) {
-        const scalar_t* z = z_p + r * coarse;
-        scalar_t* row = out_p + r * merged;
-        // Coarse depths emitted so far; ties put the coarse depth first, and NaN samples (a ray
-        // with a NaN weight) go after every coarse depth, as torch.sort puts NaN last.
-        int64_t j = 0;
-        sample_ray(PaddedWeights<acc, scalar_t>{weights_p + r * coarse + 1, static_cast<acc>(weight_padding)},
-                   MidpointEdges<acc, scalar_t>{z}, static_cast<int>(num_bins), u_p + r * batch.u_row_stride,
-                   batch.samples, cdf.data(), [&](int64_t n, acc s) {
-                     while (j < coarse && (static_cast<acc>(z[j]) <= s || s != s)) row[n + j] = z[j], ++j;
-                     row[n + j] = static_cast<scalar_t>(s);
-                   });
-        for (; j < coarse; ++j) row[batch.samples + j] = z[j];
-      }
+  // hierarchical_samples: the coarse depths merged with the fine samples, (R, S + N).
+  static at::Tensor hierarchical(const at::Tensor& z_coarse, const at::Tensor& weights, const at::Tensor& u,
+                                 double weight_padding, const RayBatch& batch) {
+    const int64_t coarse = z_coarse.size(1);
+    const int64_t num_bins = coarse - 2;  // edges: the S-1 midpoints; weights: weights[:, 1:-1]
+    const int64_t merged = coarse + batch.samples;
+    at::Tensor out = at::empty({batch.rays, merged}, z_coarse.options());
+    MIXER_NERF_DISPATCH_FLOATING(z_coarse.scalar_type(), "hierarchical_samples_fwd_cpu", [&] {
+      using acc = acc_t<scalar_t>;
+      const scalar_t* z_p = z_coarse.data_ptr<scalar_t>();
+      const scalar_t* weights_p = weights.data_ptr<scalar_t>();
+      const acc* u_p = u.data_ptr<acc>();
+      scalar_t* out_p = out.data_ptr<scalar_t>();
+      at::parallel_for(0, batch.rays, grain_for(merged), [&](int64_t begin, int64_t end) {
+        std::vector<cdf_t> cdf(num_bins + 1);
+        for (int64_t r = begin; r < end; ++r) {
+          const scalar_t* z = z_p + r * coarse;
+          scalar_t* row = out_p + r * merged;
+          // Coarse depths emitted so far; ties put the coarse depth first, and NaN samples (a ray
+          // with a NaN weight) go after every coarse depth, as torch.sort puts NaN last.
+          int64_t j = 0;
+          sample_ray(PaddedWeights<acc, scalar_t>{weights_p + r * coarse + 1, static_cast<acc>(weight_padding)},
+                     MidpointEdges<acc, scalar_t>{z}, static_cast<int>(num_bins), u_p + r * batch.u_row_stride,
+                     batch.samples, cdf.data(), [&](int64_t n, acc s) {
+                       while (j < coarse && (static_cast<acc>(z[j]) <= s || s != s)) row[n + j] = z[j], ++j;
+                       row[n + j] = static_cast<scalar_t>(s);
+                     });
+          for (; j < coarse; ++j) row[batch.samples + j] = z[j];
+        }
+      });
     });
-  });
-  return out;
-}
+    return out;
+  }
+};
 
 }  // namespace
 
-TORCH_LIBRARY_IMPL(mixer_nerf, CPU, m) {
-  m.impl("sample_pdf_fwd", &sample_pdf_fwd_cpu);
-  m.impl("sample_pdf_bwd", &sample_pdf_bwd_cpu);
-  m.impl("hierarchical_samples_fwd", &hierarchical_samples_fwd_cpu);
-  m.impl("sample_pdf_packed_fwd", &sample_pdf_packed_fwd_cpu);
-  m.impl("sample_pdf_packed_bwd", &sample_pdf_packed_bwd_cpu);
-}
+TORCH_LIBRARY_IMPL(mixer_nerf, CPU, m) { SamplePdfOps<Cpu>::register_ops(m); }
 
 }  // namespace mixer_nerf

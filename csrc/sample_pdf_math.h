@@ -19,6 +19,7 @@
 #include <cmath>  // NAN
 
 #include "common.h"
+#include "ray_layout.h"
 
 namespace mixer_nerf {
 namespace sample_pdf_math {
@@ -40,80 +41,16 @@ struct DenseBins {
 };
 
 // Packed: ray r has B_r = offsets[r+1] - offsets[r] >= 0 bins, weights offsets[r] .. offsets[r+1]-1
-// of (N), edges offsets[r] + r .. offsets[r+1] + r of (N + R). Offsets are validated in Python
-// unless the caller opts out; clamped into [0, N] (an end never before its start) even unchecked
-// ones stay inside the arrays. N < 2^30 (checked), so B_r fits an int.
+// of (N), edges offsets[r] + r .. offsets[r+1] + r of (N + R): the packed rows of ray_layout.h,
+// clamped the same way. N < 2^30 (checked), so B_r fits an int.
 struct PackedBins {
   const int64_t* offsets;  // (R + 1)
   int64_t total;           // N
   C10_HOST_DEVICE RayBins operator()(int64_t ray) const {
-    const int64_t begin = clamp(offsets[ray], 0, total);
-    const int64_t end = clamp(offsets[ray + 1], begin, total);
-    return {begin, begin + ray, static_cast<int>(end - begin)};
+    const composite_layout::RaySpan weights = composite_layout::PackedRays{offsets, total}(ray);
+    return {weights.offset, weights.offset + ray, static_cast<int>(weights.count)};
   }
-  C10_HOST_DEVICE static int64_t clamp(int64_t x, int64_t lo, int64_t hi) { return x < lo ? lo : (x > hi ? hi : x); }
 };
-
-// Shapes of a call, after the defensive checks every op shares: rows of `edges_or_z` and
-// `weights` are rays; u is (N) shared by every ray or (R, N), in the accumulation dtype.
-struct RayBatch {
-  int64_t rays;
-  int64_t samples;
-  int64_t u_row_stride;
-};
-
-inline RayBatch check_batch(const at::Tensor& edges_or_z, const at::Tensor& weights, const at::Tensor& u,
-                            at::DeviceType device) {
-  MIXER_NERF_CHECK_INPUT(edges_or_z, device);
-  MIXER_NERF_CHECK_INPUT(weights, device);
-  MIXER_NERF_CHECK_INPUT(u, device);
-  MIXER_NERF_CHECK(edges_or_z.dim() == 2 && weights.dim() == 2, "expected 2-D bins/z and weights");
-  MIXER_NERF_CHECK(weights.scalar_type() == edges_or_z.scalar_type(), "weights must have the dtype of bins/z");
-  MIXER_NERF_CHECK(weights.size(0) == edges_or_z.size(0), "weights and bins/z must have the same number of rays");
-  MIXER_NERF_CHECK(u.scalar_type() == at::toOpMathType(edges_or_z.scalar_type()),
-              "u must be in the accumulation dtype of bins/z (float32, or float64 for float64)");
-  MIXER_NERF_CHECK(u.dim() == 1 || (u.dim() == 2 && u.size(0) == edges_or_z.size(0)), "u must be (N) or (R, N)");
-  MIXER_NERF_CHECK(edges_or_z.size(1) < (int64_t{1} << 30) && u.size(-1) < (int64_t{1} << 30), "too many bins or samples");
-  const int64_t samples = u.size(-1);
-  return {edges_or_z.size(0), samples, u.dim() == 2 ? samples : 0};
-}
-
-// Packed: bins (N + R), weights (N), offsets (R + 1) int64, u (S) or (R, S).
-inline RayBatch check_packed_batch(const at::Tensor& bins, const at::Tensor& weights, const at::Tensor& offsets,
-                                   const at::Tensor& u, at::DeviceType device) {
-  MIXER_NERF_CHECK_INPUT(bins, device);
-  MIXER_NERF_CHECK_INPUT(weights, device);
-  MIXER_NERF_CHECK_INPUT(offsets, device);
-  MIXER_NERF_CHECK_INPUT(u, device);
-  MIXER_NERF_CHECK(offsets.scalar_type() == at::kLong && offsets.dim() == 1 && offsets.size(0) >= 1,
-              "offsets must be (R+1) int64");
-  const int64_t rays = offsets.size(0) - 1;
-  MIXER_NERF_CHECK(bins.dim() == 1 && weights.dim() == 1 && bins.size(0) == weights.size(0) + rays,
-              "packed bins must be (N + R) for weights (N)");
-  MIXER_NERF_CHECK(weights.scalar_type() == bins.scalar_type(), "weights must have the dtype of bins");
-  MIXER_NERF_CHECK(u.scalar_type() == at::toOpMathType(bins.scalar_type()),
-              "u must be in the accumulation dtype of bins (float32, or float64 for float64)");
-  MIXER_NERF_CHECK(u.dim() == 1 || (u.dim() == 2 && u.size(0) == rays), "u must be (S) or (R, S)");
-  MIXER_NERF_CHECK(weights.size(0) < (int64_t{1} << 30) && u.size(-1) < (int64_t{1} << 30), "too many bins or samples");
-  const int64_t samples = u.size(-1);
-  return {rays, samples, u.dim() == 2 ? samples : 0};
-}
-
-inline void check_bins(const at::Tensor& bins, const at::Tensor& weights) {
-  MIXER_NERF_CHECK(weights.size(1) >= 1 && bins.size(1) == weights.size(1) + 1,
-              "bins must be (R, B+1) for weights (R, B), B >= 1");
-}
-
-inline void check_coarse(const at::Tensor& z_coarse, const at::Tensor& weights) {
-  MIXER_NERF_CHECK(z_coarse.size(1) >= 3 && weights.size(1) == z_coarse.size(1), "z_coarse and weights must be (R, S), S >= 3");
-}
-
-inline void check_grad(const at::Tensor& grad_samples, const at::Tensor& bins, const RayBatch& batch) {
-  MIXER_NERF_CHECK_INPUT(grad_samples, bins.device().type());
-  MIXER_NERF_CHECK(grad_samples.scalar_type() == bins.scalar_type(), "grad_samples must have the dtype of bins");
-  MIXER_NERF_CHECK(grad_samples.dim() == 2 && grad_samples.size(0) == batch.rays && grad_samples.size(1) == batch.samples,
-              "grad_samples must be (R, N)");
-}
 
 // The CDF, v = u W and the position t inside a bin are carried in double for every input dtype:
 // t = (v - C_k) / w_k subtracts two numbers close to W, which in float32 would cost

@@ -23,7 +23,7 @@
 #include <vector>
 
 #include "common.h"
-#include "composite.h"
+#include "ray_layout.h"
 #include "segment_ops.h"
 
 namespace mixer_nerf {

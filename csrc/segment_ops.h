@@ -1,7 +1,7 @@
 // What the CPU and CUDA kernels of segment_mean and ray_scale share: their host-side checks.
 // Python (mixer_nerf/ops/segment_ops.py) validates first, with clear messages; these only keep a
 // direct call of an op from reading out of bounds. Rows are spanned per ray by
-// composite_layout::PackedRays (composite.h), which clamps unchecked offsets into [0, N].
+// composite_layout::PackedRays (ray_layout.h), which clamps unchecked offsets into [0, N].
 #pragma once
 
 #include <ATen/ATen.h>

@@ -71,7 +71,9 @@ def build_parser() -> argparse.ArgumentParser:
     _add_prepare_parser(commands)
     _add_ablate_parser(commands)
     _add_export_parser(commands)
-    commands.add_parser("doctor", help="versions, GPU, which kernels run and why, a 10 s accuracy check of each op")
+    commands.add_parser(
+        "doctor", help="versions, GPU, which kernels run and why, a 10 s accuracy check of each op"
+    )
     return parser
 
 
@@ -87,7 +89,8 @@ def _add_export_parser(commands: argparse._SubParsersAction) -> None:
     points.add_argument("--min-opacity", type=float, default=0.5, help="pixels kept (default 0.5)")
     points.add_argument("--max-points", type=int, default=1_000_000, help="random subset (default 1,000,000)")
     depth = kinds.add_parser("depth", help="raw depth and opacity (NPY, EXR with OpenEXR) and depth previews")
-    for parser, default_out in ((mesh, "export/mesh.ply"), (points, "export/points.ply"), (depth, "depth_<path>")):
+    outs = ((mesh, "export/mesh.ply"), (points, "export/points.ply"), (depth, "depth_<path>"))
+    for parser, default_out in outs:
         parser.add_argument("--ckpt", required=True, help="checkpoint file")
         parser.add_argument("--out", help=f"output (default: <checkpoint folder>/{default_out})")
         _add_device_options(parser)
@@ -256,15 +259,18 @@ def run_export(args: argparse.Namespace) -> int:
         print(f"mesh: {r['mesh']} ({r['vertices']} vertices, {r['faces']} faces, "
               f"{'watertight' if r['watertight'] else 'not watertight'})")
     elif args.what == "points":
-        r = export_points(args.ckpt, args.out or default, args.path, args.frames, args.scale, args.min_opacity,
-                          args.max_points, **device)
+        r = export_points(
+            args.ckpt, args.out or default, args.path, args.frames, args.scale, args.min_opacity,
+            args.max_points, **device,
+        )  # fmt: skip
         print(f"points: {r['points']} ({r['count']} points from {r['views']} views)")
     else:
         r = export_depth(args.ckpt, args.out, args.path, args.frames, args.scale, **device)
         print(f"depth: {r['out']} ({r['views']} views: depth_NNNN.npy, opacity_NNNN.npy, depth_NNNN.png"
               f"{', depth_NNNN.exr' if r['exr'] else '; no EXR writer (pip install OpenEXR)'})")
         return 0
-    print(f"  bounds {_box(r['bounds'])}" + (f", scene box {_box(r['scene_box'])}" if "scene_box" in r else ""))
+    box = f", scene box {_box(r['scene_box'])}" if "scene_box" in r else ""
+    print(f"  bounds {_box(r['bounds'])}{box}")
     return 0
 
 
@@ -278,8 +284,8 @@ def run_doctor(args: argparse.Namespace) -> int:
     return doctor()
 
 
-COMMANDS = {"train": run_train, "eval": run_eval, "render": run_render, "demo": run_train, "prepare": run_prepare,
-            "ablate": run_ablate, "export": run_export, "doctor": run_doctor}
+COMMANDS = {"train": run_train, "eval": run_eval, "render": run_render, "demo": run_train,
+            "prepare": run_prepare, "ablate": run_ablate, "export": run_export, "doctor": run_doctor}
 
 
 def _relaunched(args: argparse.Namespace, cfg: TrainConfig) -> bool:

@@ -135,7 +135,8 @@ def path_cameras(run: TrainedRun, path: str, n_frames: int) -> CameraPath:
 def frame_rays(scene: dict[str, Any], cameras: CameraPath, i: int) -> tuple[torch.Tensor, torch.Tensor]:
     """Rays (H*W, 3) of camera ``i`` of ``cameras``, warped to NDC for an NDC ``scene``."""
     focal = float(cameras.focals[i])
-    origins, dirs = camera_rays(cameras.H, cameras.W, focal, cameras.poses[i].double(), cameras.cx, cameras.cy)
+    c2w = cameras.poses[i].double()
+    origins, dirs = camera_rays(cameras.H, cameras.W, focal, c2w, cameras.cx, cameras.cy)
     origins, dirs = origins.reshape(-1, 3), dirs.reshape(-1, 3)
     if scene["ndc"]:
         origins, dirs = ndc_rays(cameras.H, cameras.W, focal, NDC_NEAR, origins, dirs)

@@ -2,19 +2,22 @@
 
 Usage: python tools/compile_check.py [FILE ...]   (default: every csrc/*.cpp and csrc/cuda/*.cu)
 C++ files get ``g++ -fsyntax-only``; CUDA files get ``nvcc -c`` for sm_90 into a temporary
-object. Works with a CPU-only torch (its wheel ships the CUDA headers), so CI catches CUDA code
-that does not compile without a GPU. Exits non-zero on the first failure.
+object, with the flags the extension build passes. Works with a CPU-only torch (its wheel ships
+the CUDA headers), so CI catches CUDA code that does not compile without a GPU. Exits non-zero on
+the first failure.
 """
 
 from __future__ import annotations
 
+import contextlib
 import subprocess
 import sys
 import sysconfig
 import tempfile
+from collections.abc import Iterator
 from pathlib import Path
 
-from torch.utils.cpp_extension import include_paths
+from torch.utils.cpp_extension import COMMON_NVCC_FLAGS, include_paths
 
 ROOT = Path(__file__).resolve().parent.parent
 CSRC = ROOT / "csrc"
@@ -24,26 +27,42 @@ CSRC = ROOT / "csrc"
 CUDA_CMAKE_MACROS = "#pragma once\n#define C10_CUDA_BUILD_SHARED_LIBS\n"
 
 
-def command(path: Path, obj: Path, stub_dir: Path) -> list[str]:
+@contextlib.contextmanager
+def header_stub() -> Iterator[Path]:
+    """A temporary include directory holding the generated torch header a CPU wheel lacks."""
+    with tempfile.TemporaryDirectory() as tmp:
+        stub = Path(tmp) / "c10" / "cuda" / "impl" / "cuda_cmake_macros.h"
+        stub.parent.mkdir(parents=True)
+        stub.write_text(CUDA_CMAKE_MACROS)
+        yield Path(tmp)
+
+
+def common_flags(stub_dir: Path) -> list[str]:
     includes = [f"-I{p}" for p in [*include_paths(), sysconfig.get_paths()["include"], str(CSRC), str(stub_dir)]]
-    defines = ["-DTORCH_EXTENSION_NAME=_C", "-DTORCH_API_INCLUDE_EXTENSION_H"]
+    return [*includes, "-DTORCH_EXTENSION_NAME=_C", "-DTORCH_API_INCLUDE_EXTENSION_H", "-std=c++20"]
+
+
+def nvcc_command(path: Path, stub_dir: Path) -> list[str]:
+    """nvcc for sm_90 with setup.py's flags (torch's COMMON_NVCC_FLAGS, -O3, -lineinfo); the
+    caller appends what to emit (``-c -o x.o``, ``-cubin -o x.cubin``)."""
+    return [
+        "nvcc", str(path), *COMMON_NVCC_FLAGS, "-O3", "-lineinfo",
+        "-gencode=arch=compute_90,code=sm_90", "-Xcompiler", "-fPIC", *common_flags(stub_dir),
+    ]
+
+
+def command(path: Path, obj: Path, stub_dir: Path) -> list[str]:
     if path.suffix == ".cu":
-        return [
-            "nvcc", "-c", str(path), "-o", str(obj), "-std=c++20", "-O3",
-            "-gencode=arch=compute_90,code=sm_90", "-Xcompiler", "-fPIC", *includes, *defines,
-        ]
-    return ["g++", "-fsyntax-only", "-std=c++20", "-fopenmp", "-Wall", "-Wextra", str(path), *includes, *defines]
+        return [*nvcc_command(path, stub_dir), "-c", "-o", str(obj)]
+    return ["g++", "-fsyntax-only", "-fopenmp", "-Wall", "-Wextra", str(path), *common_flags(stub_dir)]
 
 
 def main(argv: list[str]) -> int:
     files = [Path(a).resolve() for a in argv] or sorted(CSRC.glob("*.cpp")) + sorted(CSRC.glob("cuda/*.cu"))
-    with tempfile.TemporaryDirectory() as tmp:
-        stub = Path(tmp) / "stub" / "c10" / "cuda" / "impl" / "cuda_cmake_macros.h"
-        stub.parent.mkdir(parents=True)
-        stub.write_text(CUDA_CMAKE_MACROS)
+    with header_stub() as stub_dir:
         for path in files:
             print(f"compile-check {path.relative_to(ROOT)}", flush=True)
-            result = subprocess.run(command(path, Path(tmp) / (path.stem + ".o"), Path(tmp) / "stub"))
+            result = subprocess.run(command(path, stub_dir / (path.stem + ".o"), stub_dir))
             if result.returncode != 0:
                 print(f"FAILED: {path.relative_to(ROOT)}", file=sys.stderr)
                 return result.returncode

@@ -1,5 +1,5 @@
 // composite and composite_packed (volume rendering) on CUDA: one warp per ray, in either layout
-// (a ray is a span of samples, composite.h). A ray's samples go in chunks of
+// (a ray is a span of samples, ray_layout.h). A ray's samples go in chunks of
 // 32 runs, each lane holding a run of consecutive samples (the warp's loads cover
 // contiguous memory; per-lane sums over a run replace shuffles). The math and its numerics are
 // those of csrc/composite.cpp (read its file comment first):
@@ -35,12 +35,11 @@
 
 #include "common.h"
 #include "composite.h"
+#include "warp.cuh"
 
 namespace mixer_nerf {
 namespace {
 
-constexpr int kWarpSize = 32;
-constexpr unsigned kFullMask = 0xffffffffu;
 constexpr int kMaxWarpsPerBlock = 8;
 constexpr int kChannelsPerPass = 4;  // colour accumulators held in registers per forward pass
 // Consecutive samples per lane (a run). Longer runs mean fewer shuffles per sample; measured on
@@ -50,24 +49,6 @@ constexpr int kForwardRun = 2;
 constexpr int kBackwardRun = 1;
 constexpr int kForwardChunk = kWarpSize * kForwardRun;
 constexpr int kBackwardChunk = kWarpSize * kBackwardRun;
-
-
-template <typename T>
-__device__ __forceinline__ T warp_inclusive_sum(T x, int lane) {
-#pragma unroll
-  for (int d = 1; d < kWarpSize; d <<= 1) {
-    const T y = __shfl_up_sync(kFullMask, x, d);
-    if (lane >= d) x += y;
-  }
-  return x;
-}
-
-template <typename T>
-__device__ __forceinline__ T warp_sum(T x) {
-#pragma unroll
-  for (int d = kWarpSize / 2; d > 0; d >>= 1) x += __shfl_xor_sync(kFullMask, x, d);
-  return x;
-}
 
 using ray_acc = double;  // what both passes compute in (see the file comment)
 
@@ -291,100 +272,57 @@ unsigned blocks_for(int64_t R) {
   return static_cast<unsigned>(blocks);
 }
 
-template <typename Rays>
-std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> composite_forward(
-    const at::Tensor& sigmas, const at::Tensor& rgbs, const at::Tensor& t_starts, const at::Tensor& t_ends,
-    const std::optional<at::Tensor>& background, int64_t R, Rays rays) {
-  const c10::cuda::CUDAGuard device_guard(sigmas.device());
-  auto outputs = empty_outputs(sigmas, rgbs, R);
-  auto& [color, depth, opacity, weights] = outputs;
-  if (R == 0) return outputs;
-  MIXER_NERF_DISPATCH_FLOATING(sigmas.scalar_type(), "composite_fwd_cuda", [&] {
-    const CompositeOutputs<scalar_t> out{color.data_ptr<scalar_t>(), depth.data_ptr<scalar_t>(),
-                                         opacity.data_ptr<scalar_t>(), weights.data_ptr<scalar_t>()};
-    composite_fwd_kernel<scalar_t><<<blocks_for(R), kMaxWarpsPerBlock * kWarpSize, 0,
-                                     c10::cuda::getCurrentCUDAStream()>>>(
-        inputs_of<scalar_t>(sigmas, rgbs, t_starts, t_ends, background), out, R, rays);
-    C10_CUDA_KERNEL_LAUNCH_CHECK();
-  });
-  return outputs;
-}
+// The composite ops' CUDA kernels, for CompositeOps (composite.h).
+struct Cuda {
+  static constexpr at::DeviceType kind = at::kCUDA;
 
-template <typename Rays>
-std::tuple<at::Tensor, at::Tensor, std::optional<at::Tensor>, std::optional<at::Tensor>, std::optional<at::Tensor>>
-composite_backward(const std::optional<at::Tensor>& grad_color, const std::optional<at::Tensor>& grad_depth,
-                   const std::optional<at::Tensor>& grad_opacity, const std::optional<at::Tensor>& grad_weights,
-                   const at::Tensor& sigmas, const at::Tensor& rgbs, const at::Tensor& t_starts,
-                   const at::Tensor& t_ends, const std::optional<at::Tensor>& background, bool interval_grads,
-                   int64_t R, Rays rays) {
-  const c10::cuda::CUDAGuard device_guard(sigmas.device());
-  check_upstream(grad_color, grad_depth, grad_opacity, grad_weights, sigmas, rgbs, R, at::kCUDA);
-  CompositeGradTensors grads(sigmas, rgbs, background, R, interval_grads);
-  if (R > 0) {
-    const at::Tensor scratch = at::empty({scratch_entries(sigmas.numel(), R)}, sigmas.options().dtype(at::kDouble));
-    MIXER_NERF_DISPATCH_FLOATING(sigmas.scalar_type(), "composite_bwd_cuda", [&] {
-      composite_bwd_kernel<scalar_t><<<blocks_for(R), kMaxWarpsPerBlock * kWarpSize, 0,
+  template <typename Rays>
+  static CompositeForward forward(const at::Tensor& sigmas, const at::Tensor& rgbs, const at::Tensor& t_starts,
+                                  const at::Tensor& t_ends, const std::optional<at::Tensor>& background, int64_t R,
+                                  Rays rays) {
+    const c10::cuda::CUDAGuard device_guard(sigmas.device());
+    auto outputs = empty_outputs(sigmas, rgbs, R);
+    auto& [color, depth, opacity, weights] = outputs;
+    if (R == 0) return outputs;
+    MIXER_NERF_DISPATCH_FLOATING(sigmas.scalar_type(), "composite_fwd_cuda", [&] {
+      const CompositeOutputs<scalar_t> out{color.data_ptr<scalar_t>(), depth.data_ptr<scalar_t>(),
+                                           opacity.data_ptr<scalar_t>(), weights.data_ptr<scalar_t>()};
+      composite_fwd_kernel<scalar_t><<<blocks_for(R), kMaxWarpsPerBlock * kWarpSize, 0,
                                        c10::cuda::getCurrentCUDAStream()>>>(
-          inputs_of<scalar_t>(sigmas, rgbs, t_starts, t_ends, background),
-          grads.pointers<scalar_t>(grad_color, grad_depth, grad_opacity, grad_weights), R, rays,
-          scratch.data_ptr<ray_acc>());
+          inputs_of<scalar_t>(sigmas, rgbs, t_starts, t_ends, background), out, R, rays);
       C10_CUDA_KERNEL_LAUNCH_CHECK();
     });
+    return outputs;
   }
-  return grads.finish(background);
-}
 
-using composite_layout::DenseRays;
-using composite_layout::PackedRays;
-
-std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> composite_fwd_cuda(
-    const at::Tensor& sigmas, const at::Tensor& rgbs, const at::Tensor& t_starts, const at::Tensor& t_ends,
-    const std::optional<at::Tensor>& background) {
-  check_dense(sigmas);
-  check_composite_inputs(sigmas, rgbs, t_starts, t_ends, background, sigmas.size(0), at::kCUDA);
-  return composite_forward(sigmas, rgbs, t_starts, t_ends, background, sigmas.size(0), DenseRays{sigmas.size(1)});
-}
-
-std::tuple<at::Tensor, at::Tensor, std::optional<at::Tensor>, std::optional<at::Tensor>, std::optional<at::Tensor>>
-composite_bwd_cuda(const std::optional<at::Tensor>& grad_color, const std::optional<at::Tensor>& grad_depth,
-                   const std::optional<at::Tensor>& grad_opacity, const std::optional<at::Tensor>& grad_weights,
-                   const at::Tensor& sigmas, const at::Tensor& rgbs, const at::Tensor& t_starts,
-                   const at::Tensor& t_ends, const std::optional<at::Tensor>& background, bool interval_grads) {
-  check_dense(sigmas);
-  check_composite_inputs(sigmas, rgbs, t_starts, t_ends, background, sigmas.size(0), at::kCUDA);
-  return composite_backward(grad_color, grad_depth, grad_opacity, grad_weights, sigmas, rgbs, t_starts, t_ends,
-                            background, interval_grads, sigmas.size(0), DenseRays{sigmas.size(1)});
-}
-
-std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> composite_packed_fwd_cuda(
-    const at::Tensor& sigmas, const at::Tensor& rgbs, const at::Tensor& t_starts, const at::Tensor& t_ends,
-    const std::optional<at::Tensor>& background, const at::Tensor& offsets) {
-  const int64_t R = check_packed(sigmas, offsets, at::kCUDA);
-  check_composite_inputs(sigmas, rgbs, t_starts, t_ends, background, R, at::kCUDA);
-  return composite_forward(sigmas, rgbs, t_starts, t_ends, background, R,
-                           PackedRays{offsets.const_data_ptr<int64_t>(), sigmas.size(0)});
-}
-
-std::tuple<at::Tensor, at::Tensor, std::optional<at::Tensor>, std::optional<at::Tensor>, std::optional<at::Tensor>>
-composite_packed_bwd_cuda(const std::optional<at::Tensor>& grad_color, const std::optional<at::Tensor>& grad_depth,
-                          const std::optional<at::Tensor>& grad_opacity,
-                          const std::optional<at::Tensor>& grad_weights, const at::Tensor& sigmas,
-                          const at::Tensor& rgbs, const at::Tensor& t_starts, const at::Tensor& t_ends,
-                          const std::optional<at::Tensor>& background, const at::Tensor& offsets,
-                          bool interval_grads) {
-  const int64_t R = check_packed(sigmas, offsets, at::kCUDA);
-  check_composite_inputs(sigmas, rgbs, t_starts, t_ends, background, R, at::kCUDA);
-  return composite_backward(grad_color, grad_depth, grad_opacity, grad_weights, sigmas, rgbs, t_starts, t_ends,
-                            background, interval_grads, R, PackedRays{offsets.const_data_ptr<int64_t>(), sigmas.size(0)});
-}
+  template <typename Rays>
+  static CompositeBackward backward(const std::optional<at::Tensor>& grad_color,
+                                    const std::optional<at::Tensor>& grad_depth,
+                                    const std::optional<at::Tensor>& grad_opacity,
+                                    const std::optional<at::Tensor>& grad_weights, const at::Tensor& sigmas,
+                                    const at::Tensor& rgbs, const at::Tensor& t_starts, const at::Tensor& t_ends,
+                                    const std::optional<at::Tensor>& background, bool interval_grads, int64_t R,
+                                    Rays rays) {
+    const c10::cuda::CUDAGuard device_guard(sigmas.device());
+    check_upstream(grad_color, grad_depth, grad_opacity, grad_weights, sigmas, rgbs, R, kind);
+    CompositeGradTensors grads(sigmas, rgbs, background, R, interval_grads);
+    if (R > 0) {
+      const at::Tensor scratch = at::empty({scratch_entries(sigmas.numel(), R)}, sigmas.options().dtype(at::kDouble));
+      MIXER_NERF_DISPATCH_FLOATING(sigmas.scalar_type(), "composite_bwd_cuda", [&] {
+        composite_bwd_kernel<scalar_t><<<blocks_for(R), kMaxWarpsPerBlock * kWarpSize, 0,
+                                         c10::cuda::getCurrentCUDAStream()>>>(
+            inputs_of<scalar_t>(sigmas, rgbs, t_starts, t_ends, background),
+            grads.pointers<scalar_t>(grad_color, grad_depth, grad_opacity, grad_weights), R, rays,
+            scratch.data_ptr<ray_acc>());
+        C10_CUDA_KERNEL_LAUNCH_CHECK();
+      });
+    }
+    return grads.finish(background);
+  }
+};
 
 }  // namespace
 
-TORCH_LIBRARY_IMPL(mixer_nerf, CUDA, m) {
-  m.impl("composite_fwd", &composite_fwd_cuda);
-  m.impl("composite_bwd", &composite_bwd_cuda);
-  m.impl("composite_packed_fwd", &composite_packed_fwd_cuda);
-  m.impl("composite_packed_bwd", &composite_packed_bwd_cuda);
-}
+TORCH_LIBRARY_IMPL(mixer_nerf, CUDA, m) { CompositeOps<Cuda>::register_ops(m); }
 
 }  // namespace mixer_nerf

@@ -18,6 +18,7 @@
 #include <cstdint>
 
 #include "common.h"
+#include "positional_encoding.h"
 #include "positional_encoding_math.h"
 
 namespace mixer_nerf {
@@ -181,18 +182,14 @@ int direct_blocks(const Encoding& e) {
 }
 
 Encoding encoding_of(const at::Tensor& x, int64_t num_freqs, bool include_input, double scale) {
-  MIXER_NERF_CHECK_INPUT(x, at::kCUDA);
-  MIXER_NERF_CHECK(x.dim() >= 1 && x.size(-1) > 0, "x must have shape (..., D) with D > 0, got ", x.sizes());
-  MIXER_NERF_CHECK(num_freqs >= 0, "num_freqs must be non-negative, got ", num_freqs);
+  positional_encoding::check_args(x, num_freqs, at::kCUDA);
   const int64_t dims = x.size(-1);
   return {x.numel() / dims, dims, num_freqs, include_input, scale, pem::half_turns(scale)};
 }
 
 at::Tensor positional_encoding_fwd_cuda(const at::Tensor& x, int64_t num_freqs, bool include_input, double scale) {
   const Encoding e = encoding_of(x, num_freqs, include_input, scale);
-  auto out_shape = x.sizes().vec();
-  out_shape.back() = e.width();
-  at::Tensor out = at::empty(out_shape, x.options());
+  at::Tensor out = at::empty(positional_encoding::encoded_shape(x, e.width()), x.options());
   if (out.numel() == 0) return out;
   const c10::cuda::CUDAGuard guard(x.device());
   const cudaStream_t stream = c10::cuda::getCurrentCUDAStream();
@@ -214,12 +211,7 @@ at::Tensor positional_encoding_fwd_cuda(const at::Tensor& x, int64_t num_freqs, 
 at::Tensor positional_encoding_bwd_cuda(const at::Tensor& grad_out, const at::Tensor& x, int64_t num_freqs,
                                         bool include_input, double scale) {
   const Encoding e = encoding_of(x, num_freqs, include_input, scale);
-  MIXER_NERF_CHECK_INPUT(grad_out, at::kCUDA);
-  auto out_shape = x.sizes().vec();
-  out_shape.back() = e.width();
-  MIXER_NERF_CHECK(grad_out.sizes().vec() == out_shape, "grad_out must have shape ", out_shape, ", got ", grad_out.sizes());
-  MIXER_NERF_CHECK(grad_out.scalar_type() == x.scalar_type(), "grad_out must have the dtype of x");
-  MIXER_NERF_CHECK(grad_out.device() == x.device(), "grad_out must be on the device of x");
+  positional_encoding::check_grad_out(grad_out, x, e.width(), at::kCUDA);
   at::Tensor grad_x = at::empty_like(x);
   if (grad_x.numel() == 0) return grad_x;
   const c10::cuda::CUDAGuard guard(x.device());

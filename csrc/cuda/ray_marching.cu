@@ -21,14 +21,13 @@
 #include "common.h"
 #include "ray_marching.h"
 #include "ray_marching_math.h"
+#include "warp.cuh"
 
 namespace mixer_nerf {
 namespace {
 
 using namespace ray_marching_math;
 
-constexpr int kWarpSize = 32;
-constexpr unsigned kFullMask = 0xffffffffu;
 constexpr int kThreads = 128;  // 4 rays per block
 
 // Marches one ray with the whole warp; calls emit(n, t_start, t_end) from the lane holding the

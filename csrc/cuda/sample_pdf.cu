@@ -29,15 +29,16 @@
 #include <tuple>
 
 #include "common.h"
+#include "sample_pdf.h"
 #include "sample_pdf_math.h"
+#include "warp.cuh"
 
 namespace mixer_nerf {
 namespace {
 
+using namespace sample_pdf;
 using namespace sample_pdf_math;
 
-constexpr int kWarpSize = 32;
-constexpr unsigned kFullMask = 0xffffffffu;
 constexpr int kMaxWarpsPerBlock = 8;
 constexpr size_t kDefaultSharedBytes = 48 * 1024;
 
@@ -162,13 +163,6 @@ __device__ void segmented_scan(int key, int lane, acc_t& a, acc_t& b, acc_t& c, 
   }
 }
 
-template <typename acc_t>
-__device__ acc_t warp_sum(acc_t x) {
-#pragma unroll
-  for (int offset = kWarpSize / 2; offset > 0; offset /= 2) x += __shfl_xor_sync(kFullMask, x, offset);
-  return x;  // the same value in every lane: each step adds the same two numbers everywhere
-}
-
 // Backward. Tail: per bin, sum a, sum a t, gradient reaching its lower and its upper edge (4 B).
 // Every term and sum is a double for every input dtype (grad_t), as in the CPU kernel's
 // sample_pdf_ray_backward (see its comment): dL/dw_i is a difference of sums that largely cancel.
@@ -271,12 +265,7 @@ __global__ void sample_pdf_backward_kernel(int64_t rays, WarpLayout layout, Rows
   grad_t above = 0;
   for (int base = 0; base < B; base += kWarpSize) {
     const int i = B - 1 - base - lane;
-    grad_t inclusive = i >= 0 ? bin_a[i] : grad_t(0);
-#pragma unroll
-    for (int offset = 1; offset < kWarpSize; offset *= 2) {
-      const grad_t up = __shfl_up_sync(kFullMask, inclusive, offset);
-      if (lane >= offset) inclusive += up;
-    }
+    const grad_t inclusive = warp_inclusive_sum(i >= 0 ? bin_a[i] : grad_t(0), lane);
     const grad_t below = __shfl_up_sync(kFullMask, inclusive, 1);  // every lane: the mask says all 32
     const grad_t exclusive = lane == 0 ? grad_t(0) : below;
     if (i >= 0) {
@@ -320,108 +309,71 @@ int max_bins_of(const at::Tensor& weights, const std::optional<at::Tensor>& offs
   return static_cast<int>(std::clamp<int64_t>(most, 0, weights.size(0)));
 }
 
-template <typename Rows>
-at::Tensor sample_forward(const at::Tensor& bins, const at::Tensor& weights, const at::Tensor& u,
-                          double weight_padding, const RayBatch& batch, Rows rows,
-                          const std::optional<at::Tensor>& offsets) {
-  const c10::cuda::CUDAGuard guard(bins.device());
-  at::Tensor samples = at::empty({batch.rays, batch.samples}, bins.options());
-  if (samples.numel() == 0) return samples;
-  const int max_bins = max_bins_of(weights, offsets);
-  const int num_samples = int(batch.samples);
-  MIXER_NERF_DISPATCH_FLOATING(bins.scalar_type(), "sample_pdf_fwd_cuda", [&] {
-    using acc = acc_t<scalar_t>;
-    launch_warp_per_ray<acc, acc>(sample_forward_kernel<scalar_t, false, Rows>, WarpLayout{max_bins, num_samples},
-                             batch.rays, rows, bins.data_ptr<scalar_t>(), weights.data_ptr<scalar_t>(),
-                             u.data_ptr<acc>(), batch.u_row_stride, num_samples, static_cast<acc>(weight_padding),
-                             samples.data_ptr<scalar_t>());
-  });
-  return samples;
-}
+// The sample_pdf ops' CUDA kernels, for SamplePdfOps (sample_pdf.h).
+struct Cuda {
+  static constexpr at::DeviceType kind = at::kCUDA;
 
-template <typename Rows>
-std::tuple<at::Tensor, at::Tensor> sample_backward(const at::Tensor& grad_samples, const at::Tensor& bins,
-                                                   const at::Tensor& weights, const at::Tensor& u,
-                                                   double weight_padding, const RayBatch& batch, Rows rows,
-                                                   const std::optional<at::Tensor>& offsets) {
-  check_grad(grad_samples, bins, batch);
-  const c10::cuda::CUDAGuard guard(bins.device());
-  at::Tensor grad_bins = at::empty_like(bins);
-  at::Tensor grad_weights = at::empty_like(weights);
-  if (batch.rays == 0) return {grad_bins, grad_weights};
-  const int max_bins = max_bins_of(weights, offsets);
-  const int num_samples = int(batch.samples);
-  MIXER_NERF_DISPATCH_FLOATING(bins.scalar_type(), "sample_pdf_bwd_cuda", [&] {
-    using acc = acc_t<scalar_t>;
-    launch_warp_per_ray<acc, grad_t>(sample_pdf_backward_kernel<scalar_t, Rows>, WarpLayout{max_bins, 4 * max_bins},
-                             batch.rays, rows, grad_samples.data_ptr<scalar_t>(), bins.data_ptr<scalar_t>(),
-                             weights.data_ptr<scalar_t>(), u.data_ptr<acc>(), batch.u_row_stride, num_samples,
-                             static_cast<acc>(weight_padding), grad_bins.data_ptr<scalar_t>(),
-                             grad_weights.data_ptr<scalar_t>());
-  });
-  return {grad_bins, grad_weights};
-}
+  template <typename Rows>
+  static at::Tensor forward(const at::Tensor& bins, const at::Tensor& weights, const at::Tensor& u,
+                            double weight_padding, const RayBatch& batch, Rows rows,
+                            const std::optional<at::Tensor>& offsets) {
+    const c10::cuda::CUDAGuard guard(bins.device());
+    at::Tensor samples = at::empty({batch.rays, batch.samples}, bins.options());
+    if (samples.numel() == 0) return samples;
+    const int max_bins = max_bins_of(weights, offsets);
+    const int num_samples = int(batch.samples);
+    MIXER_NERF_DISPATCH_FLOATING(bins.scalar_type(), "sample_pdf_fwd_cuda", [&] {
+      using acc = acc_t<scalar_t>;
+      launch_warp_per_ray<acc, acc>(sample_forward_kernel<scalar_t, false, Rows>, WarpLayout{max_bins, num_samples},
+                               batch.rays, rows, bins.data_ptr<scalar_t>(), weights.data_ptr<scalar_t>(),
+                               u.data_ptr<acc>(), batch.u_row_stride, num_samples, static_cast<acc>(weight_padding),
+                               samples.data_ptr<scalar_t>());
+    });
+    return samples;
+  }
 
-at::Tensor sample_pdf_fwd_cuda(const at::Tensor& bins, const at::Tensor& weights, const at::Tensor& u,
-                               double weight_padding) {
-  const RayBatch batch = check_batch(bins, weights, u, at::kCUDA);
-  check_bins(bins, weights);
-  const int num_bins = int(weights.size(1));
-  return sample_forward(bins, weights, u, weight_padding, batch, DenseBins{num_bins}, std::nullopt);
-}
+  template <typename Rows>
+  static std::tuple<at::Tensor, at::Tensor> backward(const at::Tensor& grad_samples, const at::Tensor& bins,
+                                                     const at::Tensor& weights, const at::Tensor& u,
+                                                     double weight_padding, const RayBatch& batch, Rows rows,
+                                                     const std::optional<at::Tensor>& offsets) {
+    check_grad(grad_samples, bins, batch);
+    const c10::cuda::CUDAGuard guard(bins.device());
+    at::Tensor grad_bins = at::empty_like(bins);
+    at::Tensor grad_weights = at::empty_like(weights);
+    if (batch.rays == 0) return {grad_bins, grad_weights};
+    const int max_bins = max_bins_of(weights, offsets);
+    const int num_samples = int(batch.samples);
+    MIXER_NERF_DISPATCH_FLOATING(bins.scalar_type(), "sample_pdf_bwd_cuda", [&] {
+      using acc = acc_t<scalar_t>;
+      launch_warp_per_ray<acc, grad_t>(sample_pdf_backward_kernel<scalar_t, Rows>, WarpLayout{max_bins, 4 * max_bins},
+                               batch.rays, rows, grad_samples.data_ptr<scalar_t>(), bins.data_ptr<scalar_t>(),
+                               weights.data_ptr<scalar_t>(), u.data_ptr<acc>(), batch.u_row_stride, num_samples,
+                               static_cast<acc>(weight_padding), grad_bins.data_ptr<scalar_t>(),
+                               grad_weights.data_ptr<scalar_t>());
+    });
+    return {grad_bins, grad_weights};
+  }
 
-std::tuple<at::Tensor, at::Tensor> sample_pdf_bwd_cuda(const at::Tensor& grad_samples, const at::Tensor& bins,
-                                                       const at::Tensor& weights, const at::Tensor& u,
-                                                       double weight_padding) {
-  const RayBatch batch = check_batch(bins, weights, u, at::kCUDA);
-  check_bins(bins, weights);
-  const int num_bins = int(weights.size(1));
-  return sample_backward(grad_samples, bins, weights, u, weight_padding, batch, DenseBins{num_bins}, std::nullopt);
-}
-
-at::Tensor sample_pdf_packed_fwd_cuda(const at::Tensor& bins, const at::Tensor& weights, const at::Tensor& offsets,
-                                      const at::Tensor& u, double weight_padding) {
-  const RayBatch batch = check_packed_batch(bins, weights, offsets, u, at::kCUDA);
-  const c10::cuda::CUDAGuard guard(bins.device());
-  return sample_forward(bins, weights, u, weight_padding, batch,
-                        PackedBins{offsets.const_data_ptr<int64_t>(), weights.size(0)}, offsets);
-}
-
-std::tuple<at::Tensor, at::Tensor> sample_pdf_packed_bwd_cuda(const at::Tensor& grad_samples, const at::Tensor& bins,
-                                                              const at::Tensor& weights, const at::Tensor& offsets,
-                                                              const at::Tensor& u, double weight_padding) {
-  const RayBatch batch = check_packed_batch(bins, weights, offsets, u, at::kCUDA);
-  const c10::cuda::CUDAGuard guard(bins.device());
-  return sample_backward(grad_samples, bins, weights, u, weight_padding, batch,
-                         PackedBins{offsets.const_data_ptr<int64_t>(), weights.size(0)}, offsets);
-}
-
-at::Tensor hierarchical_samples_fwd_cuda(const at::Tensor& z_coarse, const at::Tensor& weights, const at::Tensor& u,
-                                         double weight_padding) {
-  const RayBatch batch = check_batch(z_coarse, weights, u, at::kCUDA);
-  check_coarse(z_coarse, weights);
-  const c10::cuda::CUDAGuard guard(z_coarse.device());
-  const int coarse = int(z_coarse.size(1)), num_samples = int(batch.samples);
-  at::Tensor merged = at::empty({batch.rays, coarse + batch.samples}, z_coarse.options());
-  MIXER_NERF_DISPATCH_FLOATING(z_coarse.scalar_type(), "hierarchical_samples_fwd_cuda", [&] {
-    using acc = acc_t<scalar_t>;
-    launch_warp_per_ray<acc, acc>(sample_forward_kernel<scalar_t, true, DenseBins>,
-                             WarpLayout{coarse - 2, coarse + num_samples}, batch.rays, DenseBins{coarse - 2},
-                             z_coarse.data_ptr<scalar_t>(), weights.data_ptr<scalar_t>(), u.data_ptr<acc>(),
-                             batch.u_row_stride, num_samples, static_cast<acc>(weight_padding),
-                             merged.data_ptr<scalar_t>());
-  });
-  return merged;
-}
+  static at::Tensor hierarchical(const at::Tensor& z_coarse, const at::Tensor& weights, const at::Tensor& u,
+                                 double weight_padding, const RayBatch& batch) {
+    const c10::cuda::CUDAGuard guard(z_coarse.device());
+    const int coarse = int(z_coarse.size(1)), num_samples = int(batch.samples);
+    at::Tensor merged = at::empty({batch.rays, coarse + batch.samples}, z_coarse.options());
+    MIXER_NERF_DISPATCH_FLOATING(z_coarse.scalar_type(), "hierarchical_samples_fwd_cuda", [&] {
+      using acc = acc_t<scalar_t>;
+      launch_warp_per_ray<acc, acc>(sample_forward_kernel<scalar_t, true, DenseBins>,
+                               WarpLayout{coarse - 2, coarse + num_samples}, batch.rays, DenseBins{coarse - 2},
+                               z_coarse.data_ptr<scalar_t>(), weights.data_ptr<scalar_t>(), u.data_ptr<acc>(),
+                               batch.u_row_stride, num_samples, static_cast<acc>(weight_padding),
+                               merged.data_ptr<scalar_t>());
+    });
+    return merged;
+  }
+};
 
 }  // namespace
 
-TORCH_LIBRARY_IMPL(mixer_nerf, CUDA, m) {
-  m.impl("sample_pdf_fwd", &sample_pdf_fwd_cuda);
-  m.impl("sample_pdf_bwd", &sample_pdf_bwd_cuda);
-  m.impl("hierarchical_samples_fwd", &hierarchical_samples_fwd_cuda);
-  m.impl("sample_pdf_packed_fwd", &sample_pdf_packed_fwd_cuda);
-  m.impl("sample_pdf_packed_bwd", &sample_pdf_packed_bwd_cuda);
-}
+TORCH_LIBRARY_IMPL(mixer_nerf, CUDA, m) { SamplePdfOps<Cuda>::register_ops(m); }
 
 }  // namespace mixer_nerf

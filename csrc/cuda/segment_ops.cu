@@ -26,7 +26,7 @@
 #include <type_traits>
 
 #include "common.h"
-#include "composite.h"
+#include "ray_layout.h"
 #include "segment_ops.h"
 
 namespace mixer_nerf {

@@ -69,7 +69,8 @@ def plot_curves(train_log: CsvLog, val_log: CsvLog, path: str | Path) -> Path | 
         ax.plot([float(r[x]) for r in train], [float(r["psnr"]) for r in train], label="train batch (fine)")
         if val:
             ax.plot([float(r[x]) for r in val], [float(r["psnr"]) for r in val], "o-", label="validation")
-        ax.set(xlabel="training seconds" if x == "seconds" else x, ylabel="PSNR (dB)", title=f"PSNR against {x}")
+        xlabel = "training seconds" if x == "seconds" else x
+        ax.set(xlabel=xlabel, ylabel="PSNR (dB)", title=f"PSNR against {x}")
         ax.legend()
     for ax in (ax_loss, ax_psnr, ax_time):
         ax.grid(alpha=0.3)
@@ -93,7 +94,9 @@ class TensorBoardLog:
         try:
             from torch.utils.tensorboard import SummaryWriter
         except ImportError as e:
-            raise OutputError("--tensorboard needs the tensorboard package: pip install 'mixer_nerf[tensorboard]'") from e
+            raise OutputError(
+                "--tensorboard needs the tensorboard package: pip install 'mixer_nerf[tensorboard]'"
+            ) from e
         ensure_writable_folder(Path(folder))
         self.writer = SummaryWriter(str(folder))
 

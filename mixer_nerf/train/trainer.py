@@ -97,7 +97,7 @@ class Trainer:
         if self.rank:
             self.log = lambda _: None  # rank 0 speaks and writes for all
         self.device = torch.device(cfg.device)
-        tensorboard = cfg.tensorboard and not self.rank
+        tensorboard = cfg.tensorboard and not self.rank  # rank 0 writes for all
         self.tensorboard = TensorBoardLog(self.files.root / "tensorboard") if tensorboard else None
         set_matmul_precision(cfg.precision)
 
@@ -404,7 +404,8 @@ class Trainer:
         }
         self.train_log.append(row)
         if self.tensorboard is not None:
-            self.tensorboard.scalars(self.step, {f"train/{k}": v for k, v in row.items() if k not in ("step", "seconds")})
+            scalars = {f"train/{k}": v for k, v in row.items() if k not in ("step", "seconds")}
+            self.tensorboard.scalars(self.step, scalars)
         bar.set_postfix(loss=f"{loss:.4f}", psnr=f"{row['psnr']:.2f}", rays_s=f"{rays_per_s:,.0f}")
 
     def _log_validation(self) -> None:

@@ -1,0 +1,40 @@
+// Where a ray's rows lie, for every op's CPU and CUDA kernels: the padded (R, S) layout and the
+// packed (ragged, CSR) one. The namespace keeps the name of its first user, composite: it is
+// part of the symbol of every kernel templated on a layout.
+#pragma once
+
+#include <c10/macros/Macros.h>
+
+#include <cstdint>
+
+namespace mixer_nerf {
+namespace composite_layout {
+
+// A ray's rows: `count` consecutive rows from `offset`.
+struct RaySpan {
+  int64_t offset;
+  int64_t count;
+};
+
+// Padded (R, S): ray r holds rows r * S .. r * S + S - 1.
+struct DenseRays {
+  int64_t samples_per_ray;
+  C10_HOST_DEVICE RaySpan operator()(int64_t ray) const { return {ray * samples_per_ray, samples_per_ray}; }
+};
+
+// Packed (CSR): ray r owns rows offsets[r] .. offsets[r+1] - 1 of N. Offsets are validated in
+// Python unless the caller opts out; clamping them into [0, N] (an end never before its start)
+// keeps even unchecked offsets from reading or writing outside the arrays.
+struct PackedRays {
+  const int64_t* offsets;  // (R + 1)
+  int64_t total;           // N
+  C10_HOST_DEVICE RaySpan operator()(int64_t ray) const {
+    const int64_t begin = clamp(offsets[ray], 0, total);
+    const int64_t end = clamp(offsets[ray + 1], begin, total);
+    return {begin, end - begin};
+  }
+  C10_HOST_DEVICE static int64_t clamp(int64_t x, int64_t lo, int64_t hi) { return x < lo ? lo : (x > hi ? hi : x); }
+};
+
+}  // namespace composite_layout
+}  // namespace mixer_nerf

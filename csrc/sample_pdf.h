@@ -1,0 +1,138 @@
+// What the CPU and CUDA ops of sample_pdf, sample_pdf_packed and hierarchical_samples share: the
+// host-side checks (Python validates first, with clear messages; these only keep a direct call
+// of an op from reading out of bounds) and the entry points, which pick the layout of the bins.
+#pragma once
+
+#include <ATen/ATen.h>
+#include <torch/library.h>
+
+#include <cstdint>
+#include <optional>
+#include <tuple>
+
+#include "common.h"
+#include "sample_pdf_math.h"
+
+namespace mixer_nerf {
+namespace sample_pdf {
+
+using sample_pdf_math::DenseBins;
+using sample_pdf_math::PackedBins;
+
+// Shapes of a call, after the defensive checks every op shares: rows of `edges_or_z` and
+// `weights` are rays; u is (N) shared by every ray or (R, N), in the accumulation dtype.
+struct RayBatch {
+  int64_t rays;
+  int64_t samples;
+  int64_t u_row_stride;
+};
+
+inline RayBatch check_batch(const at::Tensor& edges_or_z, const at::Tensor& weights, const at::Tensor& u,
+                            at::DeviceType device) {
+  MIXER_NERF_CHECK_INPUT(edges_or_z, device);
+  MIXER_NERF_CHECK_INPUT(weights, device);
+  MIXER_NERF_CHECK_INPUT(u, device);
+  MIXER_NERF_CHECK(edges_or_z.dim() == 2 && weights.dim() == 2, "expected 2-D bins/z and weights");
+  MIXER_NERF_CHECK(weights.scalar_type() == edges_or_z.scalar_type(), "weights must have the dtype of bins/z");
+  MIXER_NERF_CHECK(weights.size(0) == edges_or_z.size(0), "weights and bins/z must have the same number of rays");
+  MIXER_NERF_CHECK(u.scalar_type() == at::toOpMathType(edges_or_z.scalar_type()),
+              "u must be in the accumulation dtype of bins/z (float32, or float64 for float64)");
+  MIXER_NERF_CHECK(u.dim() == 1 || (u.dim() == 2 && u.size(0) == edges_or_z.size(0)), "u must be (N) or (R, N)");
+  MIXER_NERF_CHECK(edges_or_z.size(1) < (int64_t{1} << 30) && u.size(-1) < (int64_t{1} << 30), "too many bins or samples");
+  const int64_t samples = u.size(-1);
+  return {edges_or_z.size(0), samples, u.dim() == 2 ? samples : 0};
+}
+
+// Packed: bins (N + R), weights (N), offsets (R + 1) int64, u (S) or (R, S).
+inline RayBatch check_packed_batch(const at::Tensor& bins, const at::Tensor& weights, const at::Tensor& offsets,
+                                   const at::Tensor& u, at::DeviceType device) {
+  MIXER_NERF_CHECK_INPUT(bins, device);
+  MIXER_NERF_CHECK_INPUT(weights, device);
+  MIXER_NERF_CHECK_INPUT(offsets, device);
+  MIXER_NERF_CHECK_INPUT(u, device);
+  MIXER_NERF_CHECK(offsets.scalar_type() == at::kLong && offsets.dim() == 1 && offsets.size(0) >= 1,
+              "offsets must be (R+1) int64");
+  const int64_t rays = offsets.size(0) - 1;
+  MIXER_NERF_CHECK(bins.dim() == 1 && weights.dim() == 1 && bins.size(0) == weights.size(0) + rays,
+              "packed bins must be (N + R) for weights (N)");
+  MIXER_NERF_CHECK(weights.scalar_type() == bins.scalar_type(), "weights must have the dtype of bins");
+  MIXER_NERF_CHECK(u.scalar_type() == at::toOpMathType(bins.scalar_type()),
+              "u must be in the accumulation dtype of bins (float32, or float64 for float64)");
+  MIXER_NERF_CHECK(u.dim() == 1 || (u.dim() == 2 && u.size(0) == rays), "u must be (S) or (R, S)");
+  MIXER_NERF_CHECK(weights.size(0) < (int64_t{1} << 30) && u.size(-1) < (int64_t{1} << 30), "too many bins or samples");
+  const int64_t samples = u.size(-1);
+  return {rays, samples, u.dim() == 2 ? samples : 0};
+}
+
+inline void check_bins(const at::Tensor& bins, const at::Tensor& weights) {
+  MIXER_NERF_CHECK(weights.size(1) >= 1 && bins.size(1) == weights.size(1) + 1,
+              "bins must be (R, B+1) for weights (R, B), B >= 1");
+}
+
+inline void check_coarse(const at::Tensor& z_coarse, const at::Tensor& weights) {
+  MIXER_NERF_CHECK(z_coarse.size(1) >= 3 && weights.size(1) == z_coarse.size(1), "z_coarse and weights must be (R, S), S >= 3");
+}
+
+inline void check_grad(const at::Tensor& grad_samples, const at::Tensor& bins, const RayBatch& batch) {
+  MIXER_NERF_CHECK_INPUT(grad_samples, bins.device().type());
+  MIXER_NERF_CHECK(grad_samples.scalar_type() == bins.scalar_type(), "grad_samples must have the dtype of bins");
+  MIXER_NERF_CHECK(grad_samples.dim() == 2 && grad_samples.size(0) == batch.rays && grad_samples.size(1) == batch.samples,
+              "grad_samples must be (R, N)");
+}
+
+// The five ops of one device: the checks both devices share and the layout of the bins, then
+// Device::forward / Device::backward (templates over DenseBins and PackedBins; `offsets` is the
+// packed layout's, absent for dense bins) and Device::hierarchical, which the device's source
+// registers with register_ops.
+template <typename Device>
+struct SamplePdfOps {
+  static at::Tensor dense_fwd(const at::Tensor& bins, const at::Tensor& weights, const at::Tensor& u,
+                              double weight_padding) {
+    const RayBatch batch = check_batch(bins, weights, u, Device::kind);
+    check_bins(bins, weights);
+    return Device::forward(bins, weights, u, weight_padding, batch, DenseBins{static_cast<int>(weights.size(1))},
+                           std::nullopt);
+  }
+
+  static std::tuple<at::Tensor, at::Tensor> dense_bwd(const at::Tensor& grad_samples, const at::Tensor& bins,
+                                                      const at::Tensor& weights, const at::Tensor& u,
+                                                      double weight_padding) {
+    const RayBatch batch = check_batch(bins, weights, u, Device::kind);
+    check_bins(bins, weights);
+    return Device::backward(grad_samples, bins, weights, u, weight_padding, batch,
+                            DenseBins{static_cast<int>(weights.size(1))}, std::nullopt);
+  }
+
+  static at::Tensor packed_fwd(const at::Tensor& bins, const at::Tensor& weights, const at::Tensor& offsets,
+                               const at::Tensor& u, double weight_padding) {
+    const RayBatch batch = check_packed_batch(bins, weights, offsets, u, Device::kind);
+    return Device::forward(bins, weights, u, weight_padding, batch,
+                           PackedBins{offsets.const_data_ptr<int64_t>(), weights.size(0)}, offsets);
+  }
+
+  static std::tuple<at::Tensor, at::Tensor> packed_bwd(const at::Tensor& grad_samples, const at::Tensor& bins,
+                                                       const at::Tensor& weights, const at::Tensor& offsets,
+                                                       const at::Tensor& u, double weight_padding) {
+    const RayBatch batch = check_packed_batch(bins, weights, offsets, u, Device::kind);
+    return Device::backward(grad_samples, bins, weights, u, weight_padding, batch,
+                            PackedBins{offsets.const_data_ptr<int64_t>(), weights.size(0)}, offsets);
+  }
+
+  static at::Tensor hierarchical_fwd(const at::Tensor& z_coarse, const at::Tensor& weights, const at::Tensor& u,
+                                     double weight_padding) {
+    const RayBatch batch = check_batch(z_coarse, weights, u, Device::kind);
+    check_coarse(z_coarse, weights);
+    return Device::hierarchical(z_coarse, weights, u, weight_padding, batch);
+  }
+
+  static void register_ops(torch::Library& m) {
+    m.impl("sample_pdf_fwd", &dense_fwd);
+    m.impl("sample_pdf_bwd", &dense_bwd);
+    m.impl("hierarchical_samples_fwd", &hierarchical_fwd);
+    m.impl("sample_pdf_packed_fwd", &packed_fwd);
+    m.impl("sample_pdf_packed_bwd", &packed_bwd);
+  }
+};
+
+}  // namespace sample_pdf
+}  // namespace mixer_nerf
