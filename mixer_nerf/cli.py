@@ -8,6 +8,7 @@ Set ``MIXER_NERF_DEBUG=1`` to see the full traceback instead.
 from __future__ import annotations
 
 import argparse
+import errno
 import os
 import sys
 from collections.abc import Sequence
@@ -15,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from .data import FORMATS
+from .render.image_renderer import RENDER_SAMPLES
 from .train.config import BACKENDS, DEMO_SETTINGS, PRECISIONS, PRESETS, SAMPLERS, TrainConfig
 
 DEMO_OUT = "runs/demo"
@@ -143,9 +145,12 @@ def _add_prepare_parser(commands: argparse._SubParsersAction) -> None:
 
 
 def train_config_from_args(args: argparse.Namespace) -> TrainConfig:
-    """TrainConfig defaults, then the demo settings when no --data is given, then what was typed."""
-    values: dict[str, Any] = {} if args.data else dict(DEMO_SETTINGS)
-    typed = {flag.lstrip("-").replace("-", "_") for flag in TRAIN_OPTIONS} | {"data", "device", "backend"}
+    """TrainConfig defaults, then the demo settings when no --data is given, then what was typed.
+    A resumed train takes only what was typed (its checkpoint holds the rest)."""
+    resumed_run = args.command in ("train", "demo") and args.resume
+    values: dict[str, Any] = {} if args.data or resumed_run else dict(DEMO_SETTINGS)
+    typed = {flag.lstrip("-").replace("-", "_") for flag in TRAIN_OPTIONS} | {"data", "device", "backend",
+                                                                               "render_samples"}
     values.update({k: getattr(args, k) for k in typed if getattr(args, k, None) is not None})
     values["out"] = args.out or (f"runs/{Path(args.data).name}" if args.data else DEMO_OUT)
     values["progress"] = not args.no_progress
@@ -178,9 +183,10 @@ def run_train(args: argparse.Namespace) -> int:
             "no --data: training on the built-in procedural scene with CPU-friendly settings:\n  "
             + ", ".join(f"{k}={v}" for k, v in chosen.items())
         )
-    summary = _train(cfg, args.resume)
+    summary = _train(cfg, args.resume, args.overwrite)
     ckpt = Path(summary["checkpoint"])
-    held_out = _evaluate(ckpt, device=cfg.device, backend=cfg.backend)
+    views = args.eval_views
+    held_out = None if views == 0 else _evaluate(ckpt, device=cfg.device, backend=cfg.backend, max_images=views)
     video = (
         _render(ckpt, DEMO_VIDEO_FRAMES, device=cfg.device, backend=cfg.backend)
         if args.data is None
@@ -195,9 +201,10 @@ def run_eval(args: argparse.Namespace) -> int:
 
     if args.max_images is not None and args.max_images < 1:
         raise UserError(f"--max-images must be positive, got {args.max_images}")
+    _check_render_samples(args)
     record = evaluate(
         args.ckpt, data=args.data, split=args.split, out=args.out, device=args.device, backend=args.backend,
-        max_images=args.max_images,
+        max_images=args.max_images, render_samples=args.render_samples,
     )
     _print_eval(record)
     return 0
@@ -206,6 +213,7 @@ def run_eval(args: argparse.Namespace) -> int:
 def run_render(args: argparse.Namespace) -> int:
     from .video import render_video
 
+    _check_render_samples(args)
     result = render_video(
         args.ckpt,
         out=args.out,
@@ -215,9 +223,15 @@ def run_render(args: argparse.Namespace) -> int:
         scale=args.scale,
         device=args.device,
         backend=args.backend,
+        render_samples=args.render_samples,
     )
     _print_video(result)
     return 0
+
+
+def _check_render_samples(args: argparse.Namespace) -> None:
+    if args.render_samples is not None and args.render_samples < 1:
+        raise UserError(f"--render-samples must be positive, got {args.render_samples}")
 
 
 def run_prepare(args: argparse.Namespace) -> int:
@@ -256,10 +270,10 @@ COMMANDS = {"train": run_train, "eval": run_eval, "render": run_render, "demo": 
             "ablate": run_ablate}
 
 
-def _train(cfg: TrainConfig, resume: bool) -> dict[str, Any]:
+def _train(cfg: TrainConfig, resume: bool, overwrite: bool) -> dict[str, Any]:
     from .train import Trainer
 
-    trainer = Trainer(cfg, resume=resume)
+    trainer = Trainer(cfg, resume=resume, overwrite=overwrite)
     c = trainer.cfg
     sampling = (
         f"occupancy-grid sampling, ~{c.target_samples} samples per step"
@@ -287,11 +301,12 @@ def _render(ckpt: Path, frames: int, **kwargs: Any) -> dict[str, Any]:
     return render_video(ckpt, frames=frames, log=lambda _: None, **kwargs)
 
 
-def _report(summary: dict[str, Any], held_out: dict[str, Any], video: dict[str, Any] | None) -> None:
+def _report(summary: dict[str, Any], held_out: dict[str, Any] | None, video: dict[str, Any] | None) -> None:
     root = Path(summary["checkpoint"]).parent
     print(f"checkpoint:   {summary['checkpoint']}")
     print(f"logs:         {root / 'train_log.csv'}, {root / 'val_log.csv'}, plot {summary['curves']}")
-    _print_eval(held_out)
+    if held_out is not None:
+        _print_eval(held_out)
     if video is not None:
         _print_video(video)
 
@@ -318,9 +333,22 @@ def _add_train_options(parser: argparse.ArgumentParser, default_out: str) -> Non
     for flag, options in TRAIN_OPTIONS.items():
         parser.add_argument(flag, default=None, **options)
     parser.add_argument("--out", help=f"run folder (default: {default_out})")
-    parser.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
+    parser.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint "
+                        "(a new --steps extends it; --device moves it; other settings must match)")
+    parser.add_argument("--overwrite", action="store_true", help="delete the run in --out and start over")
+    parser.add_argument("--eval-views", type=_eval_views, metavar="N|none",
+                        help="held-out views scored after training (default: all; none: skip)")
     _add_device_options(parser)
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def _eval_views(text: str) -> int:
+    """``--eval-views``: a positive count, or "none" (0)."""
+    if text == "none":
+        return 0
+    if not text.isdigit() or int(text) < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive number of views or 'none', got {text!r}")
+    return int(text)
 
 
 def _add_ablate_parser(commands: Any) -> None:
@@ -352,12 +380,17 @@ def _add_ablate_parser(commands: Any) -> None:
 def _add_device_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--device", choices=("cpu", "cuda"), help="default: cuda when available")
     parser.add_argument("--backend", choices=BACKENDS, help="ops: compiled kernels or the PyTorch reference")
+    parser.add_argument("--render-samples", type=int, metavar="N",
+                        help="most samples shaded at once when rendering images: bounds the memory "
+                        f"(default: {RENDER_SAMPLES['cpu']} on CPU, {RENDER_SAMPLES['cuda']} on CUDA)")
 
 
 def _is_user_error(e: Exception) -> bool:
     from .data import DatasetError
     from .train import CheckpointError, NonFiniteError, OutputError
 
+    if isinstance(e, OSError) and e.errno in (errno.ENOSPC, errno.EDQUOT, errno.EROFS):
+        return True  # disk full, quota, read-only: the user frees space or picks another --out
     return isinstance(
         e,
         (

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -57,7 +58,10 @@ class TrainConfig:
     ckpt_every: int = 1000
     log_every: int = 100
     time_budget: float | None = None  # seconds of training (validation excluded); None: no limit
-    chunk: int = 8192  # rays per chunk when rendering whole images
+    chunk: int = 8192  # most rays per chunk when rendering whole images
+    # most samples one chunk may shade when rendering whole images (bounds its memory whatever the
+    # rays hit); None: RENDER_SAMPLES of the device
+    render_samples: int | None = None
     check_grads: bool = True  # the non-finite guard also checks every gradient
     # "occupancy": one marched pass over packed samples (mixer_nerf.render.skipping; no fine
     # network). "proposal": proposal networks pick proposal_samples intervals per ray (no fine
@@ -136,8 +140,10 @@ class TrainConfig:
             raise ValueError("proposal_width must be positive and proposal_loss_weight >= 0")
         if not self.adam_eps > 0:
             raise ValueError(f"adam_eps must be positive, got {self.adam_eps}")
-        if self.time_budget is not None and self.time_budget <= 0:
-            raise ValueError(f"time_budget must be positive seconds, got {self.time_budget}")
+        if self.time_budget is not None and not 0 < self.time_budget < math.inf:
+            raise ValueError(f"time_budget must be a positive, finite number of seconds, got {self.time_budget}")
+        if self.render_samples is not None and self.render_samples < 1:
+            raise ValueError(f"render_samples must be positive, got {self.render_samples}")
 
     def resolved(self, cuda_available: bool) -> TrainConfig:
         """A copy with ``device``, ``precision`` and ``bf16_density_passes`` chosen for this machine."""
