@@ -7,6 +7,10 @@ Methods:
   nerfacc   nerfacc 0.5.3's vanilla-MLP recipe through its public API (OccGridEstimator 128^3
             updated every 16 steps, render step sqrt(3)*3/1024, 65536 samples per step with a
             dynamic ray batch, smooth-L1 loss, Adam 5e-4 with step decay) around our preset-A MLP.
+  nerfacc-proposal
+            nerfacc 0.5.3's PropNetEstimator (its sampling, interval loss, update schedule and
+            rendering) around our trainer's proposal-sampler run: the same main MLP, proposal
+            networks, rays, optimizer settings and learning-rate schedule; only the estimator differs.
   ours      our trainer (``mixer_nerf.train``), any preset, every skip switchable.
 The clock counts training only: it stops for validation, and JIT builds (nerfacc's and ours) and
 data loading happen before it starts. Validation renders every view of the val split.
@@ -126,6 +130,71 @@ def nerfacc_method(args, train, val, device) -> tuple[Callable, Callable, None]:
     return step_fn, render_val, None
 
 
+def nerfacc_proposal_method(args, train, val, device) -> tuple[Callable, Callable, object]:
+    import nerfacc
+    from nerfacc.estimators.prop_net import get_proposal_requires_grad_fn
+
+    from mixer_nerf.render.volume import query_field
+
+    args.sampler = "proposal"
+    _, _, trainer = ours_method(args, train, val, device)
+    cfg, fields = trainer.cfg, trainer.fields
+    networks = list(fields.proposal.networks)
+    proposal_params = [p for net in networks for p in net.parameters()]
+    main_params = [p for p in fields.parameters() if all(p is not q for q in proposal_params)]
+    optimizer = torch.optim.Adam(main_params, lr=cfg.lr, eps=cfg.adam_eps)
+    estimator = nerfacc.PropNetEstimator(torch.optim.Adam(proposal_params, lr=cfg.lr, eps=cfg.adam_eps)).to(device)
+    near, far = trainer.train_scene.near, trainer.train_scene.far
+    # nerfacc's "uniform" is our linear spacing (bounded and NDC scenes), "lindisp" our disparity.
+    spacing = "uniform" if fields.proposal.options.spacing == "linear" else "lindisp"
+    requires_grad_at = get_proposal_requires_grad_fn()
+
+    def render(rays_o, rays_d, stratified=False, requires_grad=False):
+        norm = torch.linalg.vector_norm(rays_d, dim=-1, keepdim=True)
+
+        def density_fn(net):
+            def sigma_fn(t_starts, t_ends):
+                mids = 0.5 * (t_starts + t_ends)
+                return net.density(rays_o[:, None, :] + mids[..., None] * rays_d[:, None, :]).float() * norm
+            return sigma_fn
+
+        def rgb_sigma_fn(t_starts, t_ends, ray_indices):
+            sigma, rgb = query_field(trainer.coarse_field, rays_o, rays_d, 0.5 * (t_starts + t_ends))
+            return rgb, sigma
+
+        t_starts, t_ends = estimator.sampling(
+            [density_fn(net) for net in networks], list(cfg.proposal_rounds), cfg.proposal_samples,
+            n_rays=len(rays_o), near_plane=near, far_plane=far, sampling_type=spacing,
+            stratified=stratified, requires_grad=requires_grad)
+        rgb, _, _, extras = nerfacc.rendering(t_starts, t_ends, rgb_sigma_fn=rgb_sigma_fn,
+                                              render_bkgd=trainer.background)
+        return rgb, extras["trans"], t_starts.numel()
+
+    def step_fn(step: int) -> dict:
+        fields.train()
+        lr = cfg.lr * trainer._lr_factor()
+        for group in (*optimizer.param_groups, *estimator.optimizer.param_groups):
+            group["lr"] = lr
+        rays_o, rays_d, target = trainer.sampler.sample()
+        requires_grad = requires_grad_at(step)
+        rgb, trans, n_samples = render(rays_o, rays_d, stratified=True, requires_grad=requires_grad)
+        loss = F.mse_loss(rgb, target)
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+        estimator.update_every_n_steps(trans, requires_grad, loss_scaler=1.0)
+        trainer.step += 1  # drives the shared learning-rate schedule
+        return {"samples_per_step": n_samples, "samples_per_ray": n_samples / len(rays_o), "rays": len(rays_o),
+                "lr": lr}
+
+    def render_val(rays_o, rays_d):
+        fields.eval()
+        with torch.no_grad():
+            return render(rays_o, rays_d)[0]
+
+    return step_fn, render_val, trainer
+
+
 TRAINER_OPTIONS = (
     "target_samples", "batch_rays", "precision", "lr", "lr_final", "lr_warmup", "lr_hold", "bf16_density_passes",
     "adam_eps", "early_stop_eps", "empty_space_weight", "grid_warmup", "grid_every", "grid_threshold", "step_size",
@@ -140,7 +209,7 @@ def ours_method(args, train, val, device) -> tuple[Callable, Callable, object]:
 
     cfg = TrainConfig(
         data=args.data, preset=args.preset, sampler=args.sampler, steps=args.nominal_steps,
-        device="cuda", seed=args.seed, val_every=10**9, ckpt_every=10**9, log_every=10**9,
+        device=str(device), seed=args.seed, val_every=10**9, ckpt_every=10**9, log_every=10**9,
         # as a user training for a fixed time would: the schedule ends at the last checkpoint
         time_budget=max(float(c) for c in args.checkpoints.split(",")),
         progress=False, out=tempfile.mkdtemp(prefix="ttq_"), backend=args.backend,
@@ -160,6 +229,9 @@ def ours_method(args, train, val, device) -> tuple[Callable, Callable, object]:
     return step_fn, trainer.render_rgb, trainer
 
 
+METHODS = {"nerfacc": nerfacc_method, "nerfacc-proposal": nerfacc_proposal_method, "ours": ours_method}
+
+
 def save_run(path: Path, record: dict) -> None:
     """Write ``record`` into the list of runs in ``path``: in place of the run of its label, else last."""
     runs = json.loads(path.read_text()) if path.exists() else []
@@ -173,7 +245,7 @@ def save_run(path: Path, record: dict) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--method", choices=["nerfacc", "ours"], required=True)
+    parser.add_argument("--method", choices=sorted(METHODS), required=True)
     parser.add_argument("--label", default=None)
     parser.add_argument("--data", default=".data/lego_400")
     parser.add_argument("--checkpoints", default="30,60,120,240")
@@ -183,6 +255,7 @@ def main() -> None:
                         help="scene name in the result file's name (default: the --data folder's name up to "
                              "its first '_', e.g. lego for .data/lego_400)")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--device", default="cuda", help="cuda, or cpu for a smoke run")
     parser.add_argument("--preset", default="D", help="ours: model preset")
     parser.add_argument("--sampler", default="occupancy", help="ours: occupancy | proposal | hierarchical")
     parser.add_argument("--target-samples", type=int, help="ours: MLP samples per step (default: the trainer's)")
@@ -228,19 +301,18 @@ def main() -> None:
     torch.manual_seed(args.seed)
     torch.backends.cuda.matmul.allow_tf32 = True
     torch.backends.cudnn.allow_tf32 = True
-    device = torch.device("cuda")
+    device = torch.device(args.device)
     train = load_scene(args.data, split="train").to(device)
     val = load_scene(args.data, split="val").to(device)
     checkpoints = [float(c) for c in args.checkpoints.split(",")]
     label = args.label or args.method
 
-    method = nerfacc_method if args.method == "nerfacc" else ours_method
-    step_fn, render, trainer = method(args, train, val, device)
+    step_fn, render, trainer = METHODS[args.method](args, train, val, device)
 
     scene = args.scene or Path(args.data).name.split("_")[0]
     path = Path(args.out) / f"{scene}_{device_tag(device)}.json"
     path.parent.mkdir(parents=True, exist_ok=True)
-    record = {"label": label, "method": args.method, "data": args.data, "device": torch.cuda.get_device_name(),
+    record = {"label": label, "method": args.method, "data": args.data, "device": torch.cuda.get_device_name() if device.type == "cuda" else "cpu",
               "val_views": len(val), "curve": []}
 
     def log(point: dict) -> None:  # the file after every checkpoint: a run cut short keeps its points

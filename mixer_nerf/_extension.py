@@ -83,6 +83,7 @@ def _jit_build() -> None:
     with_cuda = _want_cuda()
     build_dir = _jit_build_dir(with_cuda)
     library = build_dir / f"{_JIT_NAME}.so"
+    _state["source"] = f"JIT build {library}"
     if library.exists():
         torch.ops.load_library(str(library))
         return
@@ -120,7 +121,7 @@ def _load() -> None:
     if mode in ("auto", "prebuilt"):
         ok, why = _prebuilt_is_current()
         if ok:
-            importlib.import_module("mixer_nerf._C")
+            _state["source"] = f"prebuilt {importlib.import_module('mixer_nerf._C').__file__}"
             return
         if mode == "prebuilt":
             raise ExtensionUnavailable(f"{why} and MIXER_NERF_EXTENSION=prebuilt forbids a JIT build")
@@ -151,6 +152,14 @@ def available() -> bool:
     except ExtensionUnavailable:
         return False
     return True
+
+
+def describe() -> str:
+    """Which kernels this process runs: the prebuilt module or a JIT build (with its file), or
+    the reference fallback and why (loading them on first call)."""
+    if available():
+        return _state["source"]
+    return f"none, PyTorch reference fallback: {_state['error']}"
 
 
 def has_cuda_kernels() -> bool:

@@ -15,61 +15,12 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from .data import FORMATS
-from .render.image_renderer import RENDER_SAMPLES
-from .train.config import BACKENDS, DEMO_SETTINGS, PRECISIONS, PRESETS, SAMPLERS, TrainConfig
+from .cli_options import DEVICE_FLAGS, add_options, train_options, typed_settings
+from .train.config import DEMO_SETTINGS, TrainConfig
 
 DEMO_OUT = "runs/demo"
 DEMO_VIDEO_FRAMES = 40
-VIDEO_PATHS = ("auto", "turntable", "spiral")
-
-# Train options whose default depends on the scene (demo or real data) are None in argparse, so
-# that only what the user typed overrides TrainConfig's defaults or DEMO_SETTINGS.
-TRAIN_OPTIONS: dict[str, dict[str, Any]] = {
-    "--format": {"choices": FORMATS, "help": "scene format (default: detected)"},
-    "--preset": {"choices": PRESETS, "help": "A NeRF, B +SE, C +MLCA, D Mixer-NeRF (default D)"},
-    "--steps": {"type": int, "help": "training steps, also the length of the lr schedule"},
-    "--batch-rays": {"type": int, "help": "rays per step"},
-    "--num-coarse": {"type": int, "help": "coarse samples per ray"},
-    "--num-fine": {"type": int, "help": "fine samples per ray (0: no fine pass)"},
-    "--lr": {"type": float, "help": "learning rate after the warm-up (default: occupancy sampler "
-             "4e-3, hierarchical 5e-4), decaying exponentially to --lr-final"},
-    "--lr-final": {"type": float, "help": "learning rate at the end of the run, --steps or "
-                   "--time-budget, whichever comes first (default: lr/10)"},
-    "--lr-warmup": {"type": int, "metavar": "STEPS",
-                    "help": "linear learning-rate warm-up (default: occupancy 200, hierarchical 0)"},
-    "--lr-hold": {"type": float, "metavar": "FRACTION",
-                  "help": "fraction of the run at --lr before the decay to --lr-final starts (default: "
-                  "occupancy sampler 0.5, hierarchical 0)"},
-    "--precision": {"choices": PRECISIONS, "help": "MLP precision (default: tf32 on CUDA, fp32 on CPU)"},
-    "--seed": {"type": int, "help": "random seed"},
-    "--val-every": {"type": int, "help": "validate every N steps"},
-    "--ckpt-every": {"type": int, "help": "checkpoint every N steps (a killed run loses at most N)"},
-    "--time-budget": {"type": float, "metavar": "SECONDS", "help": "stop after this much training time"},
-    "--downscale": {"type": float, "help": "image downscale, any factor >= 1"},
-    "--sampler": {
-        "choices": SAMPLERS,
-        "help": "occupancy (skip empty space, occluded samples, missed rays), "
-        "hierarchical (NeRF's dense coarse + fine), auto (occupancy for bounded scenes such as Blender's, hierarchical for forward-facing LLFF)",
-    },
-    "--target-samples": {
-        "type": int,
-        "help": "occupancy sampler: MLP samples per step (the ray batch adapts)",
-    },
-    "--early-stop-eps": {"type": float, "help": "stop rays whose transmittance falls below this (0: never)"},
-    "--empty-space-weight": {
-        "type": float,
-        "help": "occupancy sampler: weight of the loss that keeps density out of the cells the grid "
-        "marks empty, applied at each grid refresh (default 1e-2; 0: off)",
-    },
-    "--bf16-density-passes": {
-        "action": argparse.BooleanOptionalAction,
-        "help": "occupancy sampler: no-grad density passes (grid refreshes, early termination) in bf16 "
-        "(default: on CUDA)",
-    },
-    "--grid-resolution": {"type": int, "help": "occupancy grid cells per axis"},
-}
-
+VIDEO_PATHS = ("auto", "turntable", "spiral", "train", "test")
 
 class UserError(Exception):
     """A problem the user can fix; printed as one line."""
@@ -96,20 +47,24 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--out", help="output folder (default: <checkpoint folder>/eval_<split>)")
     evaluate.add_argument("--max-images", type=int, help="score only the first N views")
     _add_device_options(evaluate)
+    add_options(evaluate, ["--render-samples"])
 
-    render = commands.add_parser("render", help="render a turntable/spiral video and depth maps")
+    render = commands.add_parser("render", help="render a video and depth maps along a camera path")
     render.add_argument("--ckpt", required=True, help="checkpoint file")
     render.add_argument("--frames", type=int, default=120, help="number of frames (default 120)")
     render.add_argument(
         "--path",
-        choices=VIDEO_PATHS,
+        type=_camera_path_arg,
         default="auto",
-        help="camera path (default: spiral for forward-facing scenes, else turntable)",
+        metavar="{" + ",".join(VIDEO_PATHS) + "} or FILE.json",
+        help="camera path: generated (default auto: spiral for forward-facing scenes, else turntable), the "
+        "dataset's own train or test cameras, or a nerfstudio camera-path JSON file",
     )
     render.add_argument("--fps", type=int, default=30)
     render.add_argument("--scale", type=float, default=1.0, help="resolution relative to the training images")
     render.add_argument("--out", help="output folder (default: <checkpoint folder>/video)")
     _add_device_options(render)
+    add_options(render, ["--render-samples"])
 
     demo = commands.add_parser(
         "demo", help="train, evaluate and render the built-in scene (a few CPU minutes)"
@@ -118,7 +73,33 @@ def build_parser() -> argparse.ArgumentParser:
     demo.set_defaults(data=None)
     _add_prepare_parser(commands)
     _add_ablate_parser(commands)
+    _add_export_parser(commands)
+    commands.add_parser("doctor", help="versions, GPU, which kernels run and why, a 10 s accuracy check of each op")
     return parser
+
+
+def _add_export_parser(commands: argparse._SubParsersAction) -> None:
+    export = commands.add_parser(
+        "export", help="a mesh, a point cloud or raw depth maps of a trained scene (mesh, points: .[export])"
+    )
+    kinds = export.add_subparsers(dest="what", metavar="WHAT", required=True)
+    mesh = kinds.add_parser("mesh", help="marching cubes over the density in the occupancy grid's box")
+    mesh.add_argument("--resolution", type=int, default=256, help="lattice points per axis (default 256)")
+    mesh.add_argument("--threshold", type=float, default=10.0, help="density of the surface (default 10)")
+    points = kinds.add_parser("points", help="coloured point cloud (PLY) from the depth of rendered views")
+    points.add_argument("--min-opacity", type=float, default=0.5, help="pixels kept (default 0.5)")
+    points.add_argument("--max-points", type=int, default=1_000_000, help="random subset (default 1,000,000)")
+    depth = kinds.add_parser("depth", help="raw depth and opacity (NPY, EXR with OpenEXR) and depth previews")
+    for parser, default_out in ((mesh, "export/mesh.ply"), (points, "export/points.ply"), (depth, "depth_<path>")):
+        parser.add_argument("--ckpt", required=True, help="checkpoint file")
+        parser.add_argument("--out", help=f"output (default: <checkpoint folder>/{default_out})")
+        _add_device_options(parser)
+    for parser, default_path, scale in ((points, "train", 0.5), (depth, "test", 1.0)):
+        parser.add_argument("--path", type=_camera_path_arg, default=default_path,
+                            help=f"cameras to render, as render --path (default {default_path})")
+        parser.add_argument("--frames", type=int, default=30, help="frames of a generated path (default 30)")
+        parser.add_argument("--scale", type=float, default=scale,
+                            help=f"resolution relative to the training images (default {scale})")
 
 
 def _add_prepare_parser(commands: argparse._SubParsersAction) -> None:
@@ -145,21 +126,27 @@ def _add_prepare_parser(commands: argparse._SubParsersAction) -> None:
 
 
 def train_config_from_args(args: argparse.Namespace) -> TrainConfig:
-    """TrainConfig defaults, then the demo settings when no --data is given, then what was typed.
-    A resumed train takes only what was typed (its checkpoint holds the rest)."""
+    """TrainConfig defaults, then the demo settings when there is no scene folder, then the --config
+    file, then what was typed. A resumed train takes no demo settings (its checkpoint holds them)."""
+    from .train.config_file import read_config_file
+
+    from_file = read_config_file(args.config) if getattr(args, "config", None) else {}
+    data = args.data or from_file.get("data")
     resumed_run = args.command in ("train", "demo") and args.resume
-    values: dict[str, Any] = {} if args.data or resumed_run else dict(DEMO_SETTINGS)
-    typed = {flag.lstrip("-").replace("-", "_") for flag in TRAIN_OPTIONS} | {"data", "device", "backend",
-                                                                               "render_samples"}
-    values.update({k: getattr(args, k) for k in typed if getattr(args, k, None) is not None})
-    values["out"] = args.out or (f"runs/{Path(args.data).name}" if args.data else DEMO_OUT)
+    values: dict[str, Any] = {} if data or resumed_run else dict(DEMO_SETTINGS)
+    values.update(from_file)
+    values.update(typed_settings(args))
+    values["data"] = data
+    values["out"] = args.out or from_file.get("out") or (f"runs/{Path(data).name}" if data else DEMO_OUT)
     values["progress"] = not args.no_progress
     return TrainConfig(**values)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
+    argv = list(sys.argv[1:] if argv is None else argv)
     args = parser.parse_args(argv)
+    args.argv = argv  # --devices relaunches the same command under torchrun
     if args.command is None:
         parser.print_help()
         return 2
@@ -171,25 +158,31 @@ def main(argv: Sequence[str] | None = None) -> int:
     except Exception as e:
         if os.environ.get("MIXER_NERF_DEBUG") or not _is_user_error(e):
             raise
-        print(f"mixer-nerf: error: {e}", file=sys.stderr)
+        rank = f" (rank {os.environ['RANK']})" if "RANK" in os.environ else ""  # under torchrun
+        print(f"mixer-nerf: error{rank}: {e}", file=sys.stderr)
         return 1
 
 
 def run_train(args: argparse.Namespace) -> int:
     cfg = train_config_from_args(args)
-    if args.data is None and not args.resume:
+    if args.devices is not None and _relaunched(args, cfg):
+        return 0
+    rank = int(os.environ.get("RANK", "0"))
+    if cfg.data is None and not args.resume and rank == 0:
         chosen = {k: getattr(cfg, k) for k in DEMO_SETTINGS}
         print(
             "no --data: training on the built-in procedural scene with CPU-friendly settings:\n  "
             + ", ".join(f"{k}={v}" for k, v in chosen.items())
         )
     summary = _train(cfg, args.resume, args.overwrite)
+    if rank:
+        return 0  # rank 0 evaluates and reports
     ckpt = Path(summary["checkpoint"])
     views = args.eval_views
     held_out = None if views == 0 else _evaluate(ckpt, device=cfg.device, backend=cfg.backend, max_images=views)
     video = (
         _render(ckpt, DEMO_VIDEO_FRAMES, device=cfg.device, backend=cfg.backend)
-        if args.data is None
+        if cfg.data is None
         else None
     )
     _report(summary, held_out, video)
@@ -266,8 +259,77 @@ def run_ablate(args: argparse.Namespace) -> int:
     return 0
 
 
+def run_export(args: argparse.Namespace) -> int:
+    from .export import export_depth, export_mesh, export_points
+
+    device = {"device": args.device, "backend": args.backend}
+    default = Path(args.ckpt).parent / "export" / f"{'mesh' if args.what == 'mesh' else 'points'}.ply"
+    if args.what == "mesh":
+        r = export_mesh(args.ckpt, args.out or default, args.resolution, args.threshold, **device)
+        print(f"mesh: {r['mesh']} ({r['vertices']} vertices, {r['faces']} faces, "
+              f"{'watertight' if r['watertight'] else 'not watertight'})")
+    elif args.what == "points":
+        r = export_points(args.ckpt, args.out or default, args.path, args.frames, args.scale, args.min_opacity,
+                          args.max_points, **device)
+        print(f"points: {r['points']} ({r['count']} points from {r['views']} views)")
+    else:
+        r = export_depth(args.ckpt, args.out, args.path, args.frames, args.scale, **device)
+        print(f"depth: {r['out']} ({r['views']} views: depth_NNNN.npy, opacity_NNNN.npy, depth_NNNN.png"
+              f"{', depth_NNNN.exr' if r['exr'] else '; no EXR writer (pip install OpenEXR)'})")
+        return 0
+    print(f"  bounds {_box(r['bounds'])}" + (f", scene box {_box(r['scene_box'])}" if "scene_box" in r else ""))
+    return 0
+
+
+def _box(bounds: list[list[float]]) -> str:
+    return " to ".join("(" + ", ".join(f"{v:.3f}" for v in corner) + ")" for corner in bounds)
+
+
+def run_doctor(args: argparse.Namespace) -> int:
+    from .doctor import run_doctor as doctor
+
+    return doctor()
+
+
 COMMANDS = {"train": run_train, "eval": run_eval, "render": run_render, "demo": run_train, "prepare": run_prepare,
-            "ablate": run_ablate}
+            "ablate": run_ablate, "export": run_export, "doctor": run_doctor}
+
+
+def _relaunched(args: argparse.Namespace, cfg: TrainConfig) -> bool:
+    """Run this same command under torchrun on ``--devices`` processes, unless it is one of them
+    already or N is 1 (False: train here).
+
+    Raises:
+        UserError: N is not positive, not torchrun's number of processes, or more than the GPUs.
+    """
+    import torch
+
+    from .train.distributed import NO_MULTICAST, launched_ranks
+
+    n, world = args.devices, launched_ranks()
+    if n < 1:
+        raise UserError(f"--devices must be positive, got {n}")
+    if "TORCHELASTIC_RUN_ID" in os.environ or world > 1:
+        if n != world:
+            raise UserError(f"--devices {n} under torchrun with {world} processes: leave --devices out there")
+        return False
+    if n == 1:
+        return False
+    device = cfg.resolved(torch.cuda.is_available()).device
+    if device.startswith("cuda") and n > torch.cuda.device_count():
+        raise UserError(f"--devices {n} but this machine has {torch.cuda.device_count()} GPU(s)")
+    from torch.distributed.elastic.multiprocessing.errors import ChildFailedError
+    from torch.distributed.run import parse_args, run
+
+    for name, value in NO_MULTICAST.items():
+        os.environ.setdefault(name, value)
+    try:
+        run(parse_args(["--standalone", f"--nproc-per-node={n}", "--module", "mixer_nerf", *args.argv]))
+    except ChildFailedError as e:
+        rank, failure = e.get_first_failure()
+        raise UserError(f"training process {rank} of {n} failed (exit code {failure.exitcode}); "
+                        "its error is printed above and the others were stopped") from e
+    return True
 
 
 def _train(cfg: TrainConfig, resume: bool, overwrite: bool) -> dict[str, Any]:
@@ -275,6 +337,8 @@ def _train(cfg: TrainConfig, resume: bool, overwrite: bool) -> dict[str, Any]:
 
     trainer = Trainer(cfg, resume=resume, overwrite=overwrite)
     c = trainer.cfg
+    if trainer.rank:
+        return trainer.fit()
     sampling = (
         f"occupancy-grid sampling, ~{c.target_samples} samples per step"
         if c.sampler == "occupancy"
@@ -330,15 +394,20 @@ def _print_video(result: dict[str, Any]) -> None:
 
 
 def _add_train_options(parser: argparse.ArgumentParser, default_out: str) -> None:
-    for flag, options in TRAIN_OPTIONS.items():
-        parser.add_argument(flag, default=None, **options)
+    parser.add_argument(
+        "--config", metavar="FILE",
+        help="settings from a run's config.json or a JSON/TOML table of them; typed flags override it",
+    )  # fmt: skip
+    add_options(parser, train_options())
     parser.add_argument("--out", help=f"run folder (default: {default_out})")
     parser.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint "
                         "(a new --steps extends it; --device moves it; other settings must match)")
     parser.add_argument("--overwrite", action="store_true", help="delete the run in --out and start over")
     parser.add_argument("--eval-views", type=_eval_views, metavar="N|none",
                         help="held-out views scored after training (default: all; none: skip)")
-    _add_device_options(parser)
+    parser.add_argument("--devices", type=int, metavar="N",
+                        help="train on N processes under torchrun: one per GPU, or CPU processes with "
+                        "--device cpu (docs/distributed.md)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -367,27 +436,29 @@ def _add_ablate_parser(commands: Any) -> None:
                         "best validation PSNR among the runs)")
     ablate.add_argument("--split", choices=("test", "val", "train"), help="held-out views scored (as eval)")
     ablate.add_argument("--max-images", type=int, help="score only the first N held-out views")
-    for flag, options in TRAIN_OPTIONS.items():
-        if flag not in ("--preset", "--seed"):
-            ablate.add_argument(flag, default=None, **options)
+    add_options(ablate, [flag for flag in train_options() if flag not in ("--preset", "--seed")])
     ablate.add_argument("--out", required=True, help="ablation folder: one run folder per preset and seed")
     ablate.add_argument("--resume", action="store_true",
                         help="continue the ablation in --out: skip finished runs, resume unfinished ones")
-    _add_device_options(ablate)
     ablate.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
 def _add_device_options(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--device", choices=("cpu", "cuda"), help="default: cuda when available")
-    parser.add_argument("--backend", choices=BACKENDS, help="ops: compiled kernels or the PyTorch reference")
-    parser.add_argument("--render-samples", type=int, metavar="N",
-                        help="most samples shaded at once when rendering images: bounds the memory "
-                        f"(default: {RENDER_SAMPLES['cpu']} on CPU, {RENDER_SAMPLES['cuda']} on CUDA)")
+    add_options(parser, DEVICE_FLAGS)
+
+
+def _camera_path_arg(value: str) -> str:
+    if value in VIDEO_PATHS or value.endswith(".json"):
+        return value
+    raise argparse.ArgumentTypeError(f"expected one of {', '.join(VIDEO_PATHS)} or a .json camera-path file, "
+                                     f"got {value!r}")
 
 
 def _is_user_error(e: Exception) -> bool:
     from .data import DatasetError
+    from .export import ExportError
     from .train import CheckpointError, NonFiniteError, OutputError
+    from .train.distributed import DistributedError
 
     if isinstance(e, OSError) and e.errno in (errno.ENOSPC, errno.EDQUOT, errno.EROFS):
         return True  # disk full, quota, read-only: the user frees space or picks another --out
@@ -396,9 +467,11 @@ def _is_user_error(e: Exception) -> bool:
         (
             UserError,
             DatasetError,
+            ExportError,
             CheckpointError,
             NonFiniteError,
             OutputError,
+            DistributedError,
             FileNotFoundError,
             PermissionError,
             ValueError,

@@ -1,5 +1,5 @@
-"""Camera paths (turntable, spiral), rendering them from a checkpoint, and writing videos and
-colour-mapped depth maps.
+"""Camera paths (turntable, spiral, a dataset split's cameras, a nerfstudio camera-path file),
+rendering them from a checkpoint, and writing videos and colour-mapped depth maps.
 
 Videos are MP4 (H.264) when ``imageio-ffmpeg`` is installed (it ships its own ffmpeg binary from
 PyPI), else animated GIF; :func:`write_video` returns the path it actually wrote.
@@ -8,9 +8,9 @@ PyPI), else animated GIF; :func:`write_video` returns the path it actually wrote
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
@@ -18,11 +18,16 @@ import torch
 from .data.llff import BD_FACTOR
 from .data.rays import camera_rays, ndc_rays
 from .data.scene import NDC_NEAR
+from .render.camera_path import CameraPath, fixed_intrinsics_path, read_nerfstudio_path, split_path
 from .train.memory import FLOAT_BYTES, check_fits
 from .train.output import OutputError, atomic_path, ensure_writable_folder
-from .train.restore import load_trained
+from .train.restore import TrainedRun, load_trained
+from .train.scenes import scene_source
 
-PATHS = ("auto", "turntable", "spiral")
+GENERATED_PATHS = ("auto", "turntable", "spiral")
+DATASET_PATHS = ("train", "test", "val")
+PATHS = GENERATED_PATHS + DATASET_PATHS
+"""Named camera paths; ``render --path`` also takes a nerfstudio camera-path JSON file."""
 SPIRAL_ROTATIONS = 2
 SPIRAL_Z_RATE = 0.5  # the spiral's in-and-out motion runs at half its angular speed
 DEPTH_COLORMAP = "turbo"
@@ -103,8 +108,8 @@ def spiral_focus_depth(scene: dict[str, Any]) -> float:
 def camera_path(scene: dict[str, Any], n_frames: int, kind: str = "auto") -> tuple[torch.Tensor, str]:
     """Poses for a video of a trained scene and the path kind used ("auto": spiral for
     forward-facing (NDC or LLFF) scenes, turntable otherwise)."""
-    if kind not in PATHS:
-        raise ValueError(f"path must be one of {PATHS}, got {kind!r}")
+    if kind not in GENERATED_PATHS:
+        raise ValueError(f"path must be one of {GENERATED_PATHS}, got {kind!r}")
     if kind == "auto":
         kind = "spiral" if scene["ndc"] or scene["format"] == "llff" else "turntable"
     if kind == "spiral":
@@ -114,17 +119,49 @@ def camera_path(scene: dict[str, Any], n_frames: int, kind: str = "auto") -> tup
     return turntable_poses(scene["train_poses"], n_frames, center), kind
 
 
-def frame_rays(
-    scene: dict[str, Any], c2w: torch.Tensor, scale: float = 1.0
-) -> tuple[torch.Tensor, torch.Tensor, int, int]:
-    """Rays (H*W, 3) of one camera with the training intrinsics scaled by ``scale``; also H, W."""
-    H, W = max(1, round(scene["H"] * scale)), max(1, round(scene["W"] * scale))
-    focal, cx, cy = scene["focal"] * scale, scene["cx"] * scale, scene["cy"] * scale
-    origins, dirs = camera_rays(H, W, focal, c2w.double(), cx, cy)
+def path_cameras(run: TrainedRun, path: str, n_frames: int) -> CameraPath:
+    """The cameras of ``path``: a generated path (``n_frames`` of them), "train" or "test" (the
+    dataset's own cameras) or a nerfstudio camera-path JSON file."""
+    if path in GENERATED_PATHS:
+        poses, kind = camera_path(run.scene, n_frames, path)
+        return fixed_intrinsics_path(poses, run.scene, kind)
+    if path == "train":
+        return fixed_intrinsics_path(run.scene["train_poses"], run.scene, "train")
+    if path in DATASET_PATHS:
+        folder, fmt = scene_source(run.cfg)
+        return split_path(folder, fmt, path, run.cfg.downscale)
+    return read_nerfstudio_path(path)
+
+
+def frame_rays(scene: dict[str, Any], cameras: CameraPath, i: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Rays (H*W, 3) of camera ``i`` of ``cameras``, warped to NDC for an NDC ``scene``."""
+    focal = float(cameras.focals[i])
+    origins, dirs = camera_rays(cameras.H, cameras.W, focal, cameras.poses[i].double(), cameras.cx, cameras.cy)
     origins, dirs = origins.reshape(-1, 3), dirs.reshape(-1, 3)
     if scene["ndc"]:
-        origins, dirs = ndc_rays(H, W, focal, NDC_NEAR, origins, dirs)
-    return origins.float(), dirs.float(), H, W
+        origins, dirs = ndc_rays(cameras.H, cameras.W, focal, NDC_NEAR, origins, dirs)
+    return origins.float(), dirs.float()
+
+
+class Frame(NamedTuple):
+    """One rendered camera: colour (H, W, 3), depth and opacity (H, W) on the CPU, and its rays
+    (H*W, 3) as rendered (in NDC for NDC scenes)."""
+
+    color: torch.Tensor
+    depth: torch.Tensor
+    opacity: torch.Tensor
+    rays_o: torch.Tensor
+    rays_d: torch.Tensor
+
+
+def render_frames(run: TrainedRun, cameras: CameraPath) -> Iterator[Frame]:
+    """Render each camera of ``cameras`` in turn."""
+    H, W = cameras.H, cameras.W
+    for i in range(len(cameras)):
+        rays_o, rays_d = frame_rays(run.scene, cameras, i)
+        result = run.render(rays_o, rays_d)
+        yield Frame(result.color.reshape(H, W, 3).cpu(), result.depth.reshape(H, W).cpu(),
+                    result.opacity.reshape(H, W).cpu(), rays_o, rays_d)  # fmt: skip
 
 
 # -- images and videos ----------------------------------------------------------------------------
@@ -223,6 +260,9 @@ def render_video(
     """Render a camera path from a checkpoint: ``video.mp4|gif``, ``depth.mp4|gif`` and
     ``depth/frame_NNNN.png`` in ``out`` (default: ``<checkpoint folder>/video``).
 
+    ``path`` is one of ``PATHS`` or a nerfstudio camera-path JSON file (see :func:`path_cameras`);
+    ``frames`` counts the frames of a generated path only.
+
     Returns:
         {"video", "depth_video", "depth_frames", "path", "frames", "format", "depth_range"}.
     """
@@ -232,24 +272,22 @@ def render_video(
         raise ValueError(f"scale must be positive and finite, got {scale}")
     check_fps(fps)
     run = load_trained(ckpt, device=device, backend=backend, render_samples=render_samples)
-    pixels = round(run.scene["H"] * scale) * round(run.scene["W"] * scale)
+    cameras = path_cameras(run, path, frames).scaled(scale)
+    pixels, n = cameras.H * cameras.W, len(cameras)
     # Per pixel: one frame's rays in float64 then float32 (18 numbers) and its renders (5); every
     # frame's colour, depth and opacity until the videos are written (3 bytes and 2 floats).
-    check_fits(f"--scale {scale:g} with --frames {frames}",
-               pixels * (23 * FLOAT_BYTES + frames * (3 + 2 * FLOAT_BYTES)), torch.device("cpu"))
+    check_fits(f"--scale {scale:g} with {n} frames", pixels * (23 * FLOAT_BYTES + n * (3 + 2 * FLOAT_BYTES)),
+               torch.device("cpu"))
     check_fits(f"--scale {scale:g}", pixels * 11 * FLOAT_BYTES, run.device)  # rays and renders
     out = Path(out) if out is not None else run.path.parent / "video"
     depth_dir = out / "depth"
     ensure_writable_folder(depth_dir)
-    poses, kind = camera_path(run.scene, frames, path)
-    log(f"rendering {frames} frames on a {kind} path from {run.path} (step {run.step})")
+    log(f"rendering {len(cameras)} frames on the {cameras.kind} path from {run.path} (step {run.step})")
     colors, depths, opacities = [], [], []
-    for c2w in poses:
-        rays_o, rays_d, H, W = frame_rays(run.scene, c2w, scale)
-        result = run.render(rays_o, rays_d)
-        colors.append(to_uint8(result.color.reshape(H, W, 3)))
-        depths.append(result.depth.reshape(H, W).cpu())
-        opacities.append(result.opacity.reshape(H, W).cpu())
+    for frame in render_frames(run, cameras):
+        colors.append(to_uint8(frame.color))
+        depths.append(frame.depth)
+        opacities.append(frame.opacity)
     lo, hi = depth_range(depths, opacities, fallback=(run.scene["near"], run.scene["far"]))
     depth_frames = [colorize_depth(d, o, lo, hi) for d, o in zip(depths, opacities, strict=True)]
     for i, image in enumerate(depth_frames):
@@ -260,8 +298,8 @@ def render_video(
         "video": str(video),
         "depth_video": str(depth_video),
         "depth_frames": str(depth_dir),
-        "path": kind,
-        "frames": frames,
+        "path": cameras.kind,
+        "frames": len(cameras),
         "format": video.suffix[1:],
         "depth_range": [lo, hi],
     }

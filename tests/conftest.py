@@ -57,3 +57,23 @@ def shared_data() -> Path:
     if not path.is_dir():
         pytest.skip(f"real data not present at {path}")
     return path
+
+
+@pytest.fixture(scope="session")
+def tiny_occupancy_run(tmp_path_factory) -> Path:
+    """A checkpoint of 6 occupancy-sampler steps on a 16x16 built-in scene (2-layer model, an 8^3
+    grid), trained on the CPU with the reference ops; its folder is returned."""
+    import os
+
+    from mixer_nerf.train import TrainConfig, Trainer
+
+    out = tmp_path_factory.mktemp("occupancy") / "run"
+    os.environ.setdefault("MIXER_NERF_CACHE", str(tmp_path_factory.getbasetemp() / "cache"))
+    model = {"depth": 2, "width": 16, "skips": (), "view_width": 8, "pos_freqs": 2, "dir_freqs": 1,
+             "mlca_channels": 3, "se_reduction": 4}  # fmt: skip
+    cfg = TrainConfig(procedural_resolution=16, procedural_views=4, model_overrides=model, steps=6,
+                      sampler="occupancy", grid_resolution=8, grid_warmup=2, grid_every=2, target_samples=512,
+                      val_every=6, val_images=1, ckpt_every=6, log_every=2, backend="torch", device="cpu",
+                      out=str(out), progress=False)  # fmt: skip
+    Trainer(cfg, log=lambda _: None).fit()
+    return out

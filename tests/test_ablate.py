@@ -155,7 +155,7 @@ def test_parsers():
 def test_eq7_with_the_occupancy_sampler_is_refused(tmp_path, capsys):
     assert ablate(tmp_path / "eq7", "--presets", "D", "--seeds", "0", "--sampler", "occupancy",
                   "--model-override", "mlca_concat_direction=true") == 1
-    assert "add --sampler proposal or --sampler hierarchical" in capsys.readouterr().err
+    assert "view-dependent: use 'proposal' or 'hierarchical'" in capsys.readouterr().err
     # Nothing was trained, so the corrected command needs no --resume.
     assert ablate(tmp_path / "eq7", "--presets", "D", "--seeds", "0", "--sampler", "hierarchical",
                   "--model-override", "mlca_concat_direction=true") == 0

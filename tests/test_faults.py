@@ -324,7 +324,7 @@ def test_train_options_out_of_range_are_one_line(argv, message, tmp_path, capsys
     [
         (["--fps", "-5"], "fps must be a positive whole number"),
         (["--fps", "0"], "fps must be a positive whole number"),
-        (["--scale", "10000"], "--scale 10000 with --frames 1 needs at least"),
+        (["--scale", "10000"], "--scale 10000 with 1 frames needs at least"),
         (["--scale", "inf"], "scale must be positive and finite"),
         (["--render-samples", "-1"], "--render-samples must be positive"),
     ],

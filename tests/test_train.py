@@ -472,8 +472,8 @@ def test_nan_stops_training_and_keeps_the_last_good_checkpoint(tmp_path, monkeyp
 def test_csv_log_truncation_and_plot(tmp_path):
     log, val = CsvLog(tmp_path / "t.csv"), CsvLog(tmp_path / "v.csv")
     for step in range(1, 6):
-        log.append({"step": step, "loss": 1.0 / step, "psnr": 10.0 + step})
-    val.append({"step": 3, "psnr": 12.0})
+        log.append({"step": step, "seconds": 0.5 * step, "loss": 1.0 / step, "psnr": 10.0 + step})
+    val.append({"step": 3, "seconds": 1.5, "psnr": 12.0})
     log.truncate_after(3)
     assert [r["step"] for r in log.rows()] == ["1", "2", "3"]
     assert plot_curves(log, val, tmp_path / "p.png").stat().st_size > 0

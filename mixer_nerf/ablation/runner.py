@@ -86,10 +86,6 @@ def _train(cfg: TrainConfig, files: RunFiles, log: Callable[[str], None]) -> dic
         for name in STALE_FILES:
             (files.root / name).unlink(missing_ok=True)
     trainer = Trainer(cfg, resume=resume, log=lambda line: log(f"  {line}"))
-    if trainer.cfg.sampler == "occupancy" and trainer.model_cfg.mlca_concat_direction:
-        raise AblationError("mlca_concat_direction=true (the paper's Eq. 7) makes the density depend on "
-                            "the view direction, which the occupancy grid cannot query; add --sampler "
-                            "proposal or --sampler hierarchical")
     log(f"  {'resuming at step ' + str(trainer.step) if resume else 'training'}: sampler {trainer.cfg.sampler}, "
         f"{cfg.steps} steps" + (f" or {cfg.time_budget:g} s" if cfg.time_budget else ""))
     try:

@@ -8,12 +8,19 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from ..data import FORMATS
+from ..render.image_renderer import RENDER_SAMPLES
 from ..render.skipping import MarchingOptions
 
 PRESETS = ("A", "B", "C", "D")
 PRECISIONS = ("bf16", "tf32", "fp32")
 BACKENDS = ("auto", "kernel", "torch")
 SAMPLERS = ("auto", "occupancy", "proposal", "hierarchical")
+
+
+def option(default: Any, help: str, **argparse_options: Any) -> Any:
+    """A TrainConfig field that is also a ``train`` flag ``--name-with-dashes``: its help text and
+    argparse options (choices, metavar) live in the field's metadata, so flags and fields cannot drift."""
+    return field(default=default, metadata={"help": help, **argparse_options})
 
 
 @dataclass
@@ -31,63 +38,78 @@ class TrainConfig:
     """
 
     data: str | None = None  # scene folder; None = the built-in procedural scene
-    format: str = "auto"
-    downscale: float = 1.0  # image downscale for real scenes, any factor >= 1
+    format: str = option("auto", "scene format (default: detected)", choices=FORMATS)
+    downscale: float = option(1.0, "image downscale, any factor >= 1")
     procedural_resolution: int = 100  # image size of the built-in scene
     procedural_views: int = 100  # its number of training views
-    preset: str = "D"
+    preset: str = option("D", "A NeRF, B +SE, C +MLCA, D Mixer-NeRF (default D)", choices=PRESETS)
     model_overrides: dict[str, Any] = field(default_factory=dict)  # passed to preset_config
     fine_network: bool = True  # a separate fine MLP, as in NeRF (False: the coarse one is reused)
-    steps: int = 50_000
-    batch_rays: int = 4096
-    num_coarse: int = 64
-    num_fine: int = 128
+    steps: int = option(50_000, "training steps, also the length of the lr schedule")
+    batch_rays: int = option(4096, "rays per step")
+    num_coarse: int = option(64, "coarse samples per ray")
+    num_fine: int = option(128, "fine samples per ray (0: no fine pass)")
     # None: the sampler's recipe (SAMPLER_RECIPES), filled in once the sampler is known
-    lr: float | None = None
-    lr_final: float | None = None  # None: lr times the recipe's decay
-    lr_warmup: int | None = None  # steps of linear learning-rate warm-up
-    lr_hold: float | None = None  # fraction of the run at lr before the decay to lr_final starts
+    lr: float | None = option(None, "learning rate after the warm-up (default: occupancy sampler 4e-3, "
+                              "hierarchical 5e-4), decaying exponentially to --lr-final")
+    lr_final: float | None = option(None, "learning rate at the end of the run, --steps or --time-budget, "
+                                    "whichever comes first (default: lr/10)")
+    lr_warmup: int | None = option(None, "linear learning-rate warm-up (default: occupancy 200, hierarchical 0)",
+                                   metavar="STEPS")
+    lr_hold: float | None = option(None, "fraction of the run at --lr before the decay to --lr-final starts "
+                                   "(default: occupancy sampler 0.5, hierarchical 0)", metavar="FRACTION")
     adam_eps: float = 1e-15  # nerfacc's value; it beat PyTorch's 1e-8 (docs/training.md)
-    seed: int = 0
-    precision: str | None = None  # bf16 / tf32 / fp32; None: tf32 on CUDA, fp32 on CPU
-    device: str | None = None  # cpu / cuda; None: cuda when available
-    backend: str = "auto"  # kernels or the PyTorch reference ops
+    seed: int = option(0, "random seed")
+    precision: str | None = option(None, "MLP precision (default: tf32 on CUDA, fp32 on CPU)", choices=PRECISIONS)
+    device: str | None = option(None, "default: cuda when available", choices=("cpu", "cuda"))
+    backend: str = option("auto", "ops: compiled kernels or the PyTorch reference", choices=BACKENDS)
     out: str = "runs/default"
-    val_every: int = 2500
+    val_every: int = option(2500, "validate every N steps")
     val_images: int = 3  # validation renders this many val views
-    ckpt_every: int = 1000
-    log_every: int = 100
-    time_budget: float | None = None  # seconds of training (validation excluded); None: no limit
+    ckpt_every: int = option(1000, "checkpoint every N steps (a killed run loses at most N)")
+    log_every: int = option(100, "log a training row (train_log.csv, TensorBoard) every N steps")
+    # validation excluded; None: no limit
+    time_budget: float | None = option(None, "stop after this much training time", metavar="SECONDS")
     chunk: int = 8192  # most rays per chunk when rendering whole images
-    # most samples one chunk may shade when rendering whole images (bounds its memory whatever the
-    # rays hit); None: RENDER_SAMPLES of the device
-    render_samples: int | None = None
+    render_samples: int | None = option(
+        None, "most samples shaded at once when rendering whole images: bounds their memory whatever the "
+        f"rays hit (default: {RENDER_SAMPLES['cpu']} on CPU, {RENDER_SAMPLES['cuda']} on CUDA)", metavar="N")
     check_grads: bool = True  # the non-finite guard also checks every gradient
     # "occupancy": one marched pass over packed samples (mixer_nerf.render.skipping; no fine
     # network). "proposal": proposal networks pick proposal_samples intervals per ray (no fine
     # network). "hierarchical": NeRF's dense coarse + fine passes. "auto": sampling.resolve_sampler.
-    sampler: str = "auto"
-    grid_resolution: int = 128
+    sampler: str = option(
+        "auto",
+        "occupancy (skip empty space, occluded samples, missed rays), proposal (small density networks pick the "
+        "samples), hierarchical (NeRF's dense coarse + fine), auto (occupancy for bounded scenes such as "
+        "Blender's, proposal for forward-facing and unbounded ones)",
+        choices=SAMPLERS,
+    )
+    grid_resolution: int = option(128, "occupancy grid cells per axis")
     grid_every: int = 16  # refresh the grid from the model's density every N steps
     grid_warmup: int = 256  # steps during which every cell counts as occupied
     grid_threshold: float = 0.01  # opacity of one marching step above which a cell is occupied
     step_size: float | None = None  # marching step; None: the box diagonal / 1000
-    early_stop_eps: float = 1e-4  # stop a ray once its transmittance is below this (0: never)
+    early_stop_eps: float = option(1e-4, "stop rays whose transmittance falls below this (0: never)")
     alpha_threshold: float = 0.0  # drop samples with a smaller alpha (0: keep them)
-    target_samples: int | None = 131072  # occupancy: adapt the rays per step to this many samples
-    # occupancy: at each grid refresh, push the density down at random box points in cells the grid
-    # marks empty, which marching never samples; keeps a render without the grid clean
-    # (docs/training.md). 0: off.
-    empty_space_weight: float = 1e-2
+    target_samples: int | None = option(131072, "occupancy sampler: MLP samples per step (the ray batch adapts)")
+    # Marching never samples cells the grid marks empty; this keeps a render without the grid clean.
+    # Off by default: it lowered val PSNR at 120 s and 240 s (docs/training.md).
+    empty_space_weight: float = option(
+        0.0, "occupancy sampler: weight of the loss that keeps density out of the cells the grid marks "
+        "empty, applied at each grid refresh, for renders without the grid (default 0: off; e.g. 1e-2)")
     empty_space_points: int = 65536
-    # occupancy: the no-grad density passes (grid refreshes, the early-termination pre-pass) in bf16
-    # whatever `precision` is: they only decide which samples to skip. None: on CUDA, off on CPU.
-    bf16_density_passes: bool | None = None
+    # bf16 whatever `precision` is: these passes only decide which samples to skip.
+    bf16_density_passes: bool | None = option(
+        None, "occupancy sampler: no-grad density passes (grid refreshes, early termination) in bf16 "
+        "(default: on CUDA)")
     # proposal: samples of each proposal network's round, then of the main field
     proposal_rounds: tuple[int, ...] = (128, 64)
     proposal_samples: int = 48
     proposal_width: int = 128  # hidden width of each proposal network (2 layers)
     proposal_loss_weight: float = 1.0
+    tensorboard: bool = option(False, "log losses, PSNR, learning rate, samples per ray, rays/s and validation "
+                               "renders to <out>/tensorboard (needs .[tensorboard])")
     progress: bool = True  # progress bar on stderr
 
     def __post_init__(self) -> None:

@@ -1,4 +1,4 @@
-"""Training logs: CSV tables (train steps, validations) and a loss/PSNR plot."""
+"""Training logs: CSV tables (train steps, validations), a loss/PSNR plot and TensorBoard."""
 
 from __future__ import annotations
 
@@ -50,7 +50,8 @@ class CsvLog:
 
 
 def plot_curves(train_log: CsvLog, val_log: CsvLog, path: str | Path) -> Path | None:
-    """Loss and PSNR (train batches, validation views) against step, as a PNG; None if no rows."""
+    """Loss against step, and PSNR (train batches, validation views) against step and against
+    training seconds, as a PNG; None if no rows."""
     train, val = train_log.rows(), val_log.rows()
     if not train:
         return None
@@ -60,18 +61,49 @@ def plot_curves(train_log: CsvLog, val_log: CsvLog, path: str | Path) -> Path | 
     import matplotlib.pyplot as plt
 
     steps = [int(r["step"]) for r in train]
-    fig, (ax_loss, ax_psnr) = plt.subplots(1, 2, figsize=(10, 4))
+    fig, (ax_loss, ax_psnr, ax_time) = plt.subplots(1, 3, figsize=(15, 4))
     ax_loss.semilogy(steps, [float(r["loss"]) for r in train])
     ax_loss.set(xlabel="step", ylabel="loss (coarse + fine MSE)", title="training loss")
-    ax_psnr.plot(steps, [float(r["psnr"]) for r in train], label="train batch (fine)")
-    if val:
-        ax_psnr.plot([int(r["step"]) for r in val], [float(r["psnr"]) for r in val], "o-", label="validation")
-    ax_psnr.set(xlabel="step", ylabel="PSNR (dB)", title="PSNR")
-    ax_psnr.legend()
-    for ax in (ax_loss, ax_psnr):
+    for ax, x in ((ax_psnr, "step"), (ax_time, "seconds")):
+        ax.plot([float(r[x]) for r in train], [float(r["psnr"]) for r in train], label="train batch (fine)")
+        if val:
+            ax.plot([float(r[x]) for r in val], [float(r["psnr"]) for r in val], "o-", label="validation")
+        ax.set(xlabel="training seconds" if x == "seconds" else x, ylabel="PSNR (dB)", title=f"PSNR against {x}")
+        ax.legend()
+    for ax in (ax_loss, ax_psnr, ax_time):
         ax.grid(alpha=0.3)
     fig.tight_layout()
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=100)
     plt.close(fig)
     return Path(path)
+
+
+class TensorBoardLog:
+    """Scalars and images for TensorBoard (``torch.utils.tensorboard``) in ``folder``.
+
+    Raises:
+        OutputError: the tensorboard package is missing or ``folder`` is not writable, before
+            anything is trained.
+    """
+
+    def __init__(self, folder: str | Path) -> None:
+        from .output import OutputError, ensure_writable_folder
+
+        try:
+            from torch.utils.tensorboard import SummaryWriter
+        except ImportError as e:
+            raise OutputError("--tensorboard needs the tensorboard package: pip install 'mixer_nerf[tensorboard]'") from e
+        ensure_writable_folder(Path(folder))
+        self.writer = SummaryWriter(str(folder))
+
+    def scalars(self, step: int, values: dict[str, float]) -> None:
+        for tag, value in values.items():
+            self.writer.add_scalar(tag, value, step)
+
+    def image(self, step: int, tag: str, image: Any) -> None:
+        """``image``: (H, W, 3) float in [0, 1]."""
+        self.writer.add_image(tag, image.clamp(0, 1).cpu(), step, dataformats="HWC")
+
+    def close(self) -> None:
+        self.writer.close()

@@ -12,7 +12,7 @@ import torch
 from ..render import ImageRenderer
 from .checkpoint import CheckpointError, load_checkpoint
 from .config import TrainConfig
-from .fields import model_config_from_dict
+from .fields import RadianceFields, model_config_from_dict
 from .precision import set_matmul_precision
 from .sampling import image_renderer, make_fields
 
@@ -27,6 +27,7 @@ class TrainedRun:
     scene: dict[str, Any]  # see scenes.scene_info
     render: ImageRenderer
     device: torch.device
+    fields: RadianceFields  # in eval mode, on ``device``
 
 
 def load_trained(
@@ -64,4 +65,4 @@ def load_trained(
     fields.to(dev).eval()
     scene = state["scene"]
     renderer = image_renderer(cfg, fields, scene["near"], scene["far"], scene["background"].to(dev, torch.float32))
-    return TrainedRun(path, cfg, int(state["step"]), scene, renderer, dev)
+    return TrainedRun(path, cfg, int(state["step"]), scene, renderer, dev, fields)

@@ -13,6 +13,7 @@ from ..model.proposal_network import ProposalNetwork
 from ..render import ImageRenderer, chunk_result, render_rays
 from ..render.image_renderer import RENDER_SAMPLES, ChunkResult, rays_per_chunk
 from ..render.skipping import (
+    CellShare,
     GridRefresh,
     MarchingOptions,
     OccupancyGrid,
@@ -77,11 +78,14 @@ def make_fields(cfg: TrainConfig, model_cfg: ModelConfig, bbox: torch.Tensor | N
                           make_proposal(cfg, model_cfg, bounded=bbox is not None))
 
 
-def occupancy_sampler(cfg: TrainConfig, grid: OccupancyGrid) -> OccupancySampler:
-    """The occupancy sampler of a resolved ``cfg`` over ``grid``."""
+def occupancy_sampler(
+    cfg: TrainConfig, grid: OccupancyGrid, share: CellShare | None = None
+) -> OccupancySampler:
+    """The occupancy sampler of a resolved ``cfg`` over ``grid`` (``share``: this process's part of
+    its refreshes when several train it)."""
     budget = None if cfg.target_samples is None else SampleBudget(cfg.target_samples)
     refresh = GridRefresh(every=cfg.grid_every, warmup=cfg.grid_warmup, threshold=cfg.grid_threshold)
-    return OccupancySampler(grid, cfg.marching(), refresh, budget)
+    return OccupancySampler(grid, cfg.marching(), refresh, budget, share)
 
 
 def image_renderer(

@@ -6,8 +6,10 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import os
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import torch
@@ -18,13 +20,14 @@ from ..render import render_rays
 from ..render.skipping import proposal_loss, render_rays_proposal, shade_samples
 from .checkpoint import capture_rng_state, load_checkpoint, restore_rng_state, save_checkpoint
 from .config import TrainConfig
+from .distributed import join, rank_seed, restore_rank_sampler
 from .fields import model_config, model_config_to_dict
 from .guard import NonFiniteError, NonFiniteGuard
-from .logbook import CsvLog, plot_curves
+from .logbook import CsvLog, TensorBoardLog, plot_curves
 from .marched_batches import MarchedBatches
 from .memory import FLOAT_BYTES, check_fits
 from .occupancy_batch import MarchedBatch, prepare_marched_batch
-from .output import prepare_run_folder, write_text_atomic
+from .output import RunFiles, prepare_run_folder, write_text_atomic
 from .precision import set_matmul_precision
 from .sampler import RaySampler
 from .sampling import image_renderer, make_fields, occupancy_sampler, resolve_sampler
@@ -135,11 +138,12 @@ class Trainer:
         self, cfg: TrainConfig, resume: bool = False, log: Callable[[str], None] = print, overwrite: bool = False
     ) -> None:
         self.log = log
-        self.files, self.lock = prepare_run_folder(cfg.out, resume, overwrite)
+        owner = int(os.environ.get("RANK", "0")) == 0  # under torchrun rank 0 holds the folder for all
+        self.files, self.lock = prepare_run_folder(cfg.out, resume, overwrite) if owner else (RunFiles(Path(cfg.out)), None)
         try:
             self._start(cfg, resume)
         except BaseException:
-            self.lock.release()  # a run that could not start leaves the folder to the next one
+            self._release_folder()  # a run that could not start leaves the folder to the next one
             raise
 
     def _start(self, cfg: TrainConfig, resume: bool) -> None:
@@ -156,7 +160,13 @@ class Trainer:
         if cfg.data is not None:  # the checkpoint names the scene wherever it is read from
             cfg = dataclasses.replace(cfg, data=str(folder.resolve()))
         self.cfg = cfg = cfg.resolved(torch.cuda.is_available())
+        self.ranks = join(cfg.device)  # None: one process (no torchrun)
+        self.rank = 0 if self.ranks is None else self.ranks.rank
+        if self.rank:
+            self.log = lambda _: None  # rank 0 speaks and writes for all
         self.device = torch.device(cfg.device)
+        tensorboard = cfg.tensorboard and not self.rank
+        self.tensorboard = TensorBoardLog(self.files.root / "tensorboard") if tensorboard else None
         set_matmul_precision(cfg.precision)
 
         self.train_scene = load_split(folder, fmt, "train", cfg.downscale).to(self.device)
@@ -183,10 +193,10 @@ class Trainer:
         )
         near, far = self.train_scene.near, self.train_scene.far
         self.renderer = image_renderer(cfg, self.fields, near, far, self.background)
-        self.sampler = RaySampler(self.train_scene, cfg.batch_rays, cfg.seed)
+        self.sampler = RaySampler(self.train_scene, cfg.batch_rays, rank_seed(cfg.seed, self.rank))
         self.batches = None
         if self.fields.grid is not None:
-            occupancy = occupancy_sampler(cfg, self.fields.grid)
+            occupancy = occupancy_sampler(cfg, self.fields.grid, self.ranks and self.ranks.cell_share())
             if occupancy.budget is not None:
                 self.sampler.batch_rays = occupancy.budget.first_rays(cfg.batch_rays)
             empty_points = cfg.empty_space_points if cfg.empty_space_weight > 0 else 0
@@ -203,9 +213,9 @@ class Trainer:
         self.rays_seen = self.samples_seen = self.marched_seen = 0  # marched: before early termination
         if state is not None:
             self._load_state(state)
-        write_text_atomic(self.files.config,
-            json.dumps({"train": cfg.to_dict(), "model": model_config_to_dict(self.model_cfg)}, indent=1)
-        )
+        if not self.rank:
+            write_text_atomic(self.files.config, json.dumps(
+                {"train": cfg.to_dict(), "model": model_config_to_dict(self.model_cfg)}, indent=1))
 
     # -- one step ---------------------------------------------------------------------------
 
@@ -231,10 +241,13 @@ class Trainer:
         loss.backward()
         step = self.step + 1
         self.guard.observe_losses(step, **losses)
-        if cfg.check_grads:
-            self.guard.observe_grads(step, [p.grad for p in self.params])
+        mean = self.ranks and self.ranks.start_gradient_mean(self.params)  # overlaps the prefetch
         if self.batches is not None:
             self.batches.prefetch(step)  # overlaps the backward pass; reads the weights before the update
+        if mean:
+            mean.finish()
+        if cfg.check_grads:
+            self.guard.observe_grads(step, [p.grad for p in self.params])
         self.optimizer.step()
         self.step = step
         return {"loss": loss.detach(), "mse": losses.get("loss_fine", losses["loss_coarse"]).detach()}
@@ -296,7 +309,7 @@ class Trainer:
         cfg = self.cfg
         progress = self.step / cfg.steps
         if cfg.time_budget is not None:
-            progress = max(progress, self.clock.now() / cfg.time_budget)
+            progress = max(progress, self._training_time() / cfg.time_budget)
         decay = min(1.0, max(0.0, (progress - cfg.lr_hold) / (1.0 - cfg.lr_hold)))
         warmup = min(1.0, (self.step + 1) / cfg.lr_warmup) if cfg.lr_warmup else 1.0
         return warmup * (cfg.lr_final / cfg.lr) ** decay
@@ -314,6 +327,8 @@ class Trainer:
             rays_o, rays_d = scene.rays_for_image(i)
             rgb = self.render_rgb(rays_o.float(), rays_d.float()).reshape(scene.H, scene.W, 3)
             scores.append(psnr(rgb.clamp(0, 1), scene.image(i)).item())
+            if self.tensorboard is not None:
+                self.tensorboard.image(self.step, f"validation/view_{i}", rgb)
         return sum(scores) / len(scores)
 
     # -- the loop ---------------------------------------------------------------------------
@@ -332,7 +347,7 @@ class Trainer:
         bar = tqdm(
             total=cfg.steps,
             initial=self.step,
-            disable=not cfg.progress,
+            disable=not cfg.progress or self.rank > 0,
             unit="step",
             dynamic_ncols=True,
             leave=False,
@@ -342,7 +357,7 @@ class Trainer:
         self.clock.start()
         try:
             while self.step < cfg.steps:
-                if cfg.time_budget is not None and self.clock.now() >= cfg.time_budget:
+                if cfg.time_budget is not None and self._training_time() >= cfg.time_budget:
                     status = "time budget reached"
                     break
                 stats = self.train_step()
@@ -372,12 +387,12 @@ class Trainer:
             self._finish(status)
             raise
         except BaseException:
-            self.lock.release()  # a killed or failed run leaves the folder to the next one
+            self._release_folder()  # a killed or failed run leaves the folder to the next one
             raise
         finally:
             bar.close()
         summary = self._finish(status)
-        self.lock.release()
+        self._release_folder()
         return summary
 
     def save(self) -> None:
@@ -385,6 +400,9 @@ class Trainer:
         self.guard.raise_if_bad()
         if self.batches is not None:
             self.batches.discard()  # a resumed run prepares its first batch with these weights
+        rank_samplers = self.ranks and self.ranks.gather_objects(self.sampler.generator.get_state())
+        if self.rank:
+            return
         save_checkpoint(
             self.files.checkpoint,
             {
@@ -396,6 +414,7 @@ class Trainer:
                 "model": self.fields.state_dict(),
                 "optimizer": self.optimizer.state_dict(),
                 "rng": capture_rng_state(self.sampler.generator),
+                "rank_samplers": rank_samplers or [],  # each rank's own rays (several processes)
                 # The occupancy sampler adapts the batch size; the counters feed samples_per_ray.
                 "progress": {
                     "batch_rays": self.sampler.batch_rays,
@@ -413,10 +432,13 @@ class Trainer:
         self.optimizer.load_state_dict(state["optimizer"])
         self.step = int(state["step"])
         trained_on = str(state["train_config"].get("device") or "cpu").split(":")[0]
-        same_device = trained_on == self.device.type
-        restore_rng_state(state["rng"], self.sampler.generator if same_device else None)
-        if not same_device:  # one device type's generator state means nothing to another's
-            self.sampler.generator.manual_seed(self.cfg.seed + self.step)
+        same_device = trained_on == self.device.type  # a generator's state is one device type's
+        restore_rng_state(state["rng"], self.sampler.generator if same_device and not self.rank else None)
+        if self.rank:
+            restore_rank_sampler(self.sampler.generator, state.get("rank_samplers", []) if same_device else [],
+                                 self.rank, self.cfg.seed, self.step)
+        elif not same_device:
+            self.sampler.generator.manual_seed(rank_seed(self.cfg.seed, 0, self.step))
             self.log(f"moved from {trained_on} to {self.device.type}: from step {self.step} on, the random "
                      "batches differ from an uninterrupted run's")
         progress = state.get("progress", {})
@@ -426,9 +448,19 @@ class Trainer:
         self.marched_seen = int(progress.get("marched_seen", 0))
         self.clock = TrainingClock(self.device, float(state["elapsed"]))
         # Rows a killed run logged after its last checkpoint describe steps that will be redone.
-        self.train_log.truncate_after(self.step)
-        self.val_log.truncate_after(self.step)
+        if not self.rank:
+            self.train_log.truncate_after(self.step)
+            self.val_log.truncate_after(self.step)
         self.log(f"resumed {self.files.checkpoint} at step {self.step}")
+
+    def _training_time(self) -> float:
+        """The training clock; with several ranks rank 0's, so that they all decide alike."""
+        now = self.clock.now()
+        return now if self.ranks is None else self.ranks.decide(now)
+
+    def _release_folder(self) -> None:
+        if self.lock is not None:
+            self.lock.release()
 
     def _paused(self, action: Callable[[], Any]) -> None:
         """Run ``action`` with the training clock paused."""
@@ -437,6 +469,8 @@ class Trainer:
         self.clock.start()
 
     def _log_train(self, stats: dict[str, torch.Tensor], rays_per_s: float, bar: Any) -> None:
+        if self.rank:
+            return
         loss, mse = stats["loss"].item(), stats["mse"].item()
         row = {
             "step": self.step,
@@ -448,14 +482,22 @@ class Trainer:
             "samples_per_ray": round(self.samples_seen / max(self.rays_seen, 1), 2),
         }
         self.train_log.append(row)
+        if self.tensorboard is not None:
+            self.tensorboard.scalars(self.step, {f"train/{k}": v for k, v in row.items() if k not in ("step", "seconds")})
         bar.set_postfix(loss=f"{loss:.4f}", psnr=f"{row['psnr']:.2f}", rays_s=f"{rays_per_s:,.0f}")
 
     def _log_validation(self) -> None:
+        if self.rank:
+            return  # the others wait for rank 0 at their next collective
         value = self.validate()
         self.val_log.append({"step": self.step, "seconds": round(self.clock.elapsed, 3), "psnr": value})
+        if self.tensorboard is not None:
+            self.tensorboard.scalars(self.step, {"validation/psnr": value})
         self.log(f"step {self.step}: validation PSNR {value:.2f} dB ({self.val_split} split)")
 
     def _finish(self, status: str) -> dict[str, Any]:
+        if self.rank:
+            return {"status": status, "step": self.step, "rank": self.rank}
         val = self.val_log.rows()
         summary = {
             "status": status,
@@ -465,7 +507,10 @@ class Trainer:
             "checkpoint": str(self.files.checkpoint) if self.files.checkpoint.exists() else None,
             "curves": str(plot_curves(self.train_log, self.val_log, self.files.curves) or ""),
             "device": str(self.device),
+            "processes": 1 if self.ranks is None else self.ranks.world_size,
             "precision": self.cfg.precision,
         }
         write_text_atomic(self.files.summary, json.dumps(summary, indent=1))
+        if self.tensorboard is not None:
+            self.tensorboard.close()
         return summary

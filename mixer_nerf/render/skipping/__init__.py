@@ -19,12 +19,13 @@ from .marching import (
     render_rays_marched,
     shade_samples,
 )
-from .occupancy_grid import OccupancyGrid
+from .occupancy_grid import CellShare, OccupancyGrid
 from .occupancy_sampler import GridRefresh, OccupancySampler
 from .proposal import ProposalOptions, ProposalSampler, proposal_loss, render_rays_proposal
 from .sample_budget import SampleBudget
 
 __all__ = [
+    "CellShare",
     "GridRefresh",
     "MarchedResult",
     "MarchedSamples",

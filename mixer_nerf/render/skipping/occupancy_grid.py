@@ -10,11 +10,23 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 
 import torch
 from torch import nn
 
 from ...ops.bitfield import cell_bits, pack_bits, unpack_bits
+
+
+@dataclass(frozen=True)
+class CellShare:
+    """One of ``count`` processes refreshing the same grid: process ``index`` measures its share of
+    the cells and ``max_reduce`` (in place, over the processes) merges what they measured, so every
+    process ends with the same grid."""
+
+    index: int
+    count: int
+    max_reduce: Callable[[torch.Tensor], object]
 
 
 class OccupancyGrid(nn.Module):
@@ -83,6 +95,7 @@ class OccupancyGrid(nn.Module):
         chunk_size: int = 1 << 18,
         autocast_dtype: torch.dtype | None = None,
         generator: torch.Generator | None = None,
+        share: CellShare | None = None,
     ) -> bool:
         """Refresh the grid from the model's density; a no-op unless ``step % every == 0``.
 
@@ -91,7 +104,9 @@ class OccupancyGrid(nn.Module):
         given): every cell during warm-up (``step < warmup_steps``), afterwards a random quarter
         of the cells plus as many of the occupied ones (nerfacc's recipe: its cost stays a half
         of a full pass). Chosen cells take ``max(decay * old, opacity)``. The bitfield is then
-        every cell during warm-up, afterwards the cells above ``min(threshold, mean)``.
+        every cell during warm-up, afterwards the cells above ``min(threshold, mean)``. With
+        ``share``, this process measures 1/count of those cells (every count-th during warm-up,
+        else its own random draws) and the measurements of all processes are max-reduced.
 
         Returns:
             Whether the grid was updated.
@@ -99,12 +114,14 @@ class OccupancyGrid(nn.Module):
         if step % every != 0:
             return False
         warm = step < warmup_steps
-        cells = self._cells_to_update(warm, generator)
+        cells = self._cells_to_update(warm, generator, share)
         opacity = self._opacity(
             self._jittered_points(cells, generator), density_fn, chunk_size, autocast_dtype
         )
         flat = self.opacity.view(-1)
         fresh = torch.full_like(flat, -1.0).scatter_reduce_(0, cells, opacity, "amax")
+        if share is not None:
+            share.max_reduce(fresh)
         flat.copy_(torch.where(fresh >= 0, torch.maximum(flat * decay, fresh), flat))
         occupied = (
             torch.ones_like(flat, dtype=torch.bool) if warm else flat > flat.mean().clamp(max=threshold)
@@ -112,11 +129,14 @@ class OccupancyGrid(nn.Module):
         self.bitfield.copy_(pack_bits(occupied))
         return True
 
-    def _cells_to_update(self, everything: bool, generator: torch.Generator | None) -> torch.Tensor:
+    def _cells_to_update(
+        self, everything: bool, generator: torch.Generator | None, share: CellShare | None
+    ) -> torch.Tensor:
         device = self.opacity.device
+        index, count = (0, 1) if share is None else (share.index, share.count)
         if everything:
-            return torch.arange(self.num_cells, device=device)
-        quarter = self.num_cells // 4
+            return torch.arange(index, self.num_cells, count, device=device)
+        quarter = -(-(self.num_cells // 4) // count)  # ceil: together at least a quarter
         random_cells = torch.randint(self.num_cells, (quarter,), device=device, generator=generator)
         occupied = unpack_bits(self.bitfield, self.num_cells).nonzero().squeeze(1)
         if occupied.numel() > quarter:

@@ -9,7 +9,7 @@ import torch
 from torch import nn
 
 from .marching import MarchedSamples, MarchingOptions, march_samples
-from .occupancy_grid import OccupancyGrid
+from .occupancy_grid import CellShare, OccupancyGrid
 from .sample_budget import SampleBudget
 
 
@@ -32,8 +32,9 @@ class GridRefresh:
 
 class OccupancySampler:
     """Where the field of a bounded scene needs evaluating: ``grid`` (its box and occupied cells),
-    ``marching`` (step and skips), ``refresh`` (the grid's training schedule) and ``budget``
-    (None: the ray batch stays as drawn)."""
+    ``marching`` (step and skips), ``refresh`` (the grid's training schedule), ``budget``
+    (None: the ray batch stays as drawn) and ``share`` (this process's part of refreshes shared by
+    several training processes; None: one process)."""
 
     def __init__(
         self,
@@ -41,14 +42,17 @@ class OccupancySampler:
         marching: MarchingOptions = MarchingOptions(),
         refresh: GridRefresh = GridRefresh(),
         budget: SampleBudget | None = None,
+        share: CellShare | None = None,
     ) -> None:
         self.grid, self.marching, self.refresh, self.budget = grid, marching, refresh, budget
+        self.share = share
 
     def update(self, step: int, density_field: nn.Module, generator: torch.Generator | None = None) -> bool:
         """Refresh the grid from ``density_field.density`` if ``step`` is a refresh step."""
         r = self.refresh
         return self.grid.update(step, lambda x: density_field.density(x), every=r.every, decay=r.decay,
-                                threshold=r.threshold, warmup_steps=r.warmup, generator=generator)
+                                threshold=r.threshold, warmup_steps=r.warmup, generator=generator,
+                                share=self.share)
 
     def is_refresh_step(self, step: int) -> bool:
         """Whether ``step`` refreshes the grid after its warm-up."""
