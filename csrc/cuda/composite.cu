@@ -13,16 +13,11 @@
 // pass; packed rays are mostly that short). No atomics.
 //
 // Like the CPU kernel, both passes compute in double for every input dtype (ray_acc) and round
-// each output once. In float32 the kernel was less accurate than the reference path
-// (benchmarks/results/error_budget_cuda.md before this change): thin-media opacity max 2.0e-7 vs
-// 1.7e-7 (E drifted by a few ulps over a ray) and, far worse, thin-media sigma gradients max 4.6
-// vs 0.96, median 1.9e-7 vs 7.8e-8: G starts at O(1) and is multiplied S times by exp(-tau_j),
-// which rounds to 1 in float32 in fog, so a float32 G held ~S ulps that g_j - G_{j+1} kept where
-// it is small. In the backward exp(-tau) is 1 + expm1(-tau) where that is >= 1/2 (accurate
-// however thin the sample), else exp. The doubles cost FP64 math, not memory traffic: on an H100
-// at R=65536, S=192 the forward went from 0.157 to 0.252 ms and forward+backward from ~0.43 to
-// 0.583 ms (benchmarks/results/ops_cuda.md). Carrying T within a lane's run as a product of
-// exp(-tau) (one exp per run instead of one per sample) measured slower still (0.680 ms).
+// each output once: G starts at O(1) and is multiplied S times by exp(-tau_j), which rounds to 1
+// in float32 in fog, so a float32 G would hold ~S ulps that g_j - G_{j+1} keeps where it is small
+// (thin-media sigma gradients; docs/numerics.md, "Precision and accumulation"). In the backward
+// exp(-tau) is 1 + expm1(-tau) where that is >= 1/2 (accurate however thin the sample), else exp.
+// The doubles cost FP64 math, not memory traffic (benchmarks/results/ops/).
 #include <torch/library.h>
 
 #include <ATen/ATen.h>
@@ -239,8 +234,8 @@ __device__ void composite_backward_ray(const CompositeInputs<scalar_t>& in, cons
 }
 
 template <typename scalar_t, typename Rays>
-// 4 blocks per SM: 64 registers (80 without the bound capped occupancy at 3 blocks; the forward is
-// latency-bound, benchmarks/results/ncu_composite_cuda.txt), at the cost of <= 48 bytes of spills.
+// 4 blocks per SM: 64 registers (80 without the bound capped occupancy at 3 blocks, and the
+// forward is latency-bound), at the cost of <= 48 bytes of spills.
 __global__ void __launch_bounds__(kMaxWarpsPerBlock* kWarpSize, 4)
     composite_fwd_kernel(CompositeInputs<scalar_t> in, CompositeOutputs<scalar_t> out, int64_t R, Rays rays) {
   const int64_t ray = int64_t(blockIdx.x) * (blockDim.x / kWarpSize) + threadIdx.x / kWarpSize;

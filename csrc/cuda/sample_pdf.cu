@@ -165,10 +165,9 @@ __device__ void segmented_scan(int key, int lane, acc_t& a, acc_t& b, acc_t& c, 
 
 // Backward. Tail: per bin, sum a, sum a t, gradient reaching its lower and its upper edge (4 B).
 // Every term and sum is a double for every input dtype (grad_t), as in the CPU kernel's
-// sample_pdf_ray_backward (see its comment): dL/dw_i is a difference of sums that largely cancel.
-// With float32 sums, float32 weight gradients were less accurate than the reference path's
-// (benchmarks/results/error_budget_cuda.md before this change: 9.9e63 vs 3.3e63 max on extreme
-// PDFs). The doubles cost shuffles and shared memory, not memory traffic.
+// sample_pdf_ray_backward (see its comment): dL/dw_i is a difference of sums that largely cancel,
+// which float32 sums made less accurate than the reference path on extreme PDFs. The doubles
+// cost shuffles and shared memory, not memory traffic.
 template <typename scalar_t, typename Rows>
 __global__ void sample_pdf_backward_kernel(int64_t rays, WarpLayout layout, Rows rows, const scalar_t* __restrict__ grad,
                                            const scalar_t* __restrict__ bins, const scalar_t* __restrict__ weights,

@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass, field
 from typing import Any
 
 from ..data import FORMATS
+from ..render.image_renderer import RENDER_SAMPLES
 from ..render.skipping import MarchingOptions
 
 PRESETS = ("A", "B", "C", "D")
@@ -71,7 +73,10 @@ class TrainConfig:
     log_every: int = option(100, "log a training row (train_log.csv, TensorBoard) every N steps")
     # validation excluded; None: no limit
     time_budget: float | None = option(None, "stop after this much training time", metavar="SECONDS")
-    chunk: int = 8192  # rays per chunk when rendering whole images
+    chunk: int = 8192  # most rays per chunk when rendering whole images
+    render_samples: int | None = option(
+        None, "most samples shaded at once when rendering whole images: bounds their memory whatever the "
+        f"rays hit (default: {RENDER_SAMPLES['cpu']} on CPU, {RENDER_SAMPLES['cuda']} on CUDA)", metavar="N")
     check_grads: bool = True  # the non-finite guard also checks every gradient
     # "occupancy": one marched pass over packed samples (mixer_nerf.render.skipping; no fine
     # network). "proposal": proposal networks pick proposal_samples intervals per ray (no fine
@@ -164,8 +169,10 @@ class TrainConfig:
             raise ValueError("proposal_width must be positive and proposal_loss_weight >= 0")
         if not self.adam_eps > 0:
             raise ValueError(f"adam_eps must be positive, got {self.adam_eps}")
-        if self.time_budget is not None and self.time_budget <= 0:
-            raise ValueError(f"time_budget must be positive seconds, got {self.time_budget}")
+        if self.time_budget is not None and not 0 < self.time_budget < math.inf:
+            raise ValueError(f"time_budget must be a positive, finite number of seconds, got {self.time_budget}")
+        if self.render_samples is not None and self.render_samples < 1:
+            raise ValueError(f"render_samples must be positive, got {self.render_samples}")
 
     def resolved(self, cuda_available: bool) -> TrainConfig:
         """A copy with ``device``, ``precision`` and ``bf16_density_passes`` chosen for this machine."""
