@@ -8,6 +8,7 @@ Set ``MIXER_NERF_DEBUG=1`` to see the full traceback instead.
 from __future__ import annotations
 
 import argparse
+import errno
 import os
 import sys
 from collections.abc import Sequence
@@ -46,6 +47,7 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--out", help="output folder (default: <checkpoint folder>/eval_<split>)")
     evaluate.add_argument("--max-images", type=int, help="score only the first N views")
     _add_device_options(evaluate)
+    add_options(evaluate, ["--render-samples"])
 
     render = commands.add_parser("render", help="render a video and depth maps along a camera path")
     render.add_argument("--ckpt", required=True, help="checkpoint file")
@@ -62,6 +64,7 @@ def build_parser() -> argparse.ArgumentParser:
     render.add_argument("--scale", type=float, default=1.0, help="resolution relative to the training images")
     render.add_argument("--out", help="output folder (default: <checkpoint folder>/video)")
     _add_device_options(render)
+    add_options(render, ["--render-samples"])
 
     demo = commands.add_parser(
         "demo", help="train, evaluate and render the built-in scene (a few CPU minutes)"
@@ -71,7 +74,9 @@ def build_parser() -> argparse.ArgumentParser:
     _add_prepare_parser(commands)
     _add_ablate_parser(commands)
     _add_export_parser(commands)
-    commands.add_parser("doctor", help="versions, GPU, which kernels run and why, a 10 s accuracy check of each op")
+    commands.add_parser(
+        "doctor", help="versions, GPU, which kernels run and why, a 10 s accuracy check of each op"
+    )
     return parser
 
 
@@ -87,7 +92,8 @@ def _add_export_parser(commands: argparse._SubParsersAction) -> None:
     points.add_argument("--min-opacity", type=float, default=0.5, help="pixels kept (default 0.5)")
     points.add_argument("--max-points", type=int, default=1_000_000, help="random subset (default 1,000,000)")
     depth = kinds.add_parser("depth", help="raw depth and opacity (NPY, EXR with OpenEXR) and depth previews")
-    for parser, default_out in ((mesh, "export/mesh.ply"), (points, "export/points.ply"), (depth, "depth_<path>")):
+    outs = ((mesh, "export/mesh.ply"), (points, "export/points.ply"), (depth, "depth_<path>"))
+    for parser, default_out in outs:
         parser.add_argument("--ckpt", required=True, help="checkpoint file")
         parser.add_argument("--out", help=f"output (default: <checkpoint folder>/{default_out})")
         _add_device_options(parser)
@@ -124,12 +130,13 @@ def _add_prepare_parser(commands: argparse._SubParsersAction) -> None:
 
 def train_config_from_args(args: argparse.Namespace) -> TrainConfig:
     """TrainConfig defaults, then the demo settings when there is no scene folder, then the --config
-    file, then what was typed."""
+    file, then what was typed. A resumed train takes no demo settings (its checkpoint holds them)."""
     from .train.config_file import read_config_file
 
     from_file = read_config_file(args.config) if getattr(args, "config", None) else {}
     data = args.data or from_file.get("data")
-    values: dict[str, Any] = {} if data else dict(DEMO_SETTINGS)
+    resumed_run = args.command in ("train", "demo") and args.resume
+    values: dict[str, Any] = {} if data or resumed_run else dict(DEMO_SETTINGS)
     values.update(from_file)
     values.update(typed_settings(args))
     values["data"] = data
@@ -170,11 +177,12 @@ def run_train(args: argparse.Namespace) -> int:
             "no --data: training on the built-in procedural scene with CPU-friendly settings:\n  "
             + ", ".join(f"{k}={v}" for k, v in chosen.items())
         )
-    summary = _train(cfg, args.resume)
+    summary = _train(cfg, args.resume, args.overwrite)
     if rank:
         return 0  # rank 0 evaluates and reports
     ckpt = Path(summary["checkpoint"])
-    held_out = _evaluate(ckpt, device=cfg.device, backend=cfg.backend)
+    views = args.eval_views
+    held_out = None if views == 0 else _evaluate(ckpt, device=cfg.device, backend=cfg.backend, max_images=views)
     video = (
         _render(ckpt, DEMO_VIDEO_FRAMES, device=cfg.device, backend=cfg.backend)
         if cfg.data is None
@@ -189,9 +197,10 @@ def run_eval(args: argparse.Namespace) -> int:
 
     if args.max_images is not None and args.max_images < 1:
         raise UserError(f"--max-images must be positive, got {args.max_images}")
+    _check_render_samples(args)
     record = evaluate(
         args.ckpt, data=args.data, split=args.split, out=args.out, device=args.device, backend=args.backend,
-        max_images=args.max_images,
+        max_images=args.max_images, render_samples=args.render_samples,
     )
     _print_eval(record)
     return 0
@@ -200,6 +209,7 @@ def run_eval(args: argparse.Namespace) -> int:
 def run_render(args: argparse.Namespace) -> int:
     from .video import render_video
 
+    _check_render_samples(args)
     result = render_video(
         args.ckpt,
         out=args.out,
@@ -209,9 +219,15 @@ def run_render(args: argparse.Namespace) -> int:
         scale=args.scale,
         device=args.device,
         backend=args.backend,
+        render_samples=args.render_samples,
     )
     _print_video(result)
     return 0
+
+
+def _check_render_samples(args: argparse.Namespace) -> None:
+    if args.render_samples is not None and args.render_samples < 1:
+        raise UserError(f"--render-samples must be positive, got {args.render_samples}")
 
 
 def run_prepare(args: argparse.Namespace) -> int:
@@ -256,15 +272,18 @@ def run_export(args: argparse.Namespace) -> int:
         print(f"mesh: {r['mesh']} ({r['vertices']} vertices, {r['faces']} faces, "
               f"{'watertight' if r['watertight'] else 'not watertight'})")
     elif args.what == "points":
-        r = export_points(args.ckpt, args.out or default, args.path, args.frames, args.scale, args.min_opacity,
-                          args.max_points, **device)
+        r = export_points(
+            args.ckpt, args.out or default, args.path, args.frames, args.scale, args.min_opacity,
+            args.max_points, **device,
+        )  # fmt: skip
         print(f"points: {r['points']} ({r['count']} points from {r['views']} views)")
     else:
         r = export_depth(args.ckpt, args.out, args.path, args.frames, args.scale, **device)
         print(f"depth: {r['out']} ({r['views']} views: depth_NNNN.npy, opacity_NNNN.npy, depth_NNNN.png"
               f"{', depth_NNNN.exr' if r['exr'] else '; no EXR writer (pip install OpenEXR)'})")
         return 0
-    print(f"  bounds {_box(r['bounds'])}" + (f", scene box {_box(r['scene_box'])}" if "scene_box" in r else ""))
+    box = f", scene box {_box(r['scene_box'])}" if "scene_box" in r else ""
+    print(f"  bounds {_box(r['bounds'])}{box}")
     return 0
 
 
@@ -278,8 +297,8 @@ def run_doctor(args: argparse.Namespace) -> int:
     return doctor()
 
 
-COMMANDS = {"train": run_train, "eval": run_eval, "render": run_render, "demo": run_train, "prepare": run_prepare,
-            "ablate": run_ablate, "export": run_export, "doctor": run_doctor}
+COMMANDS = {"train": run_train, "eval": run_eval, "render": run_render, "demo": run_train,
+            "prepare": run_prepare, "ablate": run_ablate, "export": run_export, "doctor": run_doctor}
 
 
 def _relaunched(args: argparse.Namespace, cfg: TrainConfig) -> bool:
@@ -319,10 +338,10 @@ def _relaunched(args: argparse.Namespace, cfg: TrainConfig) -> bool:
     return True
 
 
-def _train(cfg: TrainConfig, resume: bool) -> dict[str, Any]:
+def _train(cfg: TrainConfig, resume: bool, overwrite: bool) -> dict[str, Any]:
     from .train import Trainer
 
-    trainer = Trainer(cfg, resume=resume)
+    trainer = Trainer(cfg, resume=resume, overwrite=overwrite)
     c = trainer.cfg
     if trainer.rank:
         return trainer.fit()
@@ -352,11 +371,12 @@ def _render(ckpt: Path, frames: int, **kwargs: Any) -> dict[str, Any]:
     return render_video(ckpt, frames=frames, log=lambda _: None, **kwargs)
 
 
-def _report(summary: dict[str, Any], held_out: dict[str, Any], video: dict[str, Any] | None) -> None:
+def _report(summary: dict[str, Any], held_out: dict[str, Any] | None, video: dict[str, Any] | None) -> None:
     root = Path(summary["checkpoint"]).parent
     print(f"checkpoint:   {summary['checkpoint']}")
     print(f"logs:         {root / 'train_log.csv'}, {root / 'val_log.csv'}, plot {summary['curves']}")
-    _print_eval(held_out)
+    if held_out is not None:
+        _print_eval(held_out)
     if video is not None:
         _print_video(video)
 
@@ -386,11 +406,24 @@ def _add_train_options(parser: argparse.ArgumentParser, default_out: str) -> Non
     )  # fmt: skip
     add_options(parser, train_options())
     parser.add_argument("--out", help=f"run folder (default: {default_out})")
-    parser.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
+    parser.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint "
+                        "(a new --steps extends it; --device moves it; other settings must match)")
+    parser.add_argument("--overwrite", action="store_true", help="delete the run in --out and start over")
+    parser.add_argument("--eval-views", type=_eval_views, metavar="N|none",
+                        help="held-out views scored after training (default: all; none: skip)")
     parser.add_argument("--devices", type=int, metavar="N",
                         help="train on N processes under torchrun: one per GPU, or CPU processes with "
                         "--device cpu (docs/distributed.md)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def _eval_views(text: str) -> int:
+    """``--eval-views``: a positive count, or "none" (0)."""
+    if text == "none":
+        return 0
+    if not text.isdigit() or int(text) < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive number of views or 'none', got {text!r}")
+    return int(text)
 
 
 def _add_ablate_parser(commands: Any) -> None:
@@ -433,6 +466,8 @@ def _is_user_error(e: Exception) -> bool:
     from .train import CheckpointError, NonFiniteError, OutputError
     from .train.distributed import DistributedError
 
+    if isinstance(e, OSError) and e.errno in (errno.ENOSPC, errno.EDQUOT, errno.EROFS):
+        return True  # disk full, quota, read-only: the user frees space or picks another --out
     return isinstance(
         e,
         (

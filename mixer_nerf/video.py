@@ -19,7 +19,8 @@ from .data.llff import BD_FACTOR
 from .data.rays import camera_rays, ndc_rays
 from .data.scene import NDC_NEAR
 from .render.camera_path import CameraPath, fixed_intrinsics_path, read_nerfstudio_path, split_path
-from .train.output import ensure_writable_folder
+from .train.memory import FLOAT_BYTES, check_fits
+from .train.output import OutputError, atomic_path, ensure_writable_folder
 from .train.restore import TrainedRun, load_trained
 from .train.scenes import scene_source
 
@@ -135,7 +136,8 @@ def path_cameras(run: TrainedRun, path: str, n_frames: int) -> CameraPath:
 def frame_rays(scene: dict[str, Any], cameras: CameraPath, i: int) -> tuple[torch.Tensor, torch.Tensor]:
     """Rays (H*W, 3) of camera ``i`` of ``cameras``, warped to NDC for an NDC ``scene``."""
     focal = float(cameras.focals[i])
-    origins, dirs = camera_rays(cameras.H, cameras.W, focal, cameras.poses[i].double(), cameras.cx, cameras.cy)
+    c2w = cameras.poses[i].double()
+    origins, dirs = camera_rays(cameras.H, cameras.W, focal, c2w, cameras.cx, cameras.cy)
     origins, dirs = origins.reshape(-1, 3), dirs.reshape(-1, 3)
     if scene["ndc"]:
         origins, dirs = ndc_rays(cameras.H, cameras.W, focal, NDC_NEAR, origins, dirs)
@@ -194,9 +196,11 @@ def colorize_depth(depth: torch.Tensor, opacity: torch.Tensor, lo: float, hi: fl
 
 
 def write_png(path: str | Path, image: np.ndarray) -> None:
+    """Write a PNG atomically (a killed run leaves the old file or the new one)."""
     import imageio.v3 as iio
 
-    iio.imwrite(path, image)
+    with atomic_path(path) as tmp:
+        iio.imwrite(tmp, image)
 
 
 def video_format() -> str:
@@ -209,7 +213,9 @@ def video_format() -> str:
 
 
 def write_video(stem: str | Path, frames: list[np.ndarray], fps: int) -> Path:
-    """Write uint8 (H, W, 3) ``frames`` to ``stem``.mp4, or ``stem``.gif without ffmpeg. Returns the path."""
+    """Write uint8 (H, W, 3) ``frames`` to ``stem``.mp4, or ``stem``.gif without ffmpeg, atomically
+    (an earlier video there stays whole until the new one is complete). Returns the path."""
+    check_fps(fps)
     stem = Path(stem)
     if video_format() == "mp4":
         import imageio.v2 as iio2
@@ -218,15 +224,26 @@ def write_video(stem: str | Path, frames: list[np.ndarray], fps: int) -> Path:
         # H.264 in yuv420p needs even sizes: pad by repeating the last row/column.
         h, w = frames[0].shape[:2]
         even = [np.pad(f, ((0, h % 2), (0, w % 2), (0, 0)), mode="edge") for f in frames]
-        iio2.mimwrite(path, even, fps=fps, macro_block_size=1, ffmpeg_log_level="error")
-        if path.is_file() and path.stat().st_size > 0:  # ffmpeg failures do not always raise
+        try:
+            with atomic_path(path) as tmp:
+                iio2.mimwrite(tmp, even, fps=fps, macro_block_size=1, ffmpeg_log_level="error")
+                if not tmp.is_file() or tmp.stat().st_size == 0:  # ffmpeg failures do not always raise
+                    raise OSError("ffmpeg wrote nothing")
             return path
-        path.unlink(missing_ok=True)
+        except OutputError:
+            pass  # fall back to a GIF
     import imageio.v3 as iio
 
     path = stem.with_suffix(".gif")
-    iio.imwrite(path, np.stack(frames), duration=1000.0 / fps, loop=0)
+    with atomic_path(path) as tmp:
+        iio.imwrite(tmp, np.stack(frames), duration=1000.0 / fps, loop=0)
     return path
+
+
+def check_fps(fps: int) -> None:
+    """Raise ValueError unless ``fps`` is a positive whole number of frames per second."""
+    if isinstance(fps, bool) or not isinstance(fps, int) or fps < 1:
+        raise ValueError(f"fps must be a positive whole number, got {fps!r}")
 
 
 def render_video(
@@ -238,6 +255,7 @@ def render_video(
     scale: float = 1.0,
     device: str | None = None,
     backend: str | None = None,
+    render_samples: int | None = None,
     log: Callable[[str], None] = print,
 ) -> dict[str, Any]:
     """Render a camera path from a checkpoint: ``video.mp4|gif``, ``depth.mp4|gif`` and
@@ -251,10 +269,17 @@ def render_video(
     """
     if frames < 1:
         raise ValueError(f"frames must be positive, got {frames}")
-    if not scale > 0:
-        raise ValueError(f"scale must be positive, got {scale}")
-    run = load_trained(ckpt, device=device, backend=backend)
+    if not 0 < scale < math.inf:
+        raise ValueError(f"scale must be positive and finite, got {scale}")
+    check_fps(fps)
+    run = load_trained(ckpt, device=device, backend=backend, render_samples=render_samples)
     cameras = path_cameras(run, path, frames).scaled(scale)
+    pixels, n = cameras.H * cameras.W, len(cameras)
+    # Per pixel: one frame's rays in float64 then float32 (18 numbers) and its renders (5); every
+    # frame's colour, depth and opacity until the videos are written (3 bytes and 2 floats).
+    check_fits(f"--scale {scale:g} with {n} frames", pixels * (23 * FLOAT_BYTES + n * (3 + 2 * FLOAT_BYTES)),
+               torch.device("cpu"))
+    check_fits(f"--scale {scale:g}", pixels * 11 * FLOAT_BYTES, run.device)  # rays and renders
     out = Path(out) if out is not None else run.path.parent / "video"
     depth_dir = out / "depth"
     ensure_writable_folder(depth_dir)

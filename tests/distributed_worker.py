@@ -1,6 +1,7 @@
 """Run by tests/test_distributed.py under torchrun: trains (or resumes) the run a JSON TrainConfig
 file describes, rank ``--fail-rank`` raising just before step ``--fail-step``, then saves this
-rank's final fields (weights and occupancy grid) to ``rank<r>.pt`` in the run folder."""
+rank's final fields (weights and occupancy grid) and a probe of the gradient mean to
+``rank<r>.pt`` in the run folder."""
 
 from __future__ import annotations
 
@@ -32,7 +33,15 @@ def main() -> None:
 
         trainer.train_step = failing_step
     trainer.fit()
-    torch.save({"step": trainer.step, "fields": trainer.fields.state_dict()},
+    # The gradient mean on its own: rank r's gradient is r + 1; the second parameter has none on rank 0.
+    device = trainer.device
+    probe = [torch.zeros(n, device=device, requires_grad=True) for n in (3, 2)]
+    probe[0].grad = torch.full((3,), trainer.rank + 1.0, device=device)
+    if trainer.rank:
+        probe[1].grad = torch.ones(2, device=device)
+    trainer.ranks.start_gradient_mean(probe).finish()
+    probed = [p.grad.cpu() for p in probe]
+    torch.save({"step": trainer.step, "fields": trainer.fields.state_dict(), "probe": probed},
                Path(cfg.out) / f"rank{trainer.rank}.pt")
 
 

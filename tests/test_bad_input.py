@@ -527,11 +527,13 @@ def test_render_rays_rejects_a_field_that_is_not_callable():
         render_rays(None, RAYS_O, RAYS_D, 2.0, 6.0)
 
 
-def test_render_rays_does_not_check_field_densities():
-    """Documented: the renderer skips composite's value checks (a GPU sync each), fields must return
-    sigma >= 0. A field breaking that contract gets meaningless (negative) opacities, not an error;
-    this pins the behaviour so that a change to it is noticed."""
-    out = render_rays(ConstantField(density=-1.0), RAYS_O, RAYS_D, 2.0, 6.0, num_coarse=8, num_fine=0)
+def test_render_rays_checks_field_densities_unless_told_not_to():
+    """A field breaking the sigma >= 0 contract is named (one reduction per pass); check_field=False
+    skips that GPU sync and gets meaningless (negative) opacities instead."""
+    with pytest.raises(ValueError, match="field ConstantField returned a negative density"):
+        render_rays(ConstantField(density=-1.0), RAYS_O, RAYS_D, 2.0, 6.0, num_coarse=8, num_fine=0)
+    out = render_rays(ConstantField(density=-1.0), RAYS_O, RAYS_D, 2.0, 6.0, num_coarse=8, num_fine=0,
+                      check_field=False)
     assert (out.final.opacity < 0).all()
 
 

@@ -33,8 +33,11 @@ def write(tmp_path, spec, name="path.json"):
 
 def test_camera_path_frames_are_used_as_they_are(tmp_path):
     a, b = pose(np.eye(3), [0, 0, 4]), pose(Rotation.from_euler("z", 30, degrees=True).as_matrix(), [1, 2, 3])
-    spec = {"render_height": 30, "render_width": 40,
-            "camera_path": [{"camera_to_world": m.ravel().tolist(), "fov": 60, "aspect": 4 / 3} for m in (a, b)]}
+    spec = {
+        "render_height": 30,
+        "render_width": 40,
+        "camera_path": [{"camera_to_world": m.ravel().tolist(), "fov": 60, "aspect": 4 / 3} for m in (a, b)],
+    }
     cams = read_nerfstudio_path(write(tmp_path, spec))
     assert (len(cams), cams.H, cams.W, cams.cx, cams.cy) == (2, 30, 40, 20.0, 15.0)
     torch.testing.assert_close(cams.poses, torch.tensor(np.stack([a, b]), dtype=torch.float32))
@@ -44,9 +47,16 @@ def test_camera_path_frames_are_used_as_they_are(tmp_path):
 def test_keyframes_are_interpolated_to_seconds_times_fps(tmp_path):
     quarter = Rotation.from_euler("z", 90, degrees=True).as_matrix()
     keys = [pose(np.eye(3), [0, 0, 4]), pose(quarter, [4, 0, 0])]
-    spec = {"render_height": 8, "render_width": 8, "seconds": 1, "fps": 5,
-            "keyframes": [{"matrix": json.dumps(keys[0].T.ravel().tolist()), "fov": 40},  # column-major
-                          {"matrix": keys[1].T.ravel().tolist(), "fov": 60}]}  # fmt: skip
+    spec = {
+        "render_height": 8,
+        "render_width": 8,
+        "seconds": 1,
+        "fps": 5,
+        "keyframes": [
+            {"matrix": json.dumps(keys[0].T.ravel().tolist()), "fov": 40},  # column-major
+            {"matrix": keys[1].T.ravel().tolist(), "fov": 60},
+        ],
+    }
     cams = read_nerfstudio_path(write(tmp_path, spec))
     assert len(cams) == 5
     torch.testing.assert_close(cams.poses[[0, -1]].double(), torch.tensor(np.stack(keys)), atol=1e-6, rtol=0)
@@ -63,16 +73,37 @@ def test_keyframes_are_interpolated_to_seconds_times_fps(tmp_path):
         ([1, 2], "expected a JSON object"),
         ({"render_width": 8, "camera_path": []}, "'render_height' must be a positive integer"),
         ({"render_height": 8, "render_width": 8}, "needs a non-empty 'camera_path' or 'keyframes'"),
-        ({"render_height": 8, "render_width": 8, "camera_path": [{"camera_to_world": [1, 2], "fov": 50}]},
-         "camera_path[0].camera_to_world must be 16 finite numbers"),
-        ({"render_height": 8, "render_width": 8, "camera_path": [{"camera_to_world": [2.0] * 16, "fov": 50}]},
-         "does not hold a rotation"),
-        ({"render_height": 8, "render_width": 8,
-          "camera_path": [{"camera_to_world": np.eye(4).ravel().tolist(), "fov": 180}]}, "field of view in (0, 180)"),
-        ({"render_height": 8, "render_width": 8, "fps": 30,
-          "keyframes": [{"matrix": np.eye(4).ravel().tolist(), "fov": 50}]}, "'seconds' must be a positive number"),
+        (
+            {"render_height": 8, "render_width": 8, "camera_path": [{"camera_to_world": [1, 2], "fov": 50}]},
+            "camera_path[0].camera_to_world must be 16 finite numbers",
+        ),
+        (
+            {
+                "render_height": 8,
+                "render_width": 8,
+                "camera_path": [{"camera_to_world": [2.0] * 16, "fov": 50}],
+            },
+            "does not hold a rotation",
+        ),
+        (
+            {
+                "render_height": 8,
+                "render_width": 8,
+                "camera_path": [{"camera_to_world": np.eye(4).ravel().tolist(), "fov": 180}],
+            },
+            "field of view in (0, 180)",
+        ),
+        (
+            {
+                "render_height": 8,
+                "render_width": 8,
+                "fps": 30,
+                "keyframes": [{"matrix": np.eye(4).ravel().tolist(), "fov": 50}],
+            },
+            "'seconds' must be a positive number",
+        ),
     ],
-)  # fmt: skip
+)
 def test_bad_schemas_name_the_file_and_the_field(tmp_path, spec, message):
     path = write(tmp_path, spec)
     with pytest.raises(CameraPathError) as info:
@@ -96,14 +127,19 @@ def render(ckpt, out, *argv):
     return cli.main(["render", "--ckpt", str(ckpt), "--out", str(out), *argv, *RENDER_FLAGS])
 
 
-def test_render_along_the_dataset_cameras_and_the_same_cameras_from_a_file(tiny_occupancy_run, tmp_path, capsys):
+def test_render_along_the_dataset_cameras_and_the_same_cameras_from_a_file(
+    tiny_occupancy_run, tmp_path, capsys
+):
     ckpt = tiny_occupancy_run / "checkpoint.pt"
     scene = load_checkpoint(ckpt)["scene"]
     assert render(ckpt, tmp_path / "train", "--path", "train") == 0
     assert "video (train, 4 frames" in capsys.readouterr().out
     fov = math.degrees(2 * math.atan(scene["H"] / 2 / scene["focal"]))
-    spec = {"render_height": scene["H"], "render_width": scene["W"],
-            "camera_path": [{"camera_to_world": p.ravel().tolist(), "fov": fov} for p in scene["train_poses"]]}
+    spec = {
+        "render_height": scene["H"],
+        "render_width": scene["W"],
+        "camera_path": [{"camera_to_world": p.ravel().tolist(), "fov": fov} for p in scene["train_poses"]],
+    }
     assert render(ckpt, tmp_path / "file", "--path", str(write(tmp_path, spec, "train_path.json"))) == 0
     for i in range(4):
         a = iio.imread(tmp_path / "train" / "depth" / f"frame_{i:04d}.png").astype(int)

@@ -28,15 +28,35 @@ def test_every_field_with_help_is_a_flag_and_reaches_the_config(capsys):
     usage = capsys.readouterr().out
     for flag in train_options():
         assert flag in usage
-    cfg = parse_train("--data", "x", "--early-stop-eps", "0.001", "--grid-resolution", "32",
-                      "--no-bf16-density-passes", "--format", "blender")  # fmt: skip
+    cfg = parse_train(
+        "--data",
+        "x",
+        "--early-stop-eps",
+        "0.001",
+        "--grid-resolution",
+        "32",
+        "--no-bf16-density-passes",
+        "--format",
+        "blender",
+    )
     assert (cfg.early_stop_eps, cfg.grid_resolution, cfg.bf16_density_passes, cfg.format) == (
-        1e-3, 32, False, "blender")  # fmt: skip
+        1e-3,
+        32,
+        False,
+        "blender",
+    )
 
 
 def test_a_runs_config_json_is_read_back_and_flags_override_it(tmp_path):
-    saved = TrainConfig(data="scenes/lego", steps=777, lr=3e-3, proposal_rounds=(64, 32), out="runs/old",
-                        model_overrides={"width": 32, "skips": [2]}, device="cpu")  # fmt: skip
+    saved = TrainConfig(
+        data="scenes/lego",
+        steps=777,
+        lr=3e-3,
+        proposal_rounds=(64, 32),
+        out="runs/old",
+        model_overrides={"width": 32, "skips": [2]},
+        device="cpu",
+    )
     path = tmp_path / "config.json"
     path.write_text(json.dumps({"train": saved.to_dict(), "model": {"width": 32}}))
     assert parse_train("--config", str(path)) == dataclasses.replace(saved, progress=True)
@@ -62,13 +82,21 @@ def test_train_reruns_from_a_toml_file(tmp_path, monkeypatch):
     path.write_text(
         f'data = "{scene}"\nsteps = 2\nbatch_rays = 16\nnum_coarse = 4\nnum_fine = 4\nval_every = 1\n'
         f'sampler = "hierarchical"\nout = "{tmp_path / "first"}"\n'
-        '[model_overrides]\ndepth = 2\nwidth = 16\nskips = []\npos_freqs = 2\n'
+        "[model_overrides]\ndepth = 2\nwidth = 16\nskips = []\npos_freqs = 2\n"
     )
     assert cli.main(["train", "--config", str(path), *TINY_FLAGS]) == 0
     first = json.loads((tmp_path / "first" / "config.json").read_text())
     assert first["train"]["steps"] == 2 and first["model"]["width"] == 16
-    argv = ["train", "--config", str(tmp_path / "first" / "config.json"), "--out", str(tmp_path / "again"),
-            "--steps", "1", *TINY_FLAGS]  # fmt: skip
+    argv = [
+        "train",
+        "--config",
+        str(tmp_path / "first" / "config.json"),
+        "--out",
+        str(tmp_path / "again"),
+        "--steps",
+        "1",
+        *TINY_FLAGS,
+    ]
     assert cli.main(argv) == 0
     again = json.loads((tmp_path / "again" / "config.json").read_text())
     assert again["train"] == {**first["train"], "steps": 1, "out": str(tmp_path / "again")}

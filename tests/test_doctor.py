@@ -23,7 +23,9 @@ def test_doctor_reports_and_checks_every_op(capsys):
 
 def test_without_kernels_it_names_the_fallback_and_why(monkeypatch, capsys):
     monkeypatch.setattr(_extension, "available", lambda: False)
-    monkeypatch.setitem(_extension._state, "error", _extension.ExtensionUnavailable("kernels disabled by test"))
+    monkeypatch.setitem(
+        _extension._state, "error", _extension.ExtensionUnavailable("kernels disabled by test")
+    )
     assert cli.main(["doctor"]) == 0
     out = capsys.readouterr().out
     assert "none, PyTorch reference fallback: kernels disabled by test" in out
@@ -37,7 +39,9 @@ def test_a_wrong_kernel_fails_the_check(monkeypatch, capsys):
 
     def off_by_a_bit(device, gen):
         op, inputs = good(device, gen)
-        return (lambda v, o, backend: op(v, o, backend=backend) * (1.001 if backend == "kernel" else 1.0)), inputs
+        return (
+            lambda v, o, backend: op(v, o, backend=backend) * (1.001 if backend == "kernel" else 1.0)
+        ), inputs
 
     monkeypatch.setitem(doctor.CASES, "segment_mean", off_by_a_bit)
     assert cli.main(["doctor"]) == 1

@@ -65,8 +65,19 @@ def test_export_mesh_of_a_trained_run_opens_in_trimesh(tiny_occupancy_run, tmp_p
     ckpt = tiny_occupancy_run / "checkpoint.pt"
     threshold = half_max_density(ckpt, 24)
     out = tmp_path / "mesh.ply"
-    argv = ["export", "mesh", "--ckpt", str(ckpt), "--out", str(out), "--resolution", "24",
-            "--threshold", str(threshold), *FLAGS]  # fmt: skip
+    argv = [
+        "export",
+        "mesh",
+        "--ckpt",
+        str(ckpt),
+        "--out",
+        str(out),
+        "--resolution",
+        "24",
+        "--threshold",
+        str(threshold),
+        *FLAGS,
+    ]
     assert cli.main(argv) == 0
     mesh = trimesh.load(out)
     printed = capsys.readouterr().out
@@ -88,7 +99,18 @@ def test_export_points_and_depth(tiny_occupancy_run, tmp_path, capsys):
     assert len(cloud.vertices) > 0 and cloud.colors.shape == (len(cloud.vertices), 4)
 
     depth_dir = tmp_path / "depth"
-    argv = ["export", "depth", "--ckpt", str(ckpt), "--out", str(depth_dir), "--path", "turntable", "--frames", "2"]
+    argv = [
+        "export",
+        "depth",
+        "--ckpt",
+        str(ckpt),
+        "--out",
+        str(depth_dir),
+        "--path",
+        "turntable",
+        "--frames",
+        "2",
+    ]
     assert cli.main([*argv, *FLAGS]) == 0
     assert "2 views" in capsys.readouterr().out
     depth, opacity = np.load(depth_dir / "depth_0001.npy"), np.load(depth_dir / "opacity_0001.npy")

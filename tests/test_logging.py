@@ -11,8 +11,27 @@ from mixer_nerf.data import ensure_procedural_scene
 
 pytest.importorskip("tensorboard")
 
-FLAGS = ["--backend", "torch", "--device", "cpu", "--no-progress", "--sampler", "hierarchical", "--steps", "2",
-         "--batch-rays", "16", "--num-coarse", "4", "--num-fine", "4", "--val-every", "1", "--log-every", "1"]  # fmt: skip
+FLAGS = [
+    "--backend",
+    "torch",
+    "--device",
+    "cpu",
+    "--no-progress",
+    "--sampler",
+    "hierarchical",
+    "--steps",
+    "2",
+    "--batch-rays",
+    "16",
+    "--num-coarse",
+    "4",
+    "--num-fine",
+    "4",
+    "--val-every",
+    "1",
+    "--log-every",
+    "1",
+]
 
 
 @pytest.fixture
@@ -30,8 +49,14 @@ def test_tensorboard_holds_the_scalars_and_validation_renders(scene, tmp_path, m
     assert cli.main(["train", "--data", scene, "--out", str(out), "--tensorboard", *FLAGS]) == 0
     events = EventAccumulator(str(out / "tensorboard")).Reload()
     scalars = set(events.Tags()["scalars"])
-    assert {"train/loss", "train/psnr", "train/lr", "train/samples_per_ray", "train/rays_per_s",
-            "validation/psnr"} <= scalars  # fmt: skip
+    assert {
+        "train/loss",
+        "train/psnr",
+        "train/lr",
+        "train/samples_per_ray",
+        "train/rays_per_s",
+        "validation/psnr",
+    } <= scalars
     assert [e.step for e in events.Scalars("validation/psnr")] == [1, 2]
     assert "validation/view_0" in events.Tags()["images"]
     assert (out / "curves.png").stat().st_size > 0

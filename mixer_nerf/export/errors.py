@@ -14,7 +14,9 @@ def require_trimesh() -> ModuleType:
     try:
         import trimesh
     except ImportError as e:
-        raise ExportError("mesh and point-cloud exports need trimesh: pip install 'mixer_nerf[export]'") from e
+        raise ExportError(
+            "mesh and point-cloud exports need trimesh: pip install 'mixer_nerf[export]'"
+        ) from e
     return trimesh
 
 

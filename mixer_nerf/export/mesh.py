@@ -38,8 +38,12 @@ def density_volume(
     axes = [torch.linspace(float(lo[i]), float(hi[i]), resolution) for i in range(3)]
     points = torch.stack(torch.meshgrid(*axes, indexing="ij"), dim=-1).reshape(-1, 3)
     cells = torch.tensor(occupied.shape)
-    index = ((points - lo) / (hi - lo) * cells).floor().long().clamp(min=torch.zeros(3, dtype=torch.long),
-                                                                     max=cells - 1)  # fmt: skip
+    index = (
+        ((points - lo) / (hi - lo) * cells)
+        .floor()
+        .long()
+        .clamp(min=torch.zeros(3, dtype=torch.long), max=cells - 1)
+    )
     dilated = F.max_pool3d(occupied[None, None].float().cpu(), 3, stride=1, padding=1)[0, 0] > 0
     keep = dilated[index[:, 0], index[:, 1], index[:, 2]].nonzero().squeeze(1)
     volume = torch.zeros(len(points))
@@ -70,8 +74,10 @@ def extract_mesh(
     volume = density_volume(density_fn, aabb, occupied, resolution, device)
     vertices, faces = mcubes.marching_cubes(volume.astype(np.float64), float(threshold))
     if len(faces) == 0:
-        raise ExportError(f"no surface at density {threshold:g}: the largest density in the occupied cells is "
-                          f"{volume.max():.3g}; lower --threshold")  # fmt: skip
+        raise ExportError(
+            f"no surface at density {threshold:g}: the largest density in the occupied cells is "
+            f"{volume.max():.3g}; lower --threshold"
+        )
     lo, hi = aabb[0].cpu().double().numpy(), aabb[1].cpu().double().numpy()
     mesh = trimesh.Trimesh(lo + vertices / (resolution - 1) * (hi - lo), faces, process=True)
     if mesh.volume < 0:  # marching cubes' winding depends on the sign convention: normals point out
@@ -79,7 +85,9 @@ def extract_mesh(
     return mesh
 
 
-def surface_colors(run: TrainedRun, vertices: torch.Tensor, normals: torch.Tensor, reach: float) -> torch.Tensor:
+def surface_colors(
+    run: TrainedRun, vertices: torch.Tensor, normals: torch.Tensor, reach: float
+) -> torch.Tensor:
     """(V, 3) colours of surface points, each rendered by a ray of length 2 ``reach`` that enters
     along the outward normal and crosses the surface at its middle."""
     field, fine = run.fields.runners(run.cfg.precision, run.device)
@@ -89,8 +97,19 @@ def surface_colors(run: TrainedRun, vertices: torch.Tensor, normals: torch.Tenso
         for start in range(0, len(vertices), CHUNK // COLOR_SAMPLES):
             v = vertices[start : start + CHUNK // COLOR_SAMPLES].to(run.device, torch.float32)
             n = normals[start : start + CHUNK // COLOR_SAMPLES].to(run.device, torch.float32)
-            out = render_rays(field, v + reach * n, -n, 0.0, 2 * reach, COLOR_SAMPLES, 0, fine, stratified=False,
-                              background=background, backend=run.cfg.backend)  # fmt: skip
+            out = render_rays(
+                field,
+                v + reach * n,
+                -n,
+                0.0,
+                2 * reach,
+                COLOR_SAMPLES,
+                0,
+                fine,
+                stratified=False,
+                background=background,
+                backend=run.cfg.backend,
+            )
             colors.append(out.coarse.color.clamp(0, 1).cpu())
     return torch.cat(colors)
 
@@ -123,13 +142,17 @@ def export_mesh(
     run = load_trained(ckpt, device=device, backend=backend)
     grid = run.fields.grid
     if grid is None:
-        raise ExportError(f"{run.path}: trained with the {run.cfg.sampler} sampler, which keeps no occupancy grid; "
-                          "mesh export needs one (train with --sampler occupancy)")  # fmt: skip
+        raise ExportError(
+            f"{run.path}: trained with the {run.cfg.sampler} sampler, which keeps no occupancy grid; "
+            "mesh export needs one (train with --sampler occupancy)"
+        )
     if run.scene["ndc"]:
         raise ExportError(f"{run.path}: a forward-facing (NDC) scene has no bounded surface to mesh")
     ensure_writable_folder(out.parent)
     field = run.fields.runners(run.cfg.precision, run.device)[0]
-    log(f"marching cubes at {resolution}^3 over {int(grid.occupied.sum())} occupied of {grid.num_cells} cells")
+    log(
+        f"marching cubes at {resolution}^3 over {int(grid.occupied.sum())} occupied of {grid.num_cells} cells"
+    )
     mesh = extract_mesh(field.density, grid.aabb, grid.occupied, resolution, threshold, run.device)
     cell = float((grid.aabb[1] - grid.aabb[0]).max()) / (resolution - 1)
     normals = torch.from_numpy(np.array(mesh.vertex_normals))

@@ -46,7 +46,9 @@ def export_points(
     trimesh = require_trimesh()
     run = load_trained(ckpt, device=device, backend=backend)
     if run.scene["ndc"]:
-        raise ExportError(f"{run.path}: a forward-facing (NDC) scene renders depth in NDC space, not world points")
+        raise ExportError(
+            f"{run.path}: a forward-facing (NDC) scene renders depth in NDC space, not world points"
+        )
     cameras = path_cameras(run, path, frames).scaled(scale)
     ensure_writable_folder(out.parent)
     log(f"rendering {len(cameras)} views of the {cameras.kind} path at {cameras.W}x{cameras.H}")
@@ -59,10 +61,14 @@ def export_points(
         colors.append(frame.color.reshape(-1, 3)[hit])
     xyz, rgb = torch.cat(points), torch.cat(colors)
     if len(xyz) == 0:
-        raise ExportError(f"no pixel of the {cameras.kind} views is {min_opacity:g} opaque: nothing to export")
+        raise ExportError(
+            f"no pixel of the {cameras.kind} views is {min_opacity:g} opaque: nothing to export"
+        )
     if len(xyz) > max_points:
         keep = torch.randperm(len(xyz), generator=torch.Generator().manual_seed(0))[:max_points]
         xyz, rgb = xyz[keep], rgb[keep]
-    cloud = trimesh.PointCloud(xyz.double().numpy(), colors=(rgb.clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8))
+    cloud = trimesh.PointCloud(
+        xyz.double().numpy(), colors=(rgb.clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8)
+    )
     cloud.export(out)
     return {"points": str(out), "count": len(xyz), "views": len(cameras), "bounds": cloud.bounds.tolist()}

@@ -86,11 +86,15 @@ def read_nerfstudio_path(path: str | Path) -> CameraPath:
     except ValueError as e:
         raise CameraPathError(f"{path}: not valid JSON: {e}") from e
     if not isinstance(spec, dict):
-        raise CameraPathError(f"{path}: expected a JSON object with render_height, render_width and camera_path")
+        raise CameraPathError(
+            f"{path}: expected a JSON object with render_height, render_width and camera_path"
+        )
     H, W = (_positive_int(path, spec, key) for key in ("render_height", "render_width"))
     if spec.get("camera_path"):
         frames = _list(path, spec, "camera_path")
-        poses = np.stack([_matrix(path, f"camera_path[{i}]", f, "camera_to_world") for i, f in enumerate(frames)])
+        poses = np.stack(
+            [_matrix(path, f"camera_path[{i}]", f, "camera_to_world") for i, f in enumerate(frames)]
+        )
         fovs = np.array([_fov(path, f"camera_path[{i}]", f) for i, f in enumerate(frames)])
     elif spec.get("keyframes"):
         keys = _list(path, spec, "keyframes")
@@ -101,8 +105,9 @@ def read_nerfstudio_path(path: str | Path) -> CameraPath:
     else:
         raise CameraPathError(f"{path}: needs a non-empty 'camera_path' or 'keyframes' list")
     focals = (H / 2) / np.tan(np.radians(fovs) / 2)
-    return CameraPath(torch.from_numpy(poses).float(), torch.from_numpy(focals).float(), H, W, W / 2, H / 2,
-                      path.name)  # fmt: skip
+    return CameraPath(
+        torch.from_numpy(poses).float(), torch.from_numpy(focals).float(), H, W, W / 2, H / 2, path.name
+    )
 
 
 def interpolate_keyframes(poses: np.ndarray, fovs: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -144,8 +149,9 @@ def _positive_number(path: Path, spec: dict, key: str) -> float:
 def _fov(path: Path, where: str, camera: Any) -> float:
     fov = camera.get("fov") if isinstance(camera, dict) else None
     if not isinstance(fov, (int, float)) or isinstance(fov, bool) or not 0 < fov < 180:
-        raise CameraPathError(f"{path}: {where}.fov must be a vertical field of view in (0, 180) degrees, "
-                              f"got {fov!r}")  # fmt: skip
+        raise CameraPathError(
+            f"{path}: {where}.fov must be a vertical field of view in (0, 180) degrees, got {fov!r}"
+        )
     return float(fov)
 
 

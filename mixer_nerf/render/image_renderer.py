@@ -27,6 +27,20 @@ class ChunkResult(NamedTuple):
     num_marched: int
 
 
+RENDER_SAMPLES = {"cpu": 1 << 18, "cuda": 1 << 22}
+"""Default most samples one chunk shades, per device type (docs/training.md#memory)."""
+
+
+def rays_per_chunk(max_samples: int, samples_per_ray: int, max_rays: int) -> int:
+    """Rays per chunk such that a chunk shades at most ``max_samples`` samples whatever its rays
+    hit, given the most samples one ray can take; at least 1, at most ``max_rays``. Chunks hold
+    whole rays: a field may pool over a ray's samples (SE), so splitting one would change it."""
+    for name, value in (("max_samples", max_samples), ("samples_per_ray", samples_per_ray), ("max_rays", max_rays)):
+        if value < 1:
+            raise ValueError(f"{name} must be positive, got {value}")
+    return max(1, min(max_rays, max_samples // samples_per_ray))
+
+
 RenderChunk = Callable[..., ChunkResult]
 """``render_chunk(rays_o (R, 3), rays_d (R, 3), **per_ray) -> ChunkResult``."""
 

@@ -50,6 +50,7 @@ def render_rays(
     lindisp: bool = False,
     last_delta: float | None = None,
     weight_padding: float = 0.0,
+    check_field: bool = True,
 ) -> RenderOutput:
     """Render rays with a coarse pass and a hierarchical fine pass.
 
@@ -71,6 +72,8 @@ def render_rays(
             intervals ``[t_i, t_{i+1}]`` whose last one is ``last_delta`` long (NeRF: 1e10). See
             :mod:`mixer_nerf.render.samplers`.
         weight_padding: added to the coarse weights before fine sampling (NeRF's code: 1e-5).
+        check_field: refuse a negative density from the field (one reduction per pass: a GPU
+            sync; the shapes it returns are always checked).
 
     Returns:
         :class:`RenderOutput` ``(coarse, fine)``; each :class:`RayBundleResult` holds color
@@ -79,7 +82,8 @@ def render_rays(
     """
     near_t, far_t = _validate(field, rays_o, rays_d, near, far, num_coarse, num_fine, background, backend, lindisp)
     depths = stratified_depths(near_t, far_t, num_coarse, stratified, lindisp, generator)
-    coarse = _render_pass(field, rays_o, rays_d, depths, near_t, far_t, background, backend, last_delta)
+    coarse = _render_pass(field, rays_o, rays_d, depths, near_t, far_t, background, backend, last_delta,
+                          check_field)
     if num_fine == 0:
         return RenderOutput(coarse, None)
     depths = hierarchical_samples(
@@ -93,7 +97,7 @@ def render_rays(
         check_values=False,
     )
     fine = _render_pass(
-        fine_field or field, rays_o, rays_d, depths, near_t, far_t, background, backend, last_delta
+        fine_field or field, rays_o, rays_d, depths, near_t, far_t, background, backend, last_delta, check_field
     )
     return RenderOutput(coarse, fine)
 
@@ -156,10 +160,10 @@ def chunk_result(out: RenderOutput) -> ChunkResult:
 
 
 def _render_pass(
-    field, rays_o, rays_d, depths, near, far, background, backend, last_delta
+    field, rays_o, rays_d, depths, near, far, background, backend, last_delta, check_field
 ) -> RayBundleResult:
     background = None if background is None else background.to(depths.dtype)
-    sigmas, rgbs = query_field(field, rays_o, rays_d, depths)
+    sigmas, rgbs = query_field(field, rays_o, rays_d, depths, check_field)
     t_starts, t_ends = sample_intervals(depths, near, far, last_delta)
     nerf_depth = depths if last_delta is not None else None
     return composite_samples(sigmas, rgbs, t_starts, t_ends, background, backend, depths=nerf_depth)

@@ -20,7 +20,7 @@ class RayBundleResult(NamedTuple):
 
 
 def query_field(
-    field: nn.Module, rays_o: torch.Tensor, rays_d: torch.Tensor, depths: torch.Tensor
+    field: nn.Module, rays_o: torch.Tensor, rays_d: torch.Tensor, depths: torch.Tensor, check_sign: bool = False
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Evaluate ``field(x, d)`` at ``x = o + t d`` for depths ``(R, S)``.
 
@@ -32,12 +32,31 @@ def query_field(
 
     Returns:
         sigma ``(R, S)`` per unit of ``t``, rgb ``(R, S, 3)``, in the rays' dtype.
+
+    Raises:
+        ValueError: naming the field, when it returns other shapes or (with ``check_sign``, one
+            reduction: a GPU sync) a negative density.
     """
     norm = torch.linalg.vector_norm(rays_d, dim=-1, keepdim=True)  # (R, 1)
     viewdirs = rays_d / norm.clamp_min(torch.finfo(rays_d.dtype).tiny)
     positions = rays_o[:, None, :] + depths[..., None] * rays_d[:, None, :]
     sigma, rgb = field(positions, viewdirs[:, None, :].expand_as(positions))
+    check_field_output(field, sigma, rgb, tuple(depths.shape), check_sign)
     return sigma.to(depths.dtype) * norm, rgb.to(depths.dtype)
+
+
+def check_field_output(
+    field: nn.Module, sigma: torch.Tensor, rgb: torch.Tensor, shape: tuple[int, ...], check_sign: bool
+) -> None:
+    """Raise ValueError naming ``field`` unless it gave sigma ``shape`` and rgb ``(*shape, 3)``
+    (and, with ``check_sign``, no negative sigma: compositing would make opacities outside [0, 1])."""
+    name = type(field).__name__
+    if tuple(sigma.shape) != shape or tuple(rgb.shape) != (*shape, 3):
+        raise ValueError(f"field {name} returned sigma {tuple(sigma.shape)} and rgb {tuple(rgb.shape)} for "
+                         f"{shape} samples; expected sigma {shape} and rgb {(*shape, 3)}")
+    if check_sign and bool((sigma < 0).any()):
+        raise ValueError(f"field {name} returned a negative density (min {float(sigma.min()):.3g}); "
+                         "densities must be >= 0 (e.g. softplus or ReLU the raw output)")
 
 
 def composite_samples(

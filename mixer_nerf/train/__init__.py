@@ -4,7 +4,8 @@
     summary = Trainer(TrainConfig(data="path/to/lego", out="runs/lego")).fit()
 
 A run folder holds ``checkpoint.pt`` (atomic, every ``ckpt_every`` steps and at the end),
-``config.json``, ``train_log.csv``, ``val_log.csv``, ``curves.png`` and ``summary.json``.
+``config.json``, ``train_log.csv``, ``val_log.csv``, ``curves.png``, ``summary.json`` and, with
+``tensorboard=True``, ``tensorboard/``.
 
 Names are imported lazily, so that ``mixer_nerf.train.config`` (used to parse the command line)
 does not pull in torch, the model and the renderer.

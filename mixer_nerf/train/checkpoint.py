@@ -2,20 +2,21 @@
 
 A checkpoint is one ``torch.save`` file holding plain containers of tensors and numbers only, so
 it loads with ``weights_only=True``: no code is unpickled from it. Writing goes to a temporary file
-in the same folder that is fsync'ed and then renamed over the target with ``os.replace``; a run
-killed at any moment leaves either the previous checkpoint or the new one, never a mixture.
+in the same folder that is fsync'ed and then renamed over the target (:func:`~.output.atomic_path`);
+a run killed at any moment leaves either the previous checkpoint or the new one, never a mixture,
+and a failed write (disk full) keeps the previous one.
 """
 
 from __future__ import annotations
 
-import os
 import random
-import tempfile
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
+
+from .output import atomic_path
 
 FORMAT = "mixer_nerf.checkpoint"
 VERSION = 1
@@ -27,19 +28,13 @@ class CheckpointError(RuntimeError):
 
 
 def save_checkpoint(path: str | Path, state: dict[str, Any]) -> None:
-    """Atomically write ``state`` (plus the format header) to ``path``."""
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            torch.save({"format": FORMAT, "version": VERSION, **state}, f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    _fsync_dir(path.parent)
+    """Atomically write ``state`` (plus the format header) to ``path``.
+
+    Raises:
+        OutputError: naming ``path`` when it cannot be written; the previous checkpoint is kept.
+    """
+    with atomic_path(path) as tmp, tmp.open("wb") as f:
+        torch.save({"format": FORMAT, "version": VERSION, **state}, f)
 
 
 def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> dict[str, Any]:
@@ -88,8 +83,9 @@ def capture_rng_state(sampler_generator: torch.Generator) -> dict[str, Any]:
     }
 
 
-def restore_rng_state(state: dict[str, Any], sampler_generator: torch.Generator) -> None:
-    """Inverse of :func:`capture_rng_state`."""
+def restore_rng_state(state: dict[str, Any], sampler_generator: torch.Generator | None) -> None:
+    """Inverse of :func:`capture_rng_state`; ``None`` leaves the sampler's generator as it is
+    (its state is that of one device type)."""
     torch.set_rng_state(state["torch"])
     if state["cuda"] and torch.cuda.is_available():
         torch.cuda.set_rng_state_all(state["cuda"])
@@ -98,7 +94,8 @@ def restore_rng_state(state: dict[str, Any], sampler_generator: torch.Generator)
         (n["kind"], n["keys"].numpy().astype(np.uint32), n["pos"], n["has_gauss"], n["gauss"])
     )
     random.setstate(_to_tuples(state["python"]))
-    sampler_generator.set_state(state["sampler"])
+    if sampler_generator is not None:
+        sampler_generator.set_state(state["sampler"])
 
 
 def _to_lists(value: Any) -> Any:
@@ -107,17 +104,3 @@ def _to_lists(value: Any) -> Any:
 
 def _to_tuples(value: Any) -> Any:
     return tuple(_to_tuples(v) for v in value) if isinstance(value, list) else value
-
-
-def _fsync_dir(folder: Path) -> None:
-    """Make the rename itself durable (POSIX); a no-op where folders cannot be opened."""
-    try:
-        fd = os.open(folder, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)

@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass, field
 from typing import Any
 
 from ..data import FORMATS
+from ..render.image_renderer import RENDER_SAMPLES
 from ..render.skipping import MarchingOptions
 
 PRESETS = ("A", "B", "C", "D")
@@ -52,13 +54,16 @@ class TrainConfig:
                               "hierarchical 5e-4), decaying exponentially to --lr-final")
     lr_final: float | None = option(None, "learning rate at the end of the run, --steps or --time-budget, "
                                     "whichever comes first (default: lr/10)")
-    lr_warmup: int | None = option(None, "linear learning-rate warm-up (default: occupancy 200, hierarchical 0)",
-                                   metavar="STEPS")
+    lr_warmup: int | None = option(
+        None, "linear learning-rate warm-up (default: occupancy 200, hierarchical 0)", metavar="STEPS"
+    )
     lr_hold: float | None = option(None, "fraction of the run at --lr before the decay to --lr-final starts "
                                    "(default: occupancy sampler 0.5, hierarchical 0)", metavar="FRACTION")
     adam_eps: float = 1e-15  # nerfacc's value; it beat PyTorch's 1e-8 (docs/training.md)
     seed: int = option(0, "random seed")
-    precision: str | None = option(None, "MLP precision (default: tf32 on CUDA, fp32 on CPU)", choices=PRECISIONS)
+    precision: str | None = option(
+        None, "MLP precision (default: tf32 on CUDA, fp32 on CPU)", choices=PRECISIONS
+    )
     device: str | None = option(None, "default: cuda when available", choices=("cpu", "cuda"))
     backend: str = option("auto", "ops: compiled kernels or the PyTorch reference", choices=BACKENDS)
     out: str = "runs/default"
@@ -68,16 +73,19 @@ class TrainConfig:
     log_every: int = option(100, "log a training row (train_log.csv, TensorBoard) every N steps")
     # validation excluded; None: no limit
     time_budget: float | None = option(None, "stop after this much training time", metavar="SECONDS")
-    chunk: int = 8192  # rays per chunk when rendering whole images
+    chunk: int = 8192  # most rays per chunk when rendering whole images
+    render_samples: int | None = option(
+        None, "most samples shaded at once when rendering whole images: bounds their memory whatever the "
+        f"rays hit (default: {RENDER_SAMPLES['cpu']} on CPU, {RENDER_SAMPLES['cuda']} on CUDA)", metavar="N")
     check_grads: bool = True  # the non-finite guard also checks every gradient
     # "occupancy": one marched pass over packed samples (mixer_nerf.render.skipping; no fine
     # network). "proposal": proposal networks pick proposal_samples intervals per ray (no fine
     # network). "hierarchical": NeRF's dense coarse + fine passes. "auto": sampling.resolve_sampler.
     sampler: str = option(
         "auto",
-        "occupancy (skip empty space, occluded samples, missed rays), proposal (small density networks pick the "
-        "samples), hierarchical (NeRF's dense coarse + fine), auto (occupancy for bounded scenes such as "
-        "Blender's, proposal for forward-facing and unbounded ones)",
+        "occupancy (skip empty space, occluded samples, missed rays), proposal (small density networks "
+        "pick the samples), hierarchical (NeRF's dense coarse + fine), auto (occupancy for bounded "
+        "scenes such as Blender's, proposal for forward-facing and unbounded ones)",
         choices=SAMPLERS,
     )
     grid_resolution: int = option(128, "occupancy grid cells per axis")
@@ -87,7 +95,9 @@ class TrainConfig:
     step_size: float | None = None  # marching step; None: the box diagonal / 1000
     early_stop_eps: float = option(1e-4, "stop rays whose transmittance falls below this (0: never)")
     alpha_threshold: float = 0.0  # drop samples with a smaller alpha (0: keep them)
-    target_samples: int | None = option(131072, "occupancy sampler: MLP samples per step (the ray batch adapts)")
+    target_samples: int | None = option(
+        131072, "occupancy sampler: MLP samples per step (the ray batch adapts)"
+    )
     # Marching never samples cells the grid marks empty; this keeps a render without the grid clean.
     # Off by default: it lowered val PSNR at 120 s and 240 s (docs/training.md).
     empty_space_weight: float = option(
@@ -103,8 +113,10 @@ class TrainConfig:
     proposal_samples: int = 48
     proposal_width: int = 128  # hidden width of each proposal network (2 layers)
     proposal_loss_weight: float = 1.0
-    tensorboard: bool = option(False, "log losses, PSNR, learning rate, samples per ray, rays/s and validation "
-                               "renders to <out>/tensorboard (needs .[tensorboard])")
+    tensorboard: bool = option(
+        False, "log losses, PSNR, learning rate, samples per ray, rays/s and validation renders to "
+        "<out>/tensorboard (needs .[tensorboard])"
+    )
     progress: bool = True  # progress bar on stderr
 
     def __post_init__(self) -> None:
@@ -157,8 +169,10 @@ class TrainConfig:
             raise ValueError("proposal_width must be positive and proposal_loss_weight >= 0")
         if not self.adam_eps > 0:
             raise ValueError(f"adam_eps must be positive, got {self.adam_eps}")
-        if self.time_budget is not None and self.time_budget <= 0:
-            raise ValueError(f"time_budget must be positive seconds, got {self.time_budget}")
+        if self.time_budget is not None and not 0 < self.time_budget < math.inf:
+            raise ValueError(f"time_budget must be a positive, finite number of seconds, got {self.time_budget}")
+        if self.render_samples is not None and self.render_samples < 1:
+            raise ValueError(f"render_samples must be positive, got {self.render_samples}")
 
     def resolved(self, cuda_available: bool) -> TrainConfig:
         """A copy with ``device``, ``precision`` and ``bf16_density_passes`` chosen for this machine."""

@@ -44,6 +44,16 @@ def rank_seed(seed: int, rank: int, step: int = 0) -> int:
     return int(np.random.SeedSequence(seed, spawn_key=(rank, step)).generate_state(1, np.uint64)[0] >> 1)
 
 
+def restore_rank_sampler(generator: torch.Generator, saved: list[torch.Tensor], rank: int, seed: int,
+                         step: int) -> None:
+    """Give ``rank`` (> 0) its own ray stream back from a checkpoint's ``rank_samplers``, or a
+    fresh one when the run that saved it had fewer ranks."""
+    if rank < len(saved):
+        generator.set_state(saved[rank])
+    else:
+        generator.manual_seed(rank_seed(seed, rank, step))
+
+
 @dataclass
 class Ranks:
     """This process's place among ``world_size`` training processes (see :func:`join`)."""
@@ -51,10 +61,6 @@ class Ranks:
     rank: int
     world_size: int
     decisions: dist.ProcessGroup  # gloo: host-side values, no GPU synchronisation
-
-    @property
-    def is_main(self) -> bool:
-        return self.rank == 0
 
     def decide(self, value: float) -> float:
         """Rank 0's ``value`` on every rank (e.g. its training clock)."""
@@ -117,19 +123,20 @@ def join(device: str) -> Ranks | None:
         return None
     for name, value in NO_MULTICAST.items():
         os.environ.setdefault(name, value)
-    on_cuda = device.startswith("cuda")
-    if on_cuda:
+    gpu = None
+    if device.startswith("cuda"):
         local_rank = int(os.environ.get("LOCAL_RANK", "0"))
         if local_rank >= torch.cuda.device_count():
             raise DistributedError(
                 f"rank {os.environ.get('RANK')} wants GPU {local_rank} but this machine has "
                 f"{torch.cuda.device_count()}; launch at most that many processes per node"
             )
-        torch.cuda.set_device(local_rank)
+        gpu = torch.device("cuda", local_rank)
+        torch.cuda.set_device(gpu)
     if not dist.is_initialized():
-        dist.init_process_group("nccl" if on_cuda else "gloo")
+        dist.init_process_group("gloo" if gpu is None else "nccl", device_id=gpu)
         atexit.register(_leave)
-    decisions = dist.new_group(backend="gloo") if on_cuda else dist.group.WORLD
+    decisions = dist.group.WORLD if gpu is None else dist.new_group(backend="gloo")
     return Ranks(dist.get_rank(), dist.get_world_size(), decisions)
 
 
@@ -153,12 +160,3 @@ def _leave() -> None:
     if dist.is_initialized():
         dist.destroy_process_group()
 
-
-def restore_rank_sampler(generator: torch.Generator, saved: list[torch.Tensor], rank: int, seed: int,
-                         step: int) -> None:
-    """Give ``rank`` (> 0) its own ray stream back from a checkpoint's ``rank_samplers``, or a
-    fresh one when the run that saved it had fewer ranks."""
-    if rank < len(saved):
-        generator.set_state(saved[rank])
-    else:
-        generator.manual_seed(rank_seed(seed, rank, step))

@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 import csv
-import os
 from pathlib import Path
 from typing import Any
+
+from .output import atomic_path
 
 
 class CsvLog:
@@ -42,12 +43,10 @@ class CsvLog:
         rows, fields = self.rows(), self.fieldnames()
         if fields is None:
             return
-        tmp = self.path.with_name(f".{self.path.name}.tmp")
-        with tmp.open("w", newline="") as f:
+        with atomic_path(self.path) as tmp, tmp.open("w", newline="") as f:
             writer = csv.DictWriter(f, fieldnames=fields)
             writer.writeheader()
             writer.writerows(r for r in rows if int(r["step"]) <= step)
-        os.replace(tmp, self.path)
 
 
 def plot_curves(train_log: CsvLog, val_log: CsvLog, path: str | Path) -> Path | None:
@@ -69,12 +68,14 @@ def plot_curves(train_log: CsvLog, val_log: CsvLog, path: str | Path) -> Path | 
         ax.plot([float(r[x]) for r in train], [float(r["psnr"]) for r in train], label="train batch (fine)")
         if val:
             ax.plot([float(r[x]) for r in val], [float(r["psnr"]) for r in val], "o-", label="validation")
-        ax.set(xlabel="training seconds" if x == "seconds" else x, ylabel="PSNR (dB)", title=f"PSNR against {x}")
+        xlabel = "training seconds" if x == "seconds" else x
+        ax.set(xlabel=xlabel, ylabel="PSNR (dB)", title=f"PSNR against {x}")
         ax.legend()
     for ax in (ax_loss, ax_psnr, ax_time):
         ax.grid(alpha=0.3)
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=100)
     plt.close(fig)
     return Path(path)
 
@@ -93,7 +94,9 @@ class TensorBoardLog:
         try:
             from torch.utils.tensorboard import SummaryWriter
         except ImportError as e:
-            raise OutputError("--tensorboard needs the tensorboard package: pip install 'mixer_nerf[tensorboard]'") from e
+            raise OutputError(
+                "--tensorboard needs the tensorboard package: pip install 'mixer_nerf[tensorboard]'"
+            ) from e
         ensure_writable_folder(Path(folder))
         self.writer = SummaryWriter(str(folder))
 

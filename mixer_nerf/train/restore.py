@@ -30,8 +30,11 @@ class TrainedRun:
     fields: RadianceFields  # in eval mode, on ``device``
 
 
-def load_trained(path: str | Path, device: str | None = None, backend: str | None = None) -> TrainedRun:
-    """Load ``path`` onto ``device`` (default: the training device if present here, else CPU).
+def load_trained(
+    path: str | Path, device: str | None = None, backend: str | None = None, render_samples: int | None = None
+) -> TrainedRun:
+    """Load ``path`` onto ``device`` (default: the training device if present here, else CPU),
+    rendering at most ``render_samples`` samples at once (default: the run's setting).
 
     Raises:
         CheckpointError: naming ``path``, when it is unreadable or does not match the model.
@@ -48,7 +51,8 @@ def load_trained(path: str | Path, device: str | None = None, backend: str | Non
         device = "cuda" if (saved.device or "").startswith("cuda") and cuda else "cpu"
     precision = saved.precision if device.startswith("cuda") else "fp32"  # bf16 autocast is slow on CPUs
     cfg = dataclasses.replace(
-        saved, device=device, precision=precision, backend=backend or saved.backend
+        saved, device=device, precision=precision, backend=backend or saved.backend,
+        render_samples=render_samples or saved.render_samples,
     ).resolved(cuda)
     set_matmul_precision(cfg.precision)
     bbox = state["scene"].get("bbox")

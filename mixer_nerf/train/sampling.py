@@ -4,13 +4,14 @@ gets, the occupancy sampler's grid and settings, and the image renderer of every
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import torch
 
 from ..model import ModelConfig
 from ..model.proposal_network import ProposalNetwork
 from ..render import ImageRenderer, chunk_result, render_rays
-from ..render.image_renderer import ChunkResult
+from ..render.image_renderer import RENDER_SAMPLES, ChunkResult, rays_per_chunk
 from ..render.skipping import (
     CellShare,
     GridRefresh,
@@ -121,4 +122,17 @@ def image_renderer(
                                       background=background, backend=cfg.backend)
             return ChunkResult(out.color, out.depth, out.opacity, out.samples.t_starts.shape[0],
                                out.num_marched)
-    return ImageRenderer(render_chunk, fields, device, cfg.chunk)
+    budget = cfg.render_samples or RENDER_SAMPLES[device.type]
+    return ImageRenderer(render_chunk, fields, device, rays_per_chunk(budget, samples_per_ray(cfg, grid), cfg.chunk))
+
+
+def samples_per_ray(cfg: TrainConfig, grid: OccupancyGrid | None) -> int:
+    """The most samples one field evaluation of a resolved ``cfg``'s sampler can take per ray:
+    a marched ray crosses the box diagonal in steps (camera rays, |d| >= 1), a proposal round
+    or the final pass, the fine pass of coarse + fine."""
+    if cfg.sampler == "occupancy" and grid is not None:
+        step = cfg.step_size or grid.step_size
+        return math.ceil(float((grid.aabb[1] - grid.aabb[0]).norm()) / step) + 1
+    if cfg.sampler == "proposal":
+        return max(*cfg.proposal_rounds, cfg.proposal_samples)
+    return cfg.num_coarse + cfg.num_fine

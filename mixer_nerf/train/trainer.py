@@ -3,10 +3,13 @@ periodic validation, atomic checkpoints, logs, a non-finite guard and a wall-clo
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
+import os
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import torch
@@ -22,23 +25,69 @@ from .fields import model_config, model_config_to_dict
 from .guard import NonFiniteError, NonFiniteGuard
 from .logbook import CsvLog, TensorBoardLog, plot_curves
 from .marched_batches import MarchedBatches
+from .memory import FLOAT_BYTES, check_fits
 from .occupancy_batch import MarchedBatch, prepare_marched_batch
-from .output import RunFiles, prepare_run_folder
+from .output import RunFiles, prepare_run_folder, write_text_atomic
 from .precision import set_matmul_precision
 from .sampler import RaySampler
 from .sampling import image_renderer, make_fields, occupancy_sampler, resolve_sampler
-from .scenes import held_out_split, load_split, scene_info, scene_source
+from .scenes import held_out_split, load_split, locate_scene, scene_info, scene_source
 
-RESUMABLE_OVERRIDES = ("time_budget", "progress")
-"""Settings a resumed run may change; every other one comes from the checkpoint so that the run
-continues exactly as it would have without the interruption."""
+RESUMABLE_OVERRIDES = ("steps", "time_budget", "device", "backend", "data", "render_samples", "progress")
+"""Settings a resumed run may change: how long it trains (a longer ``steps`` stretches the
+learning-rate schedule to the new end), where it runs, where its scene now is and how much a
+render may hold at once. Any other
+setting that differs from the checkpoint is refused by name: the run continues as it began."""
+DEVICE_SETTINGS = ("precision", "bf16_density_passes")
+"""Picked anew for the machine when a resumed run moves to another device type (unless typed)."""
 
 
 def typed_overrides(cfg: TrainConfig) -> dict[str, Any]:
-    """The ``RESUMABLE_OVERRIDES`` of ``cfg`` that differ from the defaults: what a resumed run
-    was told anew (an option left out keeps the checkpoint's value, its time budget included)."""
+    """The settings of ``cfg`` (its ``out`` aside) that differ from the defaults: what a resumed
+    run was told anew (an option left out keeps the checkpoint's value, its time budget included)."""
     default = TrainConfig()
-    return {k: getattr(cfg, k) for k in RESUMABLE_OVERRIDES if getattr(cfg, k) != getattr(default, k)}
+    return {k: v for k, v in cfg.to_dict().items() if k != "out" and not _same(v, getattr(default, k))}
+
+
+def resume_config(saved: TrainConfig, cfg: TrainConfig, ckpt: Any, step: int) -> TrainConfig:
+    """The settings a resumed run continues with: the checkpoint's, with the ``RESUMABLE_OVERRIDES``
+    ``cfg`` gives and its ``out``. ``data`` is left for :func:`locate_scene` to check.
+
+    Raises:
+        ValueError: naming each other setting of ``cfg`` that differs from the checkpoint's, or
+            a ``steps`` short of the checkpoint's ``step``.
+    """
+    told = typed_overrides(cfg)
+    if told.get("steps", step) < step:
+        raise ValueError(f"{ckpt}: --steps {told['steps']} is short of the checkpoint's step {step}")
+    moved = "device" in told and told["device"].split(":")[0] != (saved.device or "").split(":")[0]
+    free = RESUMABLE_OVERRIDES + (DEVICE_SETTINGS if moved else ())
+    refused = [f"{k} (checkpoint {getattr(saved, k)!r}, given {v!r})" for k, v in told.items()
+               if k not in free and not _same(v, getattr(saved, k))]
+    if refused:
+        raise ValueError(f"{ckpt}: --resume continues the checkpoint's settings, but {', '.join(refused)} "
+                         f"differ; only {', '.join(RESUMABLE_OVERRIDES[:-1])} may change (use another --out "
+                         "for a new run)")
+    if not moved and (saved.device or "").startswith("cuda") and not torch.cuda.is_available():
+        raise ValueError(f"{ckpt}: trained on {saved.device}, and torch sees no CUDA GPU here; "
+                         "pass --device cpu to resume it on this machine")
+    fresh = {k: told.get(k) for k in DEVICE_SETTINGS} if moved else {}
+    kept = {k: v for k, v in told.items() if k in RESUMABLE_OVERRIDES and k != "data"}
+    return TrainConfig(**{**saved.to_dict(), **fresh, **kept, "out": cfg.out})
+
+
+def check_sizes(cfg: TrainConfig, width: int, device: torch.device) -> None:
+    """Refuse a batch or grid of a resolved ``cfg`` that cannot fit: a step holds at least one
+    activation and its gradient of ``width`` floats per sample, the grid a float per cell."""
+    per_ray = 2 * cfg.num_coarse + cfg.num_fine if cfg.sampler == "hierarchical" else 1
+    check_fits(f"--batch-rays {cfg.batch_rays}", cfg.batch_rays * per_ray * width * 2 * FLOAT_BYTES, device)
+    if cfg.sampler == "occupancy":
+        check_fits(f"--grid-resolution {cfg.grid_resolution}", cfg.grid_resolution**3 * FLOAT_BYTES, device)
+
+
+def _same(a: Any, b: Any) -> bool:
+    """Equal settings, a tuple equal to the list it became in a file."""
+    return json.dumps(a, sort_keys=True, default=str) == json.dumps(b, sort_keys=True, default=str)
 
 
 class TrainingClock:
@@ -72,35 +121,55 @@ class Trainer:
 
     Args:
         cfg: the run's settings. With ``resume=True`` they are read from the checkpoint in
-            ``cfg.out`` instead, except those in ``RESUMABLE_OVERRIDES``.
-        resume: continue from ``cfg.out/checkpoint.pt`` bit-for-bit (same batches, same samples).
+            ``cfg.out`` instead, except those in ``RESUMABLE_OVERRIDES`` (see :func:`resume_config`).
+        resume: continue from ``cfg.out/checkpoint.pt`` bit-for-bit (same batches, same samples;
+            on another device type, new random batches).
         log: where one-line messages go (``print`` by default).
+        overwrite: remove an earlier run's files from ``cfg.out`` and start over.
+
+    The run folder is locked (``run.lock``) from here until :meth:`fit` returns or raises.
 
     Raises:
-        OutputError, CheckpointError, DatasetError (and MissingFileError): naming the file.
+        OutputError, CheckpointError, DatasetError (and MissingFileError): naming the file;
+        ValueError: a resumed run was given settings it cannot change.
     """
 
-    def __init__(self, cfg: TrainConfig, resume: bool = False, log: Callable[[str], None] = print) -> None:
+    def __init__(
+        self, cfg: TrainConfig, resume: bool = False, log: Callable[[str], None] = print, overwrite: bool = False
+    ) -> None:
         self.log = log
-        self.files: RunFiles = prepare_run_folder(cfg.out, resume)
+        owner = int(os.environ.get("RANK", "0")) == 0  # under torchrun rank 0 holds the folder for all
+        self.files, self.lock = prepare_run_folder(cfg.out, resume, overwrite) if owner else (RunFiles(Path(cfg.out)), None)
+        try:
+            self._start(cfg, resume)
+        except BaseException:
+            self._release_folder()  # a run that could not start leaves the folder to the next one
+            raise
+
+    def _start(self, cfg: TrainConfig, resume: bool) -> None:
+        """Everything else ``__init__`` does, once the folder is ours."""
         state = None
         if resume:
             state = load_checkpoint(self.files.checkpoint)
+            data = cfg.data
             saved = TrainConfig.from_dict(state["train_config"])
-            cfg = TrainConfig(
-                **{**saved.to_dict(), **typed_overrides(cfg), "out": cfg.out}
-            )
+            cfg = resume_config(saved, cfg, self.files.checkpoint, int(state["step"]))
+            folder, fmt = locate_scene(cfg, state["scene"], data, self.files.checkpoint)
+        else:
+            folder, fmt = scene_source(cfg)
+        if cfg.data is not None:  # the checkpoint names the scene wherever it is read from
+            cfg = dataclasses.replace(cfg, data=str(folder.resolve()))
         self.cfg = cfg = cfg.resolved(torch.cuda.is_available())
         self.ranks = join(cfg.device)  # None: one process (no torchrun)
         self.rank = 0 if self.ranks is None else self.ranks.rank
+        self._shared_time = (-1, 0.0)  # (step, rank 0's clock then)
         if self.rank:
             self.log = lambda _: None  # rank 0 speaks and writes for all
         self.device = torch.device(cfg.device)
-        tensorboard = cfg.tensorboard and not self.rank
+        tensorboard = cfg.tensorboard and not self.rank  # rank 0 writes for all
         self.tensorboard = TensorBoardLog(self.files.root / "tensorboard") if tensorboard else None
         set_matmul_precision(cfg.precision)
 
-        folder, fmt = scene_source(cfg)
         self.train_scene = load_split(folder, fmt, "train", cfg.downscale).to(self.device)
         val_scene, self.val_split = held_out_split(folder, fmt, "val", cfg.downscale)
         self.val_scene = val_scene.to(self.device)
@@ -110,6 +179,7 @@ class Trainer:
 
         torch.manual_seed(cfg.seed)  # model initialisation
         self.model_cfg = model_config(cfg.preset, cfg.model_overrides, self.train_scene.bbox, cfg.backend)
+        check_sizes(cfg, self.model_cfg.width, self.device)
         self.fields = make_fields(cfg, self.model_cfg, self.train_scene.bbox)
         self.fields.to(self.device)
         self.coarse_field, self.fine_field = self.fields.runners(cfg.precision, self.device)
@@ -145,9 +215,8 @@ class Trainer:
         if state is not None:
             self._load_state(state)
         if not self.rank:
-            self.files.config.write_text(
-                json.dumps({"train": cfg.to_dict(), "model": model_config_to_dict(self.model_cfg)}, indent=1)
-            )
+            write_text_atomic(self.files.config, json.dumps(
+                {"train": cfg.to_dict(), "model": model_config_to_dict(self.model_cfg)}, indent=1))
 
     # -- one step ---------------------------------------------------------------------------
 
@@ -199,6 +268,7 @@ class Trainer:
             background=self.background,
             backend=cfg.backend,
             generator=self.sampler.generator,
+            check_field=self.device.type == "cpu",  # a GPU sync per pass; the guard catches what follows
         )
         self.samples_seen += rays_o.shape[0] * (
             cfg.num_coarse + (cfg.num_coarse + cfg.num_fine) * (out.fine is not None)
@@ -317,9 +387,14 @@ class Trainer:
             status = f"non-finite: {e}"
             self._finish(status)
             raise
+        except BaseException:
+            self._release_folder()  # a killed or failed run leaves the folder to the next one
+            raise
         finally:
             bar.close()
-        return self._finish(status)
+        summary = self._finish(status)
+        self._release_folder()
+        return summary
 
     def save(self) -> None:
         """Atomically write the full training state to ``checkpoint.pt`` (after the guard check)."""
@@ -356,11 +431,17 @@ class Trainer:
     def _load_state(self, state: dict[str, Any]) -> None:
         self.fields.load_state_dict(state["model"])
         self.optimizer.load_state_dict(state["optimizer"])
-        restore_rng_state(state["rng"], self.sampler.generator)
         self.step = int(state["step"])
+        trained_on = str(state["train_config"].get("device") or "cpu").split(":")[0]
+        same_device = trained_on == self.device.type  # a generator's state is one device type's
+        restore_rng_state(state["rng"], self.sampler.generator if same_device and not self.rank else None)
         if self.rank:
-            restore_rank_sampler(self.sampler.generator, state.get("rank_samplers", []), self.rank,
-                                 self.cfg.seed, self.step)
+            restore_rank_sampler(self.sampler.generator, state.get("rank_samplers", []) if same_device else [],
+                                 self.rank, self.cfg.seed, self.step)
+        elif not same_device:
+            self.sampler.generator.manual_seed(rank_seed(self.cfg.seed, 0, self.step))
+            self.log(f"moved from {trained_on} to {self.device.type}: from step {self.step} on, the random "
+                     "batches differ from an uninterrupted run's")
         progress = state.get("progress", {})
         self.sampler.batch_rays = int(progress.get("batch_rays", self.sampler.batch_rays))
         self.rays_seen = int(progress.get("rays_seen", 0))
@@ -374,9 +455,17 @@ class Trainer:
         self.log(f"resumed {self.files.checkpoint} at step {self.step}")
 
     def _training_time(self) -> float:
-        """The training clock; with several ranks rank 0's, so that they all decide alike."""
-        now = self.clock.now()
-        return now if self.ranks is None else self.ranks.decide(now)
+        """The training clock; with several ranks rank 0's, read once a step (one broadcast), so
+        that they all decide alike."""
+        if self.ranks is None:
+            return self.clock.now()
+        if self._shared_time[0] != self.step:
+            self._shared_time = (self.step, self.ranks.decide(self.clock.now()))
+        return self._shared_time[1]
+
+    def _release_folder(self) -> None:
+        if self.lock is not None:
+            self.lock.release()
 
     def _paused(self, action: Callable[[], Any]) -> None:
         """Run ``action`` with the training clock paused."""
@@ -399,7 +488,8 @@ class Trainer:
         }
         self.train_log.append(row)
         if self.tensorboard is not None:
-            self.tensorboard.scalars(self.step, {f"train/{k}": v for k, v in row.items() if k not in ("step", "seconds")})
+            scalars = {f"train/{k}": v for k, v in row.items() if k not in ("step", "seconds")}
+            self.tensorboard.scalars(self.step, scalars)
         bar.set_postfix(loss=f"{loss:.4f}", psnr=f"{row['psnr']:.2f}", rays_s=f"{rays_per_s:,.0f}")
 
     def _log_validation(self) -> None:
@@ -426,7 +516,7 @@ class Trainer:
             "processes": 1 if self.ranks is None else self.ranks.world_size,
             "precision": self.cfg.precision,
         }
-        self.files.summary.write_text(json.dumps(summary, indent=1))
+        write_text_atomic(self.files.summary, json.dumps(summary, indent=1))
         if self.tensorboard is not None:
             self.tensorboard.close()
         return summary
