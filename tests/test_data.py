@@ -150,7 +150,10 @@ def test_uint8_images_read_as_float_through_every_access_path():
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU")
-def test_cuda_scene_keeps_images_pinned_on_the_host_and_sends_pixels():
+def test_cuda_scene_keeps_images_pinned_on_the_host_and_sends_pixels(monkeypatch):
+    assert _uint8_scene().to("cuda").images.is_cuda  # small captures go to the GPU whole
+    # a capture larger than a quarter of the GPU's free memory stays on the host
+    monkeypatch.setattr(torch.cuda, "mem_get_info", lambda device=None: (16, 1 << 30))
     scene = _uint8_scene().to("cuda")
     assert scene.images.device.type == "cpu" and scene.images.is_pinned()
     assert scene.images.dtype == torch.uint8

@@ -65,7 +65,7 @@ def torchrun(scene: Path, out: Path, *flags: str, **settings) -> subprocess.Comp
 
 
 def fields_of(path: Path) -> dict[str, torch.Tensor]:
-    return torch.load(path, weights_only=True)["fields"]
+    return torch.load(path, map_location="cpu", weights_only=True)["fields"]
 
 
 def assert_identical(a: dict[str, torch.Tensor], b: dict[str, torch.Tensor]) -> None:

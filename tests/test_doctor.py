@@ -46,4 +46,5 @@ def test_a_wrong_kernel_fails_the_check(monkeypatch, capsys):
     monkeypatch.setitem(doctor.CASES, "segment_mean", off_by_a_bit)
     assert cli.main(["doctor"]) == 1
     out = capsys.readouterr().out
-    assert "segment_mean" in out and "MISMATCH" in out and "1 check(s) FAILED" in out
+    devices = 1 + torch.cuda.device_count()  # the CPU and every GPU are checked
+    assert "segment_mean" in out and "MISMATCH" in out and f"{devices} check(s) FAILED" in out
