@@ -43,6 +43,7 @@
 #include <ATen/ATen.h>
 #include <ATen/Parallel.h>
 
+#include <atomic>
 #include <cmath>
 #include <optional>
 #include <tuple>
@@ -65,20 +66,22 @@ struct Sample {
   acc midpoint() const { return acc(0.5) * (t_start + t_end); }
 };
 
-// Forward scan of one ray; color_acc is caller scratch of C accumulators.
+// Forward scan of one ray; color_acc is caller scratch of C accumulators. Returns the
+// InvalidInput bits of the samples' values.
 template <typename scalar_t>
-void composite_forward_ray(const CompositeInputs<scalar_t>& in, int64_t ray, int64_t offset, int64_t count,
-                           ray_acc* color_acc, scalar_t* color, scalar_t* depth, scalar_t* opacity,
-                           scalar_t* weights) {
+int32_t composite_forward_ray(const CompositeInputs<scalar_t>& in, int64_t ray, int64_t offset, int64_t count,
+                              ray_acc* color_acc, const CompositeOutputs<scalar_t>& out) {
   using acc = ray_acc;
   const int64_t C = in.channels;
   std::fill(color_acc, color_acc + C, acc(0));
   acc optical_depth = 0, depth_acc = 0;
+  int32_t invalid = 0;
   for (int64_t i = offset; i < offset + count; ++i) {
     const Sample<scalar_t> s(in, i);
+    invalid |= invalid_sample_bits(s.sigma, s.t_start, s.t_end);
     const acc w = std::exp(-optical_depth) * -std::expm1(-s.tau);
     optical_depth += s.tau;
-    weights[i] = static_cast<scalar_t>(w);
+    out.weights[i] = static_cast<scalar_t>(w);
     depth_acc += w * s.midpoint();
     const scalar_t* rgb = in.rgbs + i * C;
     for (int64_t c = 0; c < C; ++c) color_acc[c] += w * acc(rgb[c]);
@@ -86,10 +89,11 @@ void composite_forward_ray(const CompositeInputs<scalar_t>& in, int64_t ray, int
   const acc transmittance = std::exp(-optical_depth);
   const scalar_t* bg = in.background ? in.background + ray * in.background_stride : nullptr;
   for (int64_t c = 0; c < C; ++c) {
-    color[ray * C + c] = static_cast<scalar_t>(color_acc[c] + (bg ? transmittance * acc(bg[c]) : acc(0)));
+    out.color[ray * C + c] = static_cast<scalar_t>(color_acc[c] + (bg ? transmittance * acc(bg[c]) : acc(0)));
   }
-  depth[ray] = static_cast<scalar_t>(depth_acc);
-  opacity[ray] = static_cast<scalar_t>(-std::expm1(-optical_depth));
+  out.depth[ray] = static_cast<scalar_t>(depth_acc);
+  out.opacity[ray] = static_cast<scalar_t>(-std::expm1(-optical_depth));
+  return invalid;
 }
 
 // Backward of one ray: a forward pass records T_{i+1} in `transmittance_after` (caller scratch
@@ -158,19 +162,23 @@ struct Cpu {
                                   const at::Tensor& t_ends, const std::optional<at::Tensor>& background, int64_t R,
                                   Rays rays) {
     auto outputs = empty_outputs(sigmas, rgbs, R);
-    auto& [color, depth, opacity, weights] = outputs;
     const int64_t C = rgbs.size(-1);
+    std::atomic<int32_t> invalid{0};
     MIXER_NERF_DISPATCH_FLOATING(sigmas.scalar_type(), "composite_fwd_cpu", [&] {
       const auto in = inputs_of<scalar_t>(sigmas, rgbs, t_starts, t_ends, background);
+      const auto out = outputs_of<scalar_t>(outputs);
       at::parallel_for(0, R, ray_grain(sigmas.numel(), R), [&](int64_t begin, int64_t end) {
         std::vector<ray_acc> color_acc(C);
+        int32_t bits = 0;
         for (int64_t r = begin; r < end; ++r) {
           const composite_layout::RaySpan span = rays(r);
-          composite_forward_ray(in, r, span.offset, span.count, color_acc.data(), color.data_ptr<scalar_t>(),
-                                depth.data_ptr<scalar_t>(), opacity.data_ptr<scalar_t>(), weights.data_ptr<scalar_t>());
+          bits |= composite_forward_ray(in, r, span.offset, span.count, color_acc.data(), out);
+          if (!rays.well_formed(r, R)) bits |= kBadOffsets;
         }
+        invalid.fetch_or(bits, std::memory_order_relaxed);
       });
     });
+    std::get<4>(outputs).fill_(invalid.load());
     return outputs;
   }
 

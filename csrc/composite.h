@@ -34,7 +34,23 @@ struct CompositeOutputs {
   scalar_t* depth;    // (R)
   scalar_t* opacity;  // (R)
   scalar_t* weights;  // (N)
+  int32_t* invalid;   // (1): the InvalidInput bits of the values the forward read
 };
+
+// What a forward finds wrong in the values it reads anyway, OR-ed into its `invalid` output: a GPU
+// caller learns of bad values without a host synchronisation (mixer_nerf/ops/deferred_checks.py
+// reads it later; the bits are mirrored in mixer_nerf/ops/composite.py).
+enum InvalidInput : int32_t {
+  kNegativeSigma = 1,     // a density below 0
+  kReversedInterval = 2,  // t_end < t_start
+  kBadOffsets = 4,        // packed offsets not from 0 to N, or decreasing
+};
+
+// The bits of one sample's values.
+template <typename T>
+C10_HOST_DEVICE inline int32_t invalid_sample_bits(T sigma, T t_start, T t_end) {
+  return (sigma < T(0) ? kNegativeSigma : 0) | (t_end < t_start ? kReversedInterval : 0);
+}
 
 // Upstream gradients (nullptr: zeros) and the gradients to write (grad_t_*: nullptr to skip).
 template <typename scalar_t>
@@ -126,17 +142,25 @@ const scalar_t* data_or_null(const std::optional<at::Tensor>& t) {
   return t ? t->const_data_ptr<scalar_t>() : nullptr;
 }
 
-// What a forward returns: color (R, C), depth (R), opacity (R), weights like sigmas; and a
+// What a forward returns: color (R, C), depth (R), opacity (R), weights like sigmas, invalid (1)
+// int32 (InvalidInput bits); and a
 // backward: the gradients of sigmas, rgbs, t_starts, t_ends (absent without interval_grads) and
 // background (absent without one).
-using CompositeForward = std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor>;
+using CompositeForward = std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor>;
 using CompositeBackward =
     std::tuple<at::Tensor, at::Tensor, std::optional<at::Tensor>, std::optional<at::Tensor>, std::optional<at::Tensor>>;
 
-inline CompositeForward empty_outputs(const at::Tensor& sigmas,
-                                                                               const at::Tensor& rgbs, int64_t rays) {
+inline CompositeForward empty_outputs(const at::Tensor& sigmas, const at::Tensor& rgbs, int64_t rays) {
   return {at::empty({rays, rgbs.size(-1)}, sigmas.options()), at::empty({rays}, sigmas.options()),
-          at::empty({rays}, sigmas.options()), at::empty_like(sigmas)};
+          at::empty({rays}, sigmas.options()), at::empty_like(sigmas),
+          at::zeros({1}, sigmas.options().dtype(at::kInt))};
+}
+
+template <typename scalar_t>
+CompositeOutputs<scalar_t> outputs_of(CompositeForward& outputs) {
+  auto& [color, depth, opacity, weights, invalid] = outputs;
+  return {color.data_ptr<scalar_t>(), depth.data_ptr<scalar_t>(), opacity.data_ptr<scalar_t>(),
+          weights.data_ptr<scalar_t>(), invalid.data_ptr<int32_t>()};
 }
 
 // The gradients a backward writes, and the per-ray background gradient in the accumulation type

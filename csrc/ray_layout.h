@@ -20,6 +20,7 @@ struct RaySpan {
 struct DenseRays {
   int64_t samples_per_ray;
   C10_HOST_DEVICE RaySpan operator()(int64_t ray) const { return {ray * samples_per_ray, samples_per_ray}; }
+  C10_HOST_DEVICE bool well_formed(int64_t /*ray*/, int64_t /*rays*/) const { return true; }
 };
 
 // Packed (CSR): ray r owns rows offsets[r] .. offsets[r+1] - 1 of N. Offsets are validated in
@@ -32,6 +33,12 @@ struct PackedRays {
     const int64_t begin = clamp(offsets[ray], 0, total);
     const int64_t end = clamp(offsets[ray + 1], begin, total);
     return {begin, end - begin};
+  }
+  // Whether ray `ray` of `rays` has offsets a validation would accept: in [0, N], not decreasing,
+  // from 0 (first ray) and to N (last ray). Kernels that check values in place report the rest.
+  C10_HOST_DEVICE bool well_formed(int64_t ray, int64_t rays) const {
+    const int64_t begin = offsets[ray], end = offsets[ray + 1];
+    return 0 <= begin && begin <= end && end <= total && (ray > 0 || begin == 0) && (ray + 1 < rays || end == total);
   }
   C10_HOST_DEVICE static int64_t clamp(int64_t x, int64_t lo, int64_t hi) { return x < lo ? lo : (x > hi ? hi : x); }
 };

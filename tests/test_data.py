@@ -149,6 +149,7 @@ def test_uint8_images_read_as_float_through_every_access_path():
         dataclasses.replace(scene, images=scene.images.double())
 
 
+@pytest.mark.cuda
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU")
 def test_cuda_scene_keeps_images_pinned_on_the_host_and_sends_pixels(monkeypatch):
     assert _uint8_scene().to("cuda").images.is_cuda  # small captures go to the GPU whole

@@ -71,6 +71,14 @@ struct LaneSamples {
     }
   }
   __device__ ray_acc midpoint(int j) const { return ray_acc(0.5) * (ray_acc(t_start[j]) + ray_acc(t_end[j])); }
+  __device__ int32_t invalid_bits() const {
+    int32_t bits = 0;
+#pragma unroll
+    for (int j = 0; j < K; ++j) {
+      if (j < valid) bits |= invalid_sample_bits(sigma[j], t_start[j], t_end[j]);
+    }
+    return bits;
+  }
 };
 
 // Optical depth before a lane's run given the optical depth `carry` before the chunk; advances
@@ -84,17 +92,20 @@ __device__ __forceinline__ acc run_optical_depth(acc run_total, int lane, acc& c
   return before;
 }
 
-// Forward of one ray by one warp: samples [offset, offset + count).
-// Channels beyond kChannelsPerPass take further passes (re-reading sigma/t beats spilling).
+// Forward of one ray by one warp: samples [offset, offset + count). Returns the InvalidInput
+// bits of the lane's samples. Channels beyond kChannelsPerPass take further passes (re-reading
+// sigma/t beats spilling).
 template <typename scalar_t>
-__device__ void composite_forward_ray(const CompositeInputs<scalar_t>& in, const CompositeOutputs<scalar_t>& out,
-                                      int64_t ray, int64_t offset, int64_t count, int lane) {
+__device__ int32_t composite_forward_ray(const CompositeInputs<scalar_t>& in, const CompositeOutputs<scalar_t>& out,
+                                         int64_t ray, int64_t offset, int64_t count, int lane) {
   const int64_t C = in.channels;
+  int32_t invalid = 0;
   for (int64_t c0 = 0; c0 == 0 || c0 < C; c0 += kChannelsPerPass) {
     ray_acc color[kChannelsPerPass] = {};
     ray_acc depth = 0, optical_depth = 0;
     for (int64_t base = 0; base < count; base += kForwardChunk) {
       const LaneSamples<scalar_t, kForwardRun> s(in, offset, count, base + lane * kForwardRun);
+      if (c0 == 0) invalid |= s.invalid_bits();
       ray_acc before = run_optical_depth(s.total, lane, optical_depth);
 #pragma unroll
       for (int j = 0; j < kForwardRun; ++j) {
@@ -131,6 +142,7 @@ __device__ void composite_forward_ray(const CompositeInputs<scalar_t>& in, const
       }
     }
   }
+  return invalid;
 }
 
 // Backward of one ray by one warp; chunk_start is this ray's scratch, one entry per chunk but the last.
@@ -241,7 +253,10 @@ __global__ void __launch_bounds__(kMaxWarpsPerBlock* kWarpSize, 4)
   const int64_t ray = int64_t(blockIdx.x) * (blockDim.x / kWarpSize) + threadIdx.x / kWarpSize;
   if (ray >= R) return;  // whole warps leave together: the shuffles below see full warps
   const composite_layout::RaySpan span = rays(ray);
-  composite_forward_ray(in, out, ray, span.offset, span.count, threadIdx.x % kWarpSize);
+  const int lane = threadIdx.x % kWarpSize;
+  int32_t invalid = composite_forward_ray(in, out, ray, span.offset, span.count, lane);
+  if (lane == 0 && !rays.well_formed(ray, R)) invalid |= kBadOffsets;
+  if (invalid) atomicOr(out.invalid, invalid);  // only for bad input: no contention otherwise
 }
 
 // Scratch of the backward: ray r's chunk starts from span.offset / kBackwardChunk + r. A ray of
@@ -277,11 +292,9 @@ struct Cuda {
                                   Rays rays) {
     const c10::cuda::CUDAGuard device_guard(sigmas.device());
     auto outputs = empty_outputs(sigmas, rgbs, R);
-    auto& [color, depth, opacity, weights] = outputs;
     if (R == 0) return outputs;
     MIXER_NERF_DISPATCH_FLOATING(sigmas.scalar_type(), "composite_fwd_cuda", [&] {
-      const CompositeOutputs<scalar_t> out{color.data_ptr<scalar_t>(), depth.data_ptr<scalar_t>(),
-                                           opacity.data_ptr<scalar_t>(), weights.data_ptr<scalar_t>()};
+      const auto out = outputs_of<scalar_t>(outputs);
       composite_fwd_kernel<scalar_t><<<blocks_for(R), kMaxWarpsPerBlock * kWarpSize, 0,
                                        c10::cuda::getCurrentCUDAStream()>>>(
           inputs_of<scalar_t>(sigmas, rgbs, t_starts, t_ends, background), out, R, rays);

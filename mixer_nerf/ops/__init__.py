@@ -6,6 +6,7 @@
 """
 
 from .composite import composite, composite_packed
+from .deferred_checks import check_pending
 from .hierarchical_samples import hierarchical_samples
 from .mlca import mlca
 from .positional_encoding import positional_encoding
@@ -15,6 +16,7 @@ from .segment_ops import ray_scale, segment_mean
 
 __all__ = [
     "PackedSamples",
+    "check_pending",
     "composite",
     "composite_packed",
     "filter_by_transmittance",

@@ -94,6 +94,8 @@ def check_offsets(name: str, offsets: torch.Tensor, num_items: int, check_values
         raise TypeError(f"{name} must be an int64 tensor, got dtype {offsets.dtype}")
     if offsets.dim() != 1 or offsets.numel() < 1:
         raise ValueError(f"{name} must have shape (R+1,) with R >= 0, got {tuple(offsets.shape)}")
+    if offsets.numel() == 1 and num_items != 0:  # no ray to own the rows, whatever the values
+        raise ValueError(f"{name} has no ray (shape (1,)) but there are {num_items} rows")
     if check_values:
         first, last = offsets[[0, -1]].tolist()
         if first != 0 or last != num_items:

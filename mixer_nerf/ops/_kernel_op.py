@@ -41,7 +41,9 @@ class KernelOp:
     input). That returns the gradients of the leading inputs; the others get none. Gradients of
     unused outputs arrive as None (a kernel reads no zeros), so a backward kernel of an op with
     several outputs takes them as ``Tensor?``. An op whose backward kernel takes other arguments
-    overrides :meth:`save` and :meth:`backward`.
+    overrides :meth:`save` and :meth:`backward`. The last ``check_outputs`` outputs are a kernel's
+    findings about its inputs (integer, not differentiable; see ``deferred_checks``): the backward
+    kernel takes no gradient for them.
     """
 
     def __init__(
@@ -51,8 +53,10 @@ class KernelOp:
         backward: str | None = None,
         backward_fake: Callable | None = None,
         flags: Callable[[tuple[bool, ...]], tuple] = _no_flags,
+        check_outputs: int = 0,
     ):
         self.name, self.backward_name, self.flags = name, backward, flags
+        self.check_outputs = check_outputs
         declare_fake(name, fake)
         if backward_fake is not None:
             declare_fake(backward, backward_fake)
@@ -73,6 +77,7 @@ class KernelOp:
 
     def backward(self, ctx, *grads) -> tuple:
         """One gradient (or None) per input."""
+        grads = grads[: len(grads) - self.check_outputs]
         if all(g is None for g in grads):
             return (None,) * len(ctx.inputs)
         inputs = list(ctx.inputs)
@@ -95,7 +100,10 @@ class _KernelFunction(torch.autograd.Function):
     def forward(ctx, op: KernelOp, *inputs):
         ctx.op = op
         op.save(ctx, inputs)
-        return getattr(torch.ops.mixer_nerf, op.name)(*inputs)
+        outputs = getattr(torch.ops.mixer_nerf, op.name)(*inputs)
+        if op.check_outputs:
+            ctx.mark_non_differentiable(*outputs[-op.check_outputs :])
+        return outputs
 
     @staticmethod
     @once_differentiable

@@ -27,6 +27,7 @@ from ._checks import (
     check_shape,
     check_tensor,
 )
+from . import deferred_checks
 from ._dispatch import use_kernel
 from ._kernel_op import KernelOp
 from .composite_reference import composite_packed_reference, composite_reference
@@ -56,18 +57,23 @@ def composite(
         t_starts, t_ends: (R, S) interval bounds along each ray, ``t_ends >= t_starts``.
         background: optional (C,) or (R, C) colour seen through the unoccupied fraction.
         backend: ``"auto"``, ``"kernel"`` or ``"torch"`` (see :mod:`mixer_nerf.ops`).
-        check_values: check ``sigmas >= 0`` and ``t_ends >= t_starts``. Each check reads its
-            tensors once more and, on a GPU, synchronises with the host; pass False on hot paths
-            whose inputs are valid by construction (e.g. softplus densities, sorted samples).
+        check_values: check ``sigmas >= 0`` and ``t_ends >= t_starts``. On the CPU (and on the
+            reference path) before the op runs; on a GPU the kernel checks the values it reads
+            without a host synchronisation, and a bad one raises ValueError at a later call or at
+            :func:`~mixer_nerf.ops.check_pending` (``deferred_checks``). False skips the checks.
 
     Returns:
         :class:`CompositeResult` (color (R, C), depth (R,), opacity (R,), weights (R, S)), all
         differentiable with respect to every input.
     """
-    _validate(sigmas, rgbs, t_starts, t_ends, background, check_values)
+    deferred = check_values and _checks_in_kernel(backend, sigmas)
+    _validate(sigmas, rgbs, t_starts, t_ends, background, check_values and not deferred)
     if not use_kernel(backend, sigmas.device):
         return CompositeResult(*composite_reference(sigmas, rgbs, t_starts, t_ends, background))
-    return CompositeResult(*_COMPOSITE(sigmas, rgbs, t_starts, t_ends, background))
+    *result, invalid = _COMPOSITE(sigmas, rgbs, t_starts, t_ends, background)
+    if deferred:
+        deferred_checks.watch(invalid, "composite", INVALID_INPUT)
+    return CompositeResult(*result)
 
 
 def composite_packed(
@@ -91,20 +97,37 @@ def composite_packed(
         background: optional (C,) or (R, C) colour seen through the unoccupied fraction.
         backend: ``"auto"``, ``"kernel"`` or ``"torch"`` (see :mod:`mixer_nerf.ops`).
         check_values: also check ``sigmas >= 0``, ``t_ends >= t_starts`` and the values of
-            ``offsets`` (each a host sync on a GPU; pass False where they hold by construction, as
-            after ray marching). The kernels clamp offsets into [0, N], so even unchecked offsets
-            never reach outside the arrays.
+            ``offsets``, as :func:`composite` does (on a GPU in the kernel, reported later). The
+            kernels clamp offsets into [0, N], so even unchecked offsets never reach outside the
+            arrays.
 
     Returns:
         :class:`CompositeResult` (color (R, C), depth (R,), opacity (R,), weights (N,)),
         differentiable with respect to sigmas, rgbs, t_starts, t_ends and background.
     """
-    _validate_packed(sigmas, rgbs, t_starts, t_ends, offsets, background, check_values)
+    deferred = check_values and _checks_in_kernel(backend, sigmas)
+    _validate_packed(sigmas, rgbs, t_starts, t_ends, offsets, background, check_values and not deferred)
     if not use_kernel(backend, sigmas.device):
         return CompositeResult(
             *composite_packed_reference(sigmas, rgbs, t_starts, t_ends, offsets, background)
         )
-    return CompositeResult(*_COMPOSITE_PACKED(sigmas, rgbs, t_starts, t_ends, background, offsets))
+    *result, invalid = _COMPOSITE_PACKED(sigmas, rgbs, t_starts, t_ends, background, offsets)
+    if deferred:
+        deferred_checks.watch(invalid, "composite_packed", INVALID_INPUT)
+    return CompositeResult(*result)
+
+
+INVALID_INPUT = {
+    1: "sigmas must be non-negative",
+    2: "t_ends must be >= t_starts everywhere (intervals of non-negative length)",
+    4: "offsets must start at 0, end at N (the number of samples) and be non-decreasing",
+}
+"""The kernels' ``invalid`` bits (``InvalidInput`` in csrc/composite.h) and what each says."""
+
+
+def _checks_in_kernel(backend: str, sigmas: object) -> bool:
+    """On a GPU the kernel checks the values (no host sync); the CPU checks them first."""
+    return isinstance(sigmas, torch.Tensor) and sigmas.device.type == "cuda" and use_kernel(backend, sigmas.device)
 
 
 def _validate(sigmas, rgbs, t_starts, t_ends, background, check_values: bool) -> None:
@@ -163,6 +186,7 @@ def _composite_fwd_fake(sigmas, rgbs, t_starts, t_ends, background, *layout):
         sigmas.new_empty(num_rays),
         sigmas.new_empty(num_rays),
         torch.empty_like(sigmas),
+        sigmas.new_empty(1, dtype=torch.int32),
     )
 
 
@@ -191,8 +215,9 @@ def _interval_grads(needs_input_grad: tuple[bool, ...]) -> tuple[bool]:
 
 
 _COMPOSITE = KernelOp(
-    "composite_fwd", _composite_fwd_fake, "composite_bwd", _composite_bwd_fake, _interval_grads
+    "composite_fwd", _composite_fwd_fake, "composite_bwd", _composite_bwd_fake, _interval_grads, check_outputs=1
 )
 _COMPOSITE_PACKED = KernelOp(
-    "composite_packed_fwd", _composite_fwd_fake, "composite_packed_bwd", _composite_bwd_fake, _interval_grads
+    "composite_packed_fwd", _composite_fwd_fake, "composite_packed_bwd", _composite_bwd_fake, _interval_grads,
+    check_outputs=1,
 )

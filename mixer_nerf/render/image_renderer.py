@@ -9,6 +9,8 @@ from typing import NamedTuple
 import torch
 from torch import nn
 
+from ..ops.deferred_checks import check_pending
+
 
 class ImageResult(NamedTuple):
     color: torch.Tensor  # (..., 3)
@@ -66,6 +68,7 @@ def render_in_chunks(
         out = render_chunk(rays_o[part], rays_d[part], **extra)
         color[part], depth[part], opacity[part] = out.color, out.depth, out.opacity
         shaded, marched = shaded + out.num_shaded, marched + out.num_marched
+    check_pending()  # what the kernels found in the values on a GPU: raised once an image is done
     return ImageResult(color, depth, opacity), shaded, marched
 
 

@@ -1,0 +1,136 @@
+"""Value checks folded into the composite kernels (their ``invalid`` output) and reported later
+without a host synchronisation on a GPU (mixer_nerf.ops.deferred_checks)."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from mixer_nerf import _extension
+from mixer_nerf.ops import check_pending, composite, composite_packed, deferred_checks
+from mixer_nerf.ops.composite import INVALID_INPUT
+
+NEGATIVE_SIGMA, REVERSED_INTERVAL, BAD_OFFSETS = 1, 2, 4
+
+devices = ["cpu", pytest.param("cuda", marks=[pytest.mark.cuda, pytest.mark.skipif(
+    not torch.cuda.is_available(), reason="no CUDA GPU")])]
+
+
+@pytest.fixture(autouse=True)
+def _kernels_and_a_clean_queue():
+    if not _extension.available():
+        pytest.skip("compiled kernels unavailable")
+    composite(torch.ones(1, 1), torch.ones(1, 1, 3), torch.zeros(1, 1), torch.ones(1, 1))  # loads the ops
+    deferred_checks._pending.clear()
+    yield
+    deferred_checks._pending.clear()
+
+
+def _rays(device, rays=37, samples=19):
+    gen = torch.Generator().manual_seed(torch.seed() % 2**31)
+    sigmas = 3 * torch.rand(rays, samples, generator=gen)
+    rgbs = torch.rand(rays, samples, 3, generator=gen)
+    t = (2 + 4 * torch.rand(rays, samples + 1, generator=gen)).sort(dim=-1).values
+    return [x.to(device) for x in (sigmas, rgbs, t[:, :-1].contiguous(), t[:, 1:].contiguous())]
+
+
+def _packed(device, rays=23, most=9):
+    gen = torch.Generator().manual_seed(torch.seed() % 2**31)
+    counts = torch.randint(0, most + 1, (rays,), generator=gen)
+    offsets = torch.cat([torch.zeros(1, dtype=torch.long), counts.cumsum(0)])
+    n = int(offsets[-1])
+    t = 2 + 4 * torch.rand(n, generator=gen)
+    return [x.to(device) for x in (3 * torch.rand(n, generator=gen), torch.rand(n, 3, generator=gen), t,
+                                    t + torch.rand(n, generator=gen), offsets)]
+
+
+def _invalid_dense(sigmas, rgbs, t_starts, t_ends):
+    return int(torch.ops.mixer_nerf.composite_fwd(sigmas, rgbs, t_starts, t_ends, None)[-1])
+
+
+def _invalid_packed(sigmas, rgbs, t_starts, t_ends, offsets):
+    return int(torch.ops.mixer_nerf.composite_packed_fwd(sigmas, rgbs, t_starts, t_ends, None, offsets)[-1])
+
+
+@pytest.mark.parametrize("device", devices)
+def test_the_kernels_flag_each_kind_of_bad_value(device):
+    sigmas, rgbs, t_starts, t_ends = _rays(device)
+    assert _invalid_dense(sigmas, rgbs, t_starts, t_ends) == 0
+    bad = sigmas.clone()
+    bad[5, 7] = -1e-6
+    assert _invalid_dense(bad, rgbs, t_starts, t_ends) == NEGATIVE_SIGMA
+    swapped = t_starts.clone()
+    swapped[36, 18] = t_ends[36, 18] + 1e-3
+    assert _invalid_dense(sigmas, rgbs, swapped, t_ends) == REVERSED_INTERVAL
+    assert _invalid_dense(bad, rgbs, swapped, t_ends) == NEGATIVE_SIGMA | REVERSED_INTERVAL
+
+    sigmas, rgbs, t_starts, t_ends, offsets = _packed(device)
+    n = sigmas.shape[0]
+    assert _invalid_packed(sigmas, rgbs, t_starts, t_ends, offsets) == 0
+    assert _invalid_packed(-sigmas, rgbs, t_starts, t_ends, offsets) == NEGATIVE_SIGMA
+    assert _invalid_packed(sigmas, rgbs, t_ends, t_starts, offsets) == REVERSED_INTERVAL
+    for broken in (offsets + 1, offsets.clamp(max=n - 1), offsets.flip(0)):
+        if broken[-1] != n or broken[0] != 0 or bool((broken[1:] < broken[:-1]).any()):
+            assert _invalid_packed(sigmas, rgbs, t_starts, t_ends, broken) & BAD_OFFSETS
+
+
+def test_watched_bits_raise_at_the_next_check_naming_the_argument():
+    sigmas, rgbs, t_starts, t_ends = _rays("cpu")
+    deferred_checks.watch(torch.tensor([0], dtype=torch.int32), "composite", INVALID_INPUT)
+    check_pending()  # nothing found: nothing raised, nothing left
+    assert not deferred_checks._pending
+    invalid = torch.ops.mixer_nerf.composite_fwd(-sigmas, rgbs, t_ends, t_starts, None)[-1]
+    deferred_checks.watch(invalid, "composite", INVALID_INPUT)
+    with pytest.raises(ValueError, match="composite: sigmas must be non-negative; t_ends must be >= t_starts"):
+        deferred_checks.watch(torch.tensor([0], dtype=torch.int32), "composite", INVALID_INPUT)
+    check_pending()  # reported once
+
+
+def test_the_cpu_still_checks_before_the_kernel():
+    sigmas, rgbs, t_starts, t_ends = _rays("cpu")
+    with pytest.raises(ValueError, match="sigmas must be non-negative"):
+        composite(-sigmas, rgbs, t_starts, t_ends, backend="kernel")
+    sigmas, rgbs, t_starts, t_ends, offsets = _packed("cpu")
+    with pytest.raises(ValueError, match="offsets must start at 0"):
+        composite_packed(sigmas, rgbs, t_starts, t_ends, offsets + 1, backend="kernel")
+    with pytest.raises(ValueError, match="no ray"):
+        composite_packed(sigmas, rgbs, t_starts, t_ends, offsets[:1], backend="kernel")
+    assert not deferred_checks._pending
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU")
+def test_on_a_gpu_the_checks_never_synchronise_and_a_bad_value_is_reported():
+    sigmas, rgbs, t_starts, t_ends = _rays("cuda", rays=4096, samples=64)
+    composite(sigmas, rgbs, t_starts, t_ends)  # warm-up: pinned buffers, events
+    check_pending()
+    torch.cuda.synchronize()
+    torch.cuda.set_sync_debug_mode("error")
+    try:
+        for _ in range(3):
+            composite(sigmas, rgbs, t_starts, t_ends)
+        composite(-sigmas, rgbs, t_starts, t_ends)  # returns: the GPU has not looked yet
+    finally:
+        torch.cuda.set_sync_debug_mode("default")
+    with pytest.raises(ValueError, match="composite: sigmas must be non-negative"):
+        check_pending()
+    packed = _packed("cuda")
+    packed[-1] = packed[-1] + 1
+    composite_packed(*packed[:4], packed[4])
+    with pytest.raises(ValueError, match="composite_packed: offsets must start at 0"):
+        check_pending()
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU")
+def test_a_captured_graph_is_not_watched():
+    sigmas, rgbs, t_starts, t_ends = _rays("cuda")
+    composite(sigmas, rgbs, t_starts, t_ends)
+    check_pending()
+    graph = torch.cuda.CUDAGraph()
+    stream = torch.cuda.Stream()
+    with torch.cuda.stream(stream), torch.cuda.graph(graph):
+        out = composite(sigmas, rgbs, t_starts, t_ends)
+    graph.replay()
+    torch.cuda.synchronize()
+    assert not deferred_checks._pending and out.color.isfinite().all()
