@@ -86,6 +86,11 @@ def hierarchical_case(size: str, inputs: dict, device: torch.device, determinist
             "kernel",
             lambda: hierarchical_samples(z, weights, FINE, u=u, backend="kernel", check_values=False),
         ),
+        Variant(  # what a user calls: values checked
+            "ours, defaults",
+            lambda: hierarchical_samples(z, weights, FINE, deterministic=True) if deterministic
+            else hierarchical_samples(z, weights, FINE, u=u),
+        ),
         Variant("torch", lambda: hierarchical_samples_reference(z, weights, u)),
     ]
     if device.type == "cuda":

@@ -14,8 +14,8 @@ TORCH_LIBRARY(mixer_nerf, m) {
   //   B_r + 1 edges from offsets[r] + r), u (S) or (R, S) -> samples (R, S)
   m.def("sample_pdf_packed_fwd(Tensor bins, Tensor weights, Tensor offsets, Tensor u, float weight_padding) -> Tensor");
   m.def("sample_pdf_packed_bwd(Tensor grad_samples, Tensor bins, Tensor weights, Tensor offsets, Tensor u, float weight_padding) -> (Tensor, Tensor)");
-  // hierarchical_samples: z_coarse (R, S), weights (R, S), u (R, N) -> merged depths (R, S+N)
-  m.def("hierarchical_samples_fwd(Tensor z_coarse, Tensor weights, Tensor u, float weight_padding) -> Tensor");
+  // hierarchical_samples: z_coarse (R, S), weights (R, S), u (R, N) -> merged depths (R, S+N), invalid (1) int32
+  m.def("hierarchical_samples_fwd(Tensor z_coarse, Tensor weights, Tensor u, float weight_padding) -> (Tensor, Tensor)");
   // composite: sigmas (R, S), rgbs (R, S, C), t_starts/t_ends (R, S), background (C) or (R, C)
   //   -> color (R, C), depth (R), opacity (R), weights (R, S), invalid (1) int32 (composite.h InvalidInput bits)
   m.def("composite_fwd(Tensor sigmas, Tensor rgbs, Tensor t_starts, Tensor t_ends, Tensor? background) -> (Tensor, Tensor, Tensor, Tensor, Tensor)");

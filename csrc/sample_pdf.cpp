@@ -8,6 +8,8 @@
 // for every input dtype.
 #include <torch/library.h>
 
+#include <atomic>
+
 #include <ATen/ATen.h>
 #include <ATen/Parallel.h>
 
@@ -115,12 +117,14 @@ struct Cpu {
   }
 
   // hierarchical_samples: the coarse depths merged with the fine samples, (R, S + N).
-  static at::Tensor hierarchical(const at::Tensor& z_coarse, const at::Tensor& weights, const at::Tensor& u,
-                                 double weight_padding, const RayBatch& batch) {
+  static std::tuple<at::Tensor, at::Tensor> hierarchical(const at::Tensor& z_coarse, const at::Tensor& weights,
+                                                         const at::Tensor& u, double weight_padding,
+                                                         const RayBatch& batch) {
     const int64_t coarse = z_coarse.size(1);
     const int64_t num_bins = coarse - 2;  // edges: the S-1 midpoints; weights: weights[:, 1:-1]
     const int64_t merged = coarse + batch.samples;
     at::Tensor out = at::empty({batch.rays, merged}, z_coarse.options());
+    std::atomic<int32_t> invalid{0};
     MIXER_NERF_DISPATCH_FLOATING(z_coarse.scalar_type(), "hierarchical_samples_fwd_cpu", [&] {
       using acc = acc_t<scalar_t>;
       const scalar_t* z_p = z_coarse.data_ptr<scalar_t>();
@@ -129,8 +133,11 @@ struct Cpu {
       scalar_t* out_p = out.data_ptr<scalar_t>();
       at::parallel_for(0, batch.rays, grain_for(merged), [&](int64_t begin, int64_t end) {
         std::vector<cdf_t> cdf(num_bins + 1);
+        int32_t bits = 0;
         for (int64_t r = begin; r < end; ++r) {
           const scalar_t* z = z_p + r * coarse;
+          bits |= invalid_ray_bits(z, weights_p + r * coarse, coarse, u_p + r * batch.u_row_stride, batch.samples,
+                                   0, 1);
           scalar_t* row = out_p + r * merged;
           // Coarse depths emitted so far; ties put the coarse depth first, and NaN samples (a ray
           // with a NaN weight) go after every coarse depth, as torch.sort puts NaN last.
@@ -143,9 +150,10 @@ struct Cpu {
                      });
           for (; j < coarse; ++j) row[batch.samples + j] = z[j];
         }
+        invalid.fetch_or(bits, std::memory_order_relaxed);
       });
     });
-    return out;
+    return {out, at::full({1}, invalid.load(), z_coarse.options().dtype(at::kInt))};
   }
 };
 

@@ -73,6 +73,33 @@ inline void check_coarse(const at::Tensor& z_coarse, const at::Tensor& weights) 
   MIXER_NERF_CHECK(z_coarse.size(1) >= 3 && weights.size(1) == z_coarse.size(1), "z_coarse and weights must be (R, S), S >= 3");
 }
 
+// What hierarchical_samples finds wrong in the values it reads, OR-ed into its `invalid` output
+// (read later by mixer_nerf/ops/deferred_checks.py; mirrored in mixer_nerf/ops/hierarchical_samples.py).
+enum InvalidInput : int32_t {
+  kNegativeWeight = 1,  // a coarse weight below 0
+  kUnsortedDepths = 2,  // z_coarse decreasing along a ray
+  kPositionOutside = 4, // u outside [0, 1] (or NaN)
+  kUnsortedPositions = 8,
+};
+
+// The bits of one ray's rows: z (S), weights (S) and u (N).
+// The bits of one ray's rows: z (S), weights (S) and u (N), the entries first, first + stride, ...
+// (one thread: 0, 1; a warp's lane: lane, 32).
+template <typename Z, typename W, typename U>
+C10_HOST_DEVICE inline int32_t invalid_ray_bits(const Z* z, const W* weights, int64_t S, const U* u, int64_t N,
+                                                int64_t first, int64_t stride) {
+  int32_t bits = 0;
+  for (int64_t i = first; i < S; i += stride) {
+    if (weights[i] < W(0)) bits |= kNegativeWeight;
+    if (i + 1 < S && z[i + 1] < z[i]) bits |= kUnsortedDepths;
+  }
+  for (int64_t n = first; n < N; n += stride) {
+    if (!(u[n] >= U(0) && u[n] <= U(1))) bits |= kPositionOutside;
+    if (n + 1 < N && u[n + 1] < u[n]) bits |= kUnsortedPositions;
+  }
+  return bits;
+}
+
 inline void check_grad(const at::Tensor& grad_samples, const at::Tensor& bins, const RayBatch& batch) {
   MIXER_NERF_CHECK_INPUT(grad_samples, bins.device().type());
   MIXER_NERF_CHECK(grad_samples.scalar_type() == bins.scalar_type(), "grad_samples must have the dtype of bins");
@@ -118,8 +145,9 @@ struct SamplePdfOps {
                             PackedBins{offsets.const_data_ptr<int64_t>(), weights.size(0)}, offsets);
   }
 
-  static at::Tensor hierarchical_fwd(const at::Tensor& z_coarse, const at::Tensor& weights, const at::Tensor& u,
-                                     double weight_padding) {
+  // -> merged depths (R, S + N) and invalid (1) int32 (InvalidInput bits).
+  static std::tuple<at::Tensor, at::Tensor> hierarchical_fwd(const at::Tensor& z_coarse, const at::Tensor& weights,
+                                                             const at::Tensor& u, double weight_padding) {
     const RayBatch batch = check_batch(z_coarse, weights, u, Device::kind);
     check_coarse(z_coarse, weights);
     return Device::hierarchical(z_coarse, weights, u, weight_padding, batch);

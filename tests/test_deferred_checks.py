@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from mixer_nerf import _extension
-from mixer_nerf.ops import check_pending, composite, composite_packed, deferred_checks
+from mixer_nerf.ops import check_pending, composite, composite_packed, deferred_checks, hierarchical_samples
 from mixer_nerf.ops.composite import INVALID_INPUT
 
 NEGATIVE_SIGMA, REVERSED_INTERVAL, BAD_OFFSETS = 1, 2, 4
@@ -98,6 +98,31 @@ def test_the_cpu_still_checks_before_the_kernel():
     assert not deferred_checks._pending
 
 
+@pytest.mark.parametrize("device", devices)
+def test_hierarchical_samples_flags_each_kind_of_bad_value(device):
+    hierarchical_samples(torch.linspace(0, 1, 4).expand(1, 4), torch.ones(1, 4), 2)  # loads the op
+    gen = torch.Generator().manual_seed(torch.seed() % 2**31)
+    z = (2 + 4 * torch.rand(29, 33, generator=gen)).sort(dim=-1).values.to(device)
+    w = torch.rand(29, 33, generator=gen).to(device)
+    u = torch.rand(29, 17, generator=gen).sort(dim=-1).values.to(device)
+
+    def invalid(z, w, u):
+        return int(torch.ops.mixer_nerf.hierarchical_samples_fwd(z, w, u, 0.0)[1])
+
+    assert invalid(z, w, u) == 0
+    bad_w, bad_z, bad_u = w.clone(), z.clone(), u.clone()
+    bad_w[28, 0] = -1.0  # the end weights are unused, but checked like the rest (as on the CPU path)
+    bad_z[3, 31] = bad_z[3, 32] + 1
+    assert invalid(z, bad_w, u) == 1 and invalid(bad_z, w, u) == 2
+    bad_u[7, 16] = 1.5
+    assert invalid(z, w, bad_u) == 4
+    bad_u[7, 16], bad_u[7, 0] = 1.0, 0.9
+    assert invalid(z, w, bad_u) == 8
+    assert invalid(bad_z, bad_w, u.flip(-1)) == 1 | 2 | 8
+    with pytest.raises(ValueError, match="z_coarse must be sorted"):  # the CPU checks first
+        hierarchical_samples(bad_z.cpu(), w.cpu(), 17, u=u.cpu(), backend="kernel")
+
+
 @pytest.mark.cuda
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU")
 def test_on_a_gpu_the_checks_never_synchronise_and_a_bad_value_is_reported():
@@ -118,6 +143,18 @@ def test_on_a_gpu_the_checks_never_synchronise_and_a_bad_value_is_reported():
     packed[-1] = packed[-1] + 1
     composite_packed(*packed[:4], packed[4])
     with pytest.raises(ValueError, match="composite_packed: offsets must start at 0"):
+        check_pending()
+    z = torch.linspace(2, 6, 64, device="cuda").expand(4096, 64).contiguous()
+    weights = torch.rand(4096, 64, device="cuda")
+    hierarchical_samples(z, weights, 128)
+    check_pending()
+    torch.cuda.set_sync_debug_mode("error")
+    try:
+        hierarchical_samples(z, weights, 128)  # stratified, the default
+        hierarchical_samples(z.flip(-1), weights, 128)
+    finally:
+        torch.cuda.set_sync_debug_mode("default")
+    with pytest.raises(ValueError, match="hierarchical_samples: z_coarse must be sorted"):
         check_pending()
 
 

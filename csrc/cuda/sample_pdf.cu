@@ -90,7 +90,7 @@ template <typename scalar_t, bool kMerge, typename Rows>
 __global__ void sample_forward_kernel(int64_t rays, WarpLayout layout, Rows rows,
                                       const scalar_t* __restrict__ edges_or_z, const scalar_t* __restrict__ weights,
                                       const acc_t<scalar_t>* __restrict__ u, int64_t u_row_stride, int num_samples,
-                                      acc_t<scalar_t> pad, scalar_t* __restrict__ out) {
+                                      acc_t<scalar_t> pad, scalar_t* __restrict__ out, int32_t* invalid) {
   using acc = acc_t<scalar_t>;
   extern __shared__ __align__(16) unsigned char shared_raw[];
   const int warp = threadIdx.x / kWarpSize, lane = threadIdx.x % kWarpSize;
@@ -118,6 +118,9 @@ __global__ void sample_forward_kernel(int64_t rays, WarpLayout layout, Rows rows
   __syncwarp();
   if constexpr (kMerge) {
     for (int k = lane; k <= B; k += kWarpSize) sh.edges[k] = MidpointEdges<acc, acc>{z}(k);
+    // The values' checks (sample_pdf.h): the rows are in shared memory or cache already.
+    const int32_t bits = invalid_ray_bits(z, weights + ray * S, S, fine, N, lane, kWarpSize);
+    if (bits) atomicOr(invalid, bits);  // only for bad input: no contention otherwise
   }
   const PaddedWeights<acc, acc> padded{sh.w, acc(0)};  // already padded and flushed: unchanged
   if (lane == 0) build_cdf(padded, B, sh.cdf);
@@ -326,7 +329,7 @@ struct Cuda {
       launch_warp_per_ray<acc, acc>(sample_forward_kernel<scalar_t, false, Rows>, WarpLayout{max_bins, num_samples},
                                batch.rays, rows, bins.data_ptr<scalar_t>(), weights.data_ptr<scalar_t>(),
                                u.data_ptr<acc>(), batch.u_row_stride, num_samples, static_cast<acc>(weight_padding),
-                               samples.data_ptr<scalar_t>());
+                               samples.data_ptr<scalar_t>(), static_cast<int32_t*>(nullptr));
     });
     return samples;
   }
@@ -354,20 +357,22 @@ struct Cuda {
     return {grad_bins, grad_weights};
   }
 
-  static at::Tensor hierarchical(const at::Tensor& z_coarse, const at::Tensor& weights, const at::Tensor& u,
-                                 double weight_padding, const RayBatch& batch) {
+  static std::tuple<at::Tensor, at::Tensor> hierarchical(const at::Tensor& z_coarse, const at::Tensor& weights,
+                                                         const at::Tensor& u, double weight_padding,
+                                                         const RayBatch& batch) {
     const c10::cuda::CUDAGuard guard(z_coarse.device());
     const int coarse = int(z_coarse.size(1)), num_samples = int(batch.samples);
     at::Tensor merged = at::empty({batch.rays, coarse + batch.samples}, z_coarse.options());
+    at::Tensor invalid = at::zeros({1}, z_coarse.options().dtype(at::kInt));
     MIXER_NERF_DISPATCH_FLOATING(z_coarse.scalar_type(), "hierarchical_samples_fwd_cuda", [&] {
       using acc = acc_t<scalar_t>;
       launch_warp_per_ray<acc, acc>(sample_forward_kernel<scalar_t, true, DenseBins>,
                                WarpLayout{coarse - 2, coarse + num_samples}, batch.rays, DenseBins{coarse - 2},
                                z_coarse.data_ptr<scalar_t>(), weights.data_ptr<scalar_t>(), u.data_ptr<acc>(),
                                batch.u_row_stride, num_samples, static_cast<acc>(weight_padding),
-                               merged.data_ptr<scalar_t>());
+                               merged.data_ptr<scalar_t>(), invalid.data_ptr<int32_t>());
     });
-    return merged;
+    return {merged, invalid};
   }
 };
 

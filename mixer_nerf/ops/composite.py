@@ -66,7 +66,7 @@ def composite(
         :class:`CompositeResult` (color (R, C), depth (R,), opacity (R,), weights (R, S)), all
         differentiable with respect to every input.
     """
-    deferred = check_values and _checks_in_kernel(backend, sigmas)
+    deferred = check_values and deferred_checks.in_kernel(backend, sigmas)
     _validate(sigmas, rgbs, t_starts, t_ends, background, check_values and not deferred)
     if not use_kernel(backend, sigmas.device):
         return CompositeResult(*composite_reference(sigmas, rgbs, t_starts, t_ends, background))
@@ -105,7 +105,7 @@ def composite_packed(
         :class:`CompositeResult` (color (R, C), depth (R,), opacity (R,), weights (N,)),
         differentiable with respect to sigmas, rgbs, t_starts, t_ends and background.
     """
-    deferred = check_values and _checks_in_kernel(backend, sigmas)
+    deferred = check_values and deferred_checks.in_kernel(backend, sigmas)
     _validate_packed(sigmas, rgbs, t_starts, t_ends, offsets, background, check_values and not deferred)
     if not use_kernel(backend, sigmas.device):
         return CompositeResult(
@@ -124,10 +124,6 @@ INVALID_INPUT = {
 }
 """The kernels' ``invalid`` bits (``InvalidInput`` in csrc/composite.h) and what each says."""
 
-
-def _checks_in_kernel(backend: str, sigmas: object) -> bool:
-    """On a GPU the kernel checks the values (no host sync); the CPU checks them first."""
-    return isinstance(sigmas, torch.Tensor) and sigmas.device.type == "cuda" and use_kernel(backend, sigmas.device)
 
 
 def _validate(sigmas, rgbs, t_starts, t_ends, background, check_values: bool) -> None:

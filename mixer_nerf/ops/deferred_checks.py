@@ -16,6 +16,8 @@ from dataclasses import dataclass
 
 import torch
 
+from ._dispatch import use_kernel
+
 MAX_PENDING = 256
 """Checks in flight before :func:`watch` waits for the oldest (bounds pinned memory and events)."""
 
@@ -48,6 +50,12 @@ def watch(invalid: torch.Tensor, op: str, messages: dict[int, str]) -> None:
     if len(_pending) > MAX_PENDING:
         _wait(_pending[0])
         raise_ready()
+
+
+def in_kernel(backend: str, like: object) -> bool:
+    """Whether an op whose kernel checks its values should leave them to it: on a GPU, when the
+    kernel runs (the CPU and the reference path check before the op)."""
+    return isinstance(like, torch.Tensor) and like.device.type == "cuda" and use_kernel(backend, like.device)
 
 
 def raise_ready() -> None:

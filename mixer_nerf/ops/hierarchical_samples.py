@@ -16,6 +16,7 @@ from ._checks import (
     check_shape,
     check_sorted,
 )
+from . import deferred_checks
 from ._dispatch import use_kernel
 from ._kernel_op import KernelOp
 from .hierarchical_samples_reference import hierarchical_samples_reference
@@ -45,20 +46,38 @@ def hierarchical_samples(
         z_coarse: (R, S) sorted coarse depths, S >= 3.
         weights_coarse: (R, S) non-negative compositing weights of the coarse samples.
         num_fine: N >= 0 fine samples per ray.
-        deterministic, u, weight_padding, generator, backend, check_values: as in
+        deterministic, u, weight_padding, generator, backend: as in
             :func:`~mixer_nerf.ops.sample_pdf` (``u`` is (R, N) or (N,)).
+        check_values: check that ``z_coarse`` and ``u`` are sorted, ``weights_coarse >= 0`` and
+            ``u`` in [0, 1]: on the CPU before the kernel, on a GPU in the kernel without a host
+            synchronisation (a bad value raises at a later call or at
+            :func:`~mixer_nerf.ops.check_pending`, as for :func:`~mixer_nerf.ops.composite`).
 
     Returns:
         (R, S + N) sorted depths in the dtype of ``z_coarse``.
     """
-    _validate(z_coarse, weights_coarse, check_values)
+    deferred = check_values and deferred_checks.in_kernel(backend, z_coarse)
+    _validate(z_coarse, weights_coarse, check_values and not deferred)
     check_int("num_fine", num_fine)
     pad = check_weight_padding(weight_padding)
-    positions = sample_positions("z_coarse", z_coarse, num_fine, deterministic, u, generator, check_values)
+    positions = sample_positions("z_coarse", z_coarse, num_fine, deterministic, u, generator,
+                                 check_values and not deferred)
     z_coarse, weights_coarse = z_coarse.detach(), weights_coarse.detach()
     if not use_kernel(backend, z_coarse.device):
         return hierarchical_samples_reference(z_coarse, weights_coarse, positions, pad)
-    return _HIERARCHICAL_SAMPLES(z_coarse, weights_coarse, positions, pad)
+    merged, invalid = _HIERARCHICAL_SAMPLES(z_coarse, weights_coarse, positions, pad)
+    if deferred:
+        deferred_checks.watch(invalid, "hierarchical_samples", INVALID_INPUT)
+    return merged
+
+
+INVALID_INPUT = {
+    1: "weights_coarse must be non-negative",
+    2: "z_coarse must be sorted (non-decreasing) along its last dimension",
+    4: "u must lie in [0.0, 1.0]",
+    8: "u must be sorted (non-decreasing) along its last dimension",
+}
+"""The kernels' ``invalid`` bits (``InvalidInput`` in csrc/sample_pdf.h) and what each says."""
 
 
 def _validate(z_coarse: torch.Tensor, weights_coarse: torch.Tensor, check_values: bool) -> None:
@@ -76,7 +95,8 @@ def _validate(z_coarse: torch.Tensor, weights_coarse: torch.Tensor, check_values
 
 
 def _hierarchical_samples_fwd_fake(z_coarse, weights, u, weight_padding):
-    return z_coarse.new_empty(z_coarse.shape[0], z_coarse.shape[1] + u.shape[-1])
+    return (z_coarse.new_empty(z_coarse.shape[0], z_coarse.shape[1] + u.shape[-1]),
+            z_coarse.new_empty(1, dtype=torch.int32))
 
 
 _HIERARCHICAL_SAMPLES = KernelOp("hierarchical_samples_fwd", _hierarchical_samples_fwd_fake)
