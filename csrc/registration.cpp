@@ -16,6 +16,8 @@ TORCH_LIBRARY(mixer_nerf, m) {
   m.def("sample_pdf_packed_bwd(Tensor grad_samples, Tensor bins, Tensor weights, Tensor offsets, Tensor u, float weight_padding) -> (Tensor, Tensor)");
   // hierarchical_samples: z_coarse (R, S), weights (R, S), u (R, N) -> merged depths (R, S+N), invalid (1) int32
   m.def("hierarchical_samples_fwd(Tensor z_coarse, Tensor weights, Tensor u, float weight_padding) -> (Tensor, Tensor)");
+  //   the same with stratified positions drawn by the op from generator: (n + U[0, 1)) / num_samples
+  m.def("hierarchical_samples_stratified_fwd(Tensor z_coarse, Tensor weights, int num_samples, Generator? generator, float weight_padding) -> (Tensor, Tensor)");
   // composite: sigmas (R, S), rgbs (R, S, C), t_starts/t_ends (R, S), background (C) or (R, C)
   //   -> color (R, C), depth (R), opacity (R), weights (R, S), invalid (1) int32 (composite.h InvalidInput bits)
   m.def("composite_fwd(Tensor sigmas, Tensor rgbs, Tensor t_starts, Tensor t_ends, Tensor? background) -> (Tensor, Tensor, Tensor, Tensor, Tensor)");

@@ -155,6 +155,16 @@ struct Cpu {
     });
     return {out, at::full({1}, invalid.load(), z_coarse.options().dtype(at::kInt))};
   }
+
+  static std::tuple<at::Tensor, at::Tensor> hierarchical_stratified(const at::Tensor& z_coarse,
+                                                                    const at::Tensor& weights, int64_t num_samples,
+                                                                    std::optional<at::Generator> generator,
+                                                                    double weight_padding) {
+    const auto acc_options = z_coarse.options().dtype(at::toOpMathType(z_coarse.scalar_type()));
+    const at::Tensor jitter = at::rand({z_coarse.size(0), num_samples}, generator, acc_options);
+    const at::Tensor u = (at::arange(num_samples, acc_options) + jitter) / static_cast<double>(num_samples);
+    return hierarchical(z_coarse, weights, u, weight_padding, RayBatch{z_coarse.size(0), num_samples, num_samples});
+  }
 };
 
 }  // namespace

@@ -153,7 +153,26 @@ struct SamplePdfOps {
     return Device::hierarchical(z_coarse, weights, u, weight_padding, batch);
   }
 
+  // hierarchical_samples drawing its own stratified positions u_n = (n + xi_n) / N, xi ~ U[0, 1)
+  // from `generator`: on the CPU the stream torch.rand draws (the Python path's, bit for bit), on
+  // CUDA Philox in the kernel (one launch, graph-safe).
+  static std::tuple<at::Tensor, at::Tensor> hierarchical_stratified_fwd(const at::Tensor& z_coarse,
+                                                                        const at::Tensor& weights, int64_t num_samples,
+                                                                        std::optional<at::Generator> generator,
+                                                                        double weight_padding) {
+    MIXER_NERF_CHECK_INPUT(z_coarse, Device::kind);
+    MIXER_NERF_CHECK_INPUT(weights, Device::kind);
+    MIXER_NERF_CHECK(z_coarse.dim() == 2 && weights.dim() == 2 && weights.size(0) == z_coarse.size(0),
+                     "expected 2-D z_coarse and weights of one shape");
+    MIXER_NERF_CHECK(weights.scalar_type() == z_coarse.scalar_type(), "weights must have the dtype of z_coarse");
+    MIXER_NERF_CHECK(0 <= num_samples && num_samples < (int64_t{1} << 30) && z_coarse.size(1) < (int64_t{1} << 30),
+                     "too many bins or samples");
+    check_coarse(z_coarse, weights);
+    return Device::hierarchical_stratified(z_coarse, weights, num_samples, generator, weight_padding);
+  }
+
   static void register_ops(torch::Library& m) {
+    m.impl("hierarchical_samples_stratified_fwd", &hierarchical_stratified_fwd);
     m.impl("sample_pdf_fwd", &dense_fwd);
     m.impl("sample_pdf_bwd", &dense_bwd);
     m.impl("hierarchical_samples_fwd", &hierarchical_fwd);

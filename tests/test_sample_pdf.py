@@ -586,10 +586,10 @@ def test_cuda_hierarchical(shape, dtype, shared_u):
     z, weights = random_coarse(R, S, dtype, device=dev)
     u = sorted_u(1, N, dtype, device=dev)[0] if shared_u else sorted_u(R, N, dtype, device=dev)
     addresses = _poisoned(((R, S + N), dtype))
-    merged = torch.ops.mixer_nerf.hierarchical_samples_fwd(z, weights, u, 0.0)
+    merged = torch.ops.mixer_nerf.hierarchical_samples_fwd(z, weights, u, 0.0)[0]
     assert R == 0 or merged.data_ptr() in addresses
     assert_valid_samples(merged, z)
-    cpu = torch.ops.mixer_nerf.hierarchical_samples_fwd(z.cpu(), weights.cpu(), u.cpu(), 0.0)
+    cpu = torch.ops.mixer_nerf.hierarchical_samples_fwd(z.cpu(), weights.cpu(), u.cpu(), 0.0)[0]
     atol = {torch.float32: 1e-6, torch.float64: 1e-14, torch.float16: 4e-3}[dtype]
     torch.testing.assert_close(merged.cpu(), cpu, atol=atol, rtol=0)
     if R <= 1000:
@@ -643,6 +643,68 @@ def test_cuda_opcheck():
     )
     z, coarse_weights = random_coarse(5, 8, device=dev)
     opcheck(torch.ops.mixer_nerf.hierarchical_samples_fwd.default, (z, coarse_weights, u, 0.0))
+
+
+def _stratified_u(R: int, N: int, generator: torch.Generator, device: torch.device) -> torch.Tensor:
+    """The Python path's stratified positions: (n + U[0, 1)) / N from torch.rand."""
+    return (torch.arange(N, device=device) + torch.rand(R, N, generator=generator, device=device)) / N
+
+
+def test_stratified_kernel_draws_the_stream_torch_rand_draws_on_the_cpu():
+    if not use_kernel("auto", torch.device("cpu")):
+        pytest.skip("no CPU kernels")
+    z, weights = random_coarse(33, 17)
+    seed = torch.seed()
+    drawn = hierarchical_samples(z, weights, 40, generator=torch.Generator().manual_seed(seed), backend="kernel")
+    u = _stratified_u(33, 40, torch.Generator().manual_seed(seed), z.device)
+    assert torch.equal(drawn, hierarchical_samples(z, weights, 40, u=u, backend="kernel"))
+
+
+@cuda
+@needs_cuda
+def test_cuda_stratified_positions_are_drawn_in_the_kernel():
+    dev = torch.device("cuda")
+    R, S, N = 65536, 64, 128
+    z, weights = random_coarse(R, S, device=dev)
+    seed = torch.seed()
+    first = hierarchical_samples(z, weights, N, generator=torch.Generator(dev).manual_seed(seed))
+    again = hierarchical_samples(z, weights, N, generator=torch.Generator(dev).manual_seed(seed))
+    assert torch.equal(first, again)  # the generator's seed decides the draws
+    gen = torch.Generator(dev).manual_seed(seed)
+    assert not torch.equal(hierarchical_samples(z, weights, N, generator=gen),
+                           hierarchical_samples(z, weights, N, generator=gen))  # and its offset advances
+    assert_valid_samples(first, z)
+    # Each fine sample lies in its stratum: between the samples at u = n/N and u = (n+1)/N (a
+    # sorted union is monotone in its members, so the merged rows are bounded the same way).
+    strata = torch.arange(N, device=dev, dtype=torch.float32)
+    low = hierarchical_samples(z, weights, N, u=strata / N)
+    high = hierarchical_samples(z, weights, N, u=(strata + 1) / N)
+    assert (low <= first).all() and (first <= high).all()
+    # Spread over the strata, not stuck at an end: where a stratum has width, the sample's place
+    # in it averages about 1/2 (the merge can swap a fine sample with a coarse one, hence the slack).
+    wide = high - low > 1e-4
+    place = ((first - low) / (high - low))[wide]
+    assert wide.float().mean() > 0.5 and abs(place.mean().item() - 0.5) < 0.05 and place.std().item() > 0.2
+    for dtype in (torch.float64, torch.float16):
+        zd, wd = random_coarse(257, S, dtype, device=dev)
+        assert_valid_samples(hierarchical_samples(zd, wd, N), zd)
+
+
+@cuda
+@needs_cuda
+def test_cuda_stratified_sampling_replays_in_a_graph_with_fresh_draws():
+    dev = torch.device("cuda")
+    z, weights = random_coarse(1024, 64, device=dev)
+    hierarchical_samples(z, weights, 128)  # warm-up outside the capture
+    graph, stream = torch.cuda.CUDAGraph(), torch.cuda.Stream()
+    with torch.cuda.stream(stream), torch.cuda.graph(graph):
+        out = hierarchical_samples(z, weights, 128)
+    graph.replay()
+    first = out.clone()
+    graph.replay()
+    torch.cuda.synchronize()
+    assert not torch.equal(first, out)
+    assert_valid_samples(out, z)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -19,6 +19,8 @@
 #include <torch/library.h>
 
 #include <ATen/ATen.h>
+#include <ATen/cuda/CUDAGeneratorImpl.h>
+#include <ATen/cuda/PhiloxUtils.cuh>
 #include <c10/cuda/CUDAException.h>
 #include <c10/cuda/CUDAGuard.h>
 #include <c10/cuda/CUDAStream.h>  // = at::cuda::getCurrentCUDAStream, without the cuSPARSE/cuBLAS headers
@@ -26,9 +28,11 @@
 #include <algorithm>
 #include <climits>
 #include <optional>
+#include <mutex>
 #include <tuple>
 
 #include "common.h"
+#include "philox.cuh"
 #include "sample_pdf.h"
 #include "sample_pdf_math.h"
 #include "warp.cuh"
@@ -83,13 +87,29 @@ struct WarpShared {
   }
 };
 
+// Where a ray's positions come from: row `ray` of u (stride 0: one row for every ray), or, where
+// u is null, drawn in the kernel: u_n = (n + xi_n) / N, xi_n uniform in [0, 1) from Philox block
+// offset / 4 + n of sequence `ray` (the generator's offset counts 32-bit values, 4 a block).
+template <typename acc>
+struct Positions {
+  const acc* u;
+  int64_t u_row_stride;
+  at::PhiloxCudaState philox;
+};
+
+template <typename acc>
+__device__ acc stratified_position(uint64_t seed, uint64_t offset, int64_t ray, int n, int N) {
+  const acc xi = philox::uniform<acc>(philox::block_bits(seed, offset / 4 + n, uint64_t(ray)));
+  return (acc(n) + xi) / acc(N);
+}
+
 // Forward. Tail: sample_pdf: u then samples (N); hierarchical_samples: the coarse depths (S), then
 // u then the fine samples (N). `rows` places sample_pdf's bins (layout.num_bins is the most any
 // ray has); hierarchical_samples' rows are (R, S) coarse depths and weights.
 template <typename scalar_t, bool kMerge, typename Rows>
 __global__ void sample_forward_kernel(int64_t rays, WarpLayout layout, Rows rows,
                                       const scalar_t* __restrict__ edges_or_z, const scalar_t* __restrict__ weights,
-                                      const acc_t<scalar_t>* __restrict__ u, int64_t u_row_stride, int num_samples,
+                                      Positions<acc_t<scalar_t>> positions, int num_samples,
                                       acc_t<scalar_t> pad, scalar_t* __restrict__ out, int32_t* invalid) {
   using acc = acc_t<scalar_t>;
   extern __shared__ __align__(16) unsigned char shared_raw[];
@@ -108,12 +128,14 @@ __global__ void sample_forward_kernel(int64_t rays, WarpLayout layout, Rows rows
   // Every load of the ray in one loop, so they are all in flight together.
   const scalar_t* weights_row = weights + ray_bins.weights;
   const scalar_t* edges_row = edges_or_z + ray_bins.edges;
-  const acc* u_row = u + ray * u_row_stride;
+  const acc* u_row = positions.u ? positions.u + ray * positions.u_row_stride : nullptr;
+  uint64_t seed = 0, offset = 0;
+  if (!u_row) std::tie(seed, offset) = at::cuda::philox::unpack(positions.philox);
   const int longest = max(max(B + 2, N), 1);
   for (int i = lane; i < longest; i += kWarpSize) {
     if (i < B) sh.w[i] = PaddedWeights<acc, scalar_t>{weights_row, pad}(i);
     if (kMerge ? i < S : i <= B) (kMerge ? z : sh.edges)[i] = static_cast<acc>(edges_row[i]);
-    if (i < N) fine[i] = u_row[i];
+    if (i < N) fine[i] = u_row ? u_row[i] : stratified_position<acc>(seed, offset, ray, i, N);
   }
   __syncwarp();
   if constexpr (kMerge) {
@@ -328,8 +350,9 @@ struct Cuda {
       using acc = acc_t<scalar_t>;
       launch_warp_per_ray<acc, acc>(sample_forward_kernel<scalar_t, false, Rows>, WarpLayout{max_bins, num_samples},
                                batch.rays, rows, bins.data_ptr<scalar_t>(), weights.data_ptr<scalar_t>(),
-                               u.data_ptr<acc>(), batch.u_row_stride, num_samples, static_cast<acc>(weight_padding),
-                               samples.data_ptr<scalar_t>(), static_cast<int32_t*>(nullptr));
+                               Positions<acc>{u.data_ptr<acc>(), batch.u_row_stride, {}}, num_samples,
+                               static_cast<acc>(weight_padding), samples.data_ptr<scalar_t>(),
+                               static_cast<int32_t*>(nullptr));
     });
     return samples;
   }
@@ -360,17 +383,40 @@ struct Cuda {
   static std::tuple<at::Tensor, at::Tensor> hierarchical(const at::Tensor& z_coarse, const at::Tensor& weights,
                                                          const at::Tensor& u, double weight_padding,
                                                          const RayBatch& batch) {
+    return merge(z_coarse, weights, &u, batch.samples, batch.u_row_stride, {}, weight_padding);
+  }
+
+  static std::tuple<at::Tensor, at::Tensor> hierarchical_stratified(const at::Tensor& z_coarse,
+                                                                    const at::Tensor& weights, int64_t num_samples,
+                                                                    std::optional<at::Generator> generator,
+                                                                    double weight_padding) {
     const c10::cuda::CUDAGuard guard(z_coarse.device());
-    const int coarse = int(z_coarse.size(1)), num_samples = int(batch.samples);
-    at::Tensor merged = at::empty({batch.rays, coarse + batch.samples}, z_coarse.options());
+    auto* gen = at::get_generator_or_default<at::CUDAGeneratorImpl>(generator, at::cuda::detail::getDefaultCUDAGenerator());
+    at::PhiloxCudaState philox;
+    {
+      const std::lock_guard<std::mutex> lock(gen->mutex_);
+      philox = gen->philox_cuda_state(4 * uint64_t(num_samples));  // one block of 4 values a sample
+    }
+    return merge(z_coarse, weights, nullptr, num_samples, 0, philox, weight_padding);
+  }
+
+  // hierarchical_samples with positions from `u` (R, N) or (N), or drawn by `philox` (u null).
+  static std::tuple<at::Tensor, at::Tensor> merge(const at::Tensor& z_coarse, const at::Tensor& weights,
+                                                  const at::Tensor* u, int64_t samples, int64_t u_row_stride,
+                                                  at::PhiloxCudaState philox, double weight_padding) {
+    const c10::cuda::CUDAGuard guard(z_coarse.device());
+    const int64_t rays = z_coarse.size(0);
+    const int coarse = int(z_coarse.size(1)), num_samples = int(samples);
+    at::Tensor merged = at::empty({rays, coarse + samples}, z_coarse.options());
     at::Tensor invalid = at::zeros({1}, z_coarse.options().dtype(at::kInt));
     MIXER_NERF_DISPATCH_FLOATING(z_coarse.scalar_type(), "hierarchical_samples_fwd_cuda", [&] {
       using acc = acc_t<scalar_t>;
       launch_warp_per_ray<acc, acc>(sample_forward_kernel<scalar_t, true, DenseBins>,
-                               WarpLayout{coarse - 2, coarse + num_samples}, batch.rays, DenseBins{coarse - 2},
-                               z_coarse.data_ptr<scalar_t>(), weights.data_ptr<scalar_t>(), u.data_ptr<acc>(),
-                               batch.u_row_stride, num_samples, static_cast<acc>(weight_padding),
-                               merged.data_ptr<scalar_t>(), invalid.data_ptr<int32_t>());
+                               WarpLayout{coarse - 2, coarse + num_samples}, rays, DenseBins{coarse - 2},
+                               z_coarse.data_ptr<scalar_t>(), weights.data_ptr<scalar_t>(),
+                               Positions<acc>{u ? u->data_ptr<acc>() : nullptr, u_row_stride, philox}, num_samples,
+                               static_cast<acc>(weight_padding), merged.data_ptr<scalar_t>(),
+                               invalid.data_ptr<int32_t>());
     });
     return {merged, invalid};
   }

@@ -20,7 +20,7 @@ from . import deferred_checks
 from ._dispatch import use_kernel
 from ._kernel_op import KernelOp
 from .hierarchical_samples_reference import hierarchical_samples_reference
-from .sample_pdf import check_weight_padding, sample_positions
+from .sample_pdf import check_generator, check_weight_padding, sample_positions
 
 
 def hierarchical_samples(
@@ -42,6 +42,11 @@ def hierarchical_samples(
     detaches the fine depths, so the result never requires grad. A ray with a NaN weight gets its
     NaN fine depths after its coarse ones, as ``torch.sort`` puts NaN last.
 
+    Stratified positions (the default) are drawn by the kernel itself: on the CPU from the stream
+    ``torch.rand`` draws (so the reference path with the same generator gives the same samples),
+    on CUDA by Philox inside the one launch (graph-safe; a stream of its own, so the two paths
+    then agree in distribution, not sample for sample).
+
     Args:
         z_coarse: (R, S) sorted coarse depths, S >= 3.
         weights_coarse: (R, S) non-negative compositing weights of the coarse samples.
@@ -60,12 +65,17 @@ def hierarchical_samples(
     _validate(z_coarse, weights_coarse, check_values and not deferred)
     check_int("num_fine", num_fine)
     pad = check_weight_padding(weight_padding)
-    positions = sample_positions("z_coarse", z_coarse, num_fine, deterministic, u, generator,
-                                 check_values and not deferred)
     z_coarse, weights_coarse = z_coarse.detach(), weights_coarse.detach()
-    if not use_kernel(backend, z_coarse.device):
-        return hierarchical_samples_reference(z_coarse, weights_coarse, positions, pad)
-    merged, invalid = _HIERARCHICAL_SAMPLES(z_coarse, weights_coarse, positions, pad)
+    kernel = use_kernel(backend, z_coarse.device)
+    if kernel and u is None and not deterministic:  # the kernel draws the stratified positions itself
+        check_generator(generator, z_coarse)
+        merged, invalid = _HIERARCHICAL_STRATIFIED(z_coarse, weights_coarse, num_fine, generator, pad)
+    else:
+        positions = sample_positions("z_coarse", z_coarse, num_fine, deterministic, u, generator,
+                                     check_values and not deferred)
+        if not kernel:
+            return hierarchical_samples_reference(z_coarse, weights_coarse, positions, pad)
+        merged, invalid = _HIERARCHICAL_SAMPLES(z_coarse, weights_coarse, positions, pad)
     if deferred:
         deferred_checks.watch(invalid, "hierarchical_samples", INVALID_INPUT)
     return merged
@@ -99,4 +109,9 @@ def _hierarchical_samples_fwd_fake(z_coarse, weights, u, weight_padding):
             z_coarse.new_empty(1, dtype=torch.int32))
 
 
+def _hierarchical_stratified_fwd_fake(z_coarse, weights, num_samples, generator, weight_padding):
+    return _hierarchical_samples_fwd_fake(z_coarse, weights, z_coarse.new_empty(num_samples), weight_padding)
+
+
 _HIERARCHICAL_SAMPLES = KernelOp("hierarchical_samples_fwd", _hierarchical_samples_fwd_fake)
+_HIERARCHICAL_STRATIFIED = KernelOp("hierarchical_samples_stratified_fwd", _hierarchical_stratified_fwd_fake)

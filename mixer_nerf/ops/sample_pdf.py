@@ -212,10 +212,15 @@ def sample_positions(
     strata = torch.arange(num_samples, device=like.device, dtype=acc)
     if deterministic:
         return (strata + 0.5) / num_samples
-    if generator is not None and generator.device.type != like.device.type:
-        raise ValueError(f"generator is on {generator.device} but the inputs are on {like.device}")
+    check_generator(generator, like)
     jitter = torch.rand(num_rays, num_samples, generator=generator, device=like.device, dtype=acc)
     return (strata + jitter) / num_samples
+
+
+def check_generator(generator: torch.Generator | None, like: torch.Tensor) -> None:
+    """A generator (or None: the default one) of the device the inputs are on."""
+    if generator is not None and generator.device.type != like.device.type:
+        raise ValueError(f"generator is on {generator.device} but the inputs are on {like.device}")
 
 
 def _sample_pdf_fwd_fake(bins, weights, u, weight_padding):
