@@ -158,16 +158,14 @@ struct Cpu {
   static constexpr at::DeviceType kind = at::kCPU;
 
   template <typename Rays>
-  static CompositeForward forward(const at::Tensor& sigmas, const at::Tensor& rgbs, const at::Tensor& t_starts,
-                                  const at::Tensor& t_ends, const std::optional<at::Tensor>& background, int64_t R,
-                                  Rays rays) {
-    auto outputs = empty_outputs(sigmas, rgbs, R);
-    const int64_t C = rgbs.size(-1);
+  static CompositeForward forward(const CompositeTensors& tensors, int64_t R, Rays rays) {
+    auto outputs = empty_outputs(tensors.sigmas, tensors.rgbs, R);
+    const int64_t C = tensors.rgbs.size(-1);
     std::atomic<int32_t> invalid{0};
-    MIXER_NERF_DISPATCH_FLOATING(sigmas.scalar_type(), "composite_fwd_cpu", [&] {
-      const auto in = inputs_of<scalar_t>(sigmas, rgbs, t_starts, t_ends, background);
+    MIXER_NERF_DISPATCH_FLOATING(tensors.sigmas.scalar_type(), "composite_fwd_cpu", [&] {
+      const auto in = tensors.pointers<scalar_t>();
       const auto out = outputs_of<scalar_t>(outputs);
-      at::parallel_for(0, R, ray_grain(sigmas.numel(), R), [&](int64_t begin, int64_t end) {
+      at::parallel_for(0, R, ray_grain(tensors.sigmas.numel(), R), [&](int64_t begin, int64_t end) {
         std::vector<ray_acc> color_acc(C);
         int32_t bits = 0;
         for (int64_t r = begin; r < end; ++r) {
@@ -183,19 +181,12 @@ struct Cpu {
   }
 
   template <typename Rays>
-  static CompositeBackward backward(const std::optional<at::Tensor>& grad_color,
-                                    const std::optional<at::Tensor>& grad_depth,
-                                    const std::optional<at::Tensor>& grad_opacity,
-                                    const std::optional<at::Tensor>& grad_weights, const at::Tensor& sigmas,
-                                    const at::Tensor& rgbs, const at::Tensor& t_starts, const at::Tensor& t_ends,
-                                    const std::optional<at::Tensor>& background, bool interval_grads, int64_t R,
-                                    Rays rays) {
-    check_upstream(grad_color, grad_depth, grad_opacity, grad_weights, sigmas, rgbs, R, kind);
-    CompositeGradTensors grads(sigmas, rgbs, background, R, interval_grads);
-    MIXER_NERF_DISPATCH_FLOATING(sigmas.scalar_type(), "composite_bwd_cpu", [&] {
-      const auto in = inputs_of<scalar_t>(sigmas, rgbs, t_starts, t_ends, background);
-      const auto g = grads.pointers<scalar_t>(grad_color, grad_depth, grad_opacity, grad_weights);
-      at::parallel_for(0, R, ray_grain(sigmas.numel(), R), [&](int64_t begin, int64_t end) {
+  static void backward(const Upstream& up, const CompositeTensors& tensors, CompositeGradTensors& grads, int64_t R,
+                       Rays rays) {
+    MIXER_NERF_DISPATCH_FLOATING(tensors.sigmas.scalar_type(), "composite_bwd_cpu", [&] {
+      const auto in = tensors.pointers<scalar_t>();
+      const auto g = grads.pointers<scalar_t>(up);
+      at::parallel_for(0, R, ray_grain(tensors.sigmas.numel(), R), [&](int64_t begin, int64_t end) {
         std::vector<ray_acc> transmittance_after;
         for (int64_t r = begin; r < end; ++r) {
           const composite_layout::RaySpan span = rays(r);
@@ -204,7 +195,6 @@ struct Cpu {
         }
       });
     });
-    return grads.finish(background);
   }
 };
 

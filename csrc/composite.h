@@ -106,14 +106,42 @@ inline int64_t check_packed(const at::Tensor& sigmas, const at::Tensor& offsets,
   return offsets.size(0) - 1;
 }
 
+// One call's input tensors, as the op received them (checked by CompositeOps).
+struct CompositeTensors {
+  const at::Tensor& sigmas;
+  const at::Tensor& rgbs;
+  const at::Tensor& t_starts;
+  const at::Tensor& t_ends;
+  const std::optional<at::Tensor>& background;
+
+  template <typename scalar_t>
+  CompositeInputs<scalar_t> pointers() const {
+    const int64_t C = rgbs.size(-1);
+    const bool per_ray = background && background->dim() == 2;
+    return {sigmas.const_data_ptr<scalar_t>(),
+            rgbs.const_data_ptr<scalar_t>(),
+            t_starts.const_data_ptr<scalar_t>(),
+            t_ends.const_data_ptr<scalar_t>(),
+            background ? background->const_data_ptr<scalar_t>() : nullptr,
+            per_ray ? C : 0,
+            C};
+  }
+};
+
+// The upstream gradients of a backward, each absent (zeros) or shaped like its output.
+struct Upstream {
+  const std::optional<at::Tensor>& color;
+  const std::optional<at::Tensor>& depth;
+  const std::optional<at::Tensor>& opacity;
+  const std::optional<at::Tensor>& weights;
+};
+
 // Upstream gradients: each absent (zeros) or of its output's shape and dtype.
-inline void check_upstream(const std::optional<at::Tensor>& grad_color, const std::optional<at::Tensor>& grad_depth,
-                           const std::optional<at::Tensor>& grad_opacity,
-                           const std::optional<at::Tensor>& grad_weights, const at::Tensor& sigmas,
-                           const at::Tensor& rgbs, int64_t rays, at::DeviceType device) {
+inline void check_upstream(const Upstream& up, const at::Tensor& sigmas, const at::Tensor& rgbs, int64_t rays,
+                           at::DeviceType device) {
   const std::vector<int64_t> color_shape{rays, rgbs.size(-1)}, ray_shape{rays};
   const std::pair<const std::optional<at::Tensor>*, at::IntArrayRef> expected[] = {
-      {&grad_color, color_shape}, {&grad_depth, ray_shape}, {&grad_opacity, ray_shape}, {&grad_weights, sigmas.sizes()}};
+      {&up.color, color_shape}, {&up.depth, ray_shape}, {&up.opacity, ray_shape}, {&up.weights, sigmas.sizes()}};
   for (const auto& [grad, shape] : expected) {
     if (!*grad) continue;
     const at::Tensor& upstream = **grad;
@@ -121,20 +149,6 @@ inline void check_upstream(const std::optional<at::Tensor>& grad_color, const st
     MIXER_NERF_CHECK(upstream.scalar_type() == sigmas.scalar_type(), "composite_bwd: gradient dtype mismatch");
     MIXER_NERF_CHECK(upstream.sizes() == shape, "composite_bwd: gradient of shape ", upstream.sizes(), ", expected ", shape);
   }
-}
-
-template <typename scalar_t>
-CompositeInputs<scalar_t> inputs_of(const at::Tensor& sigmas, const at::Tensor& rgbs, const at::Tensor& t_starts,
-                                    const at::Tensor& t_ends, const std::optional<at::Tensor>& background) {
-  const int64_t C = rgbs.size(-1);
-  const bool per_ray = background && background->dim() == 2;
-  return {sigmas.const_data_ptr<scalar_t>(),
-          rgbs.const_data_ptr<scalar_t>(),
-          t_starts.const_data_ptr<scalar_t>(),
-          t_ends.const_data_ptr<scalar_t>(),
-          background ? background->const_data_ptr<scalar_t>() : nullptr,
-          per_ray ? C : 0,
-          C};
 }
 
 template <typename scalar_t>
@@ -183,14 +197,11 @@ struct CompositeGradTensors {
   }
 
   template <typename scalar_t>
-  CompositeGrads<scalar_t> pointers(const std::optional<at::Tensor>& grad_color,
-                                    const std::optional<at::Tensor>& grad_depth,
-                                    const std::optional<at::Tensor>& grad_opacity,
-                                    const std::optional<at::Tensor>& grad_weights) {
-    return {data_or_null<scalar_t>(grad_color),
-            data_or_null<scalar_t>(grad_depth),
-            data_or_null<scalar_t>(grad_opacity),
-            data_or_null<scalar_t>(grad_weights),
+  CompositeGrads<scalar_t> pointers(const Upstream& up) {
+    return {data_or_null<scalar_t>(up.color),
+            data_or_null<scalar_t>(up.depth),
+            data_or_null<scalar_t>(up.opacity),
+            data_or_null<scalar_t>(up.weights),
             sigmas.data_ptr<scalar_t>(),
             rgbs.data_ptr<scalar_t>(),
             t_starts ? t_starts->data_ptr<scalar_t>() : nullptr,
@@ -208,16 +219,31 @@ struct CompositeGradTensors {
 };
 
 // The four composite ops of one device: the checks both devices share and the choice of layout,
-// then Device::forward / Device::backward (templates over the layout, given R rays), which the
-// device's source registers with register_ops.
+// then Device::forward (returns the outputs) and Device::backward (fills `grads`), templates over
+// the layout given R rays, which the device's source registers with register_ops.
 template <typename Device>
 struct CompositeOps {
+  template <typename Rays>
+  static CompositeForward forward(const CompositeTensors& in, int64_t R, Rays rays) {
+    check_composite_inputs(in.sigmas, in.rgbs, in.t_starts, in.t_ends, in.background, R, Device::kind);
+    return Device::forward(in, R, rays);
+  }
+
+  template <typename Rays>
+  static CompositeBackward backward(const Upstream& up, const CompositeTensors& in, bool interval_grads, int64_t R,
+                                    Rays rays) {
+    check_composite_inputs(in.sigmas, in.rgbs, in.t_starts, in.t_ends, in.background, R, Device::kind);
+    check_upstream(up, in.sigmas, in.rgbs, R, Device::kind);
+    CompositeGradTensors grads(in.sigmas, in.rgbs, in.background, R, interval_grads);
+    Device::backward(up, in, grads, R, rays);
+    return grads.finish(in.background);
+  }
+
   static CompositeForward dense_fwd(const at::Tensor& sigmas, const at::Tensor& rgbs, const at::Tensor& t_starts,
                                     const at::Tensor& t_ends, const std::optional<at::Tensor>& background) {
     check_dense(sigmas);
-    check_composite_inputs(sigmas, rgbs, t_starts, t_ends, background, sigmas.size(0), Device::kind);
-    return Device::forward(sigmas, rgbs, t_starts, t_ends, background, sigmas.size(0),
-                           composite_layout::DenseRays{sigmas.size(1)});
+    return forward({sigmas, rgbs, t_starts, t_ends, background}, sigmas.size(0),
+                   composite_layout::DenseRays{sigmas.size(1)});
   }
 
   static CompositeBackward dense_bwd(const std::optional<at::Tensor>& grad_color,
@@ -227,18 +253,16 @@ struct CompositeOps {
                                      const at::Tensor& rgbs, const at::Tensor& t_starts, const at::Tensor& t_ends,
                                      const std::optional<at::Tensor>& background, bool interval_grads) {
     check_dense(sigmas);
-    check_composite_inputs(sigmas, rgbs, t_starts, t_ends, background, sigmas.size(0), Device::kind);
-    return Device::backward(grad_color, grad_depth, grad_opacity, grad_weights, sigmas, rgbs, t_starts, t_ends,
-                            background, interval_grads, sigmas.size(0), composite_layout::DenseRays{sigmas.size(1)});
+    return backward({grad_color, grad_depth, grad_opacity, grad_weights}, {sigmas, rgbs, t_starts, t_ends, background},
+                    interval_grads, sigmas.size(0), composite_layout::DenseRays{sigmas.size(1)});
   }
 
   static CompositeForward packed_fwd(const at::Tensor& sigmas, const at::Tensor& rgbs, const at::Tensor& t_starts,
                                      const at::Tensor& t_ends, const std::optional<at::Tensor>& background,
                                      const at::Tensor& offsets) {
     const int64_t R = check_packed(sigmas, offsets, Device::kind);
-    check_composite_inputs(sigmas, rgbs, t_starts, t_ends, background, R, Device::kind);
-    return Device::forward(sigmas, rgbs, t_starts, t_ends, background, R,
-                           composite_layout::PackedRays{offsets.const_data_ptr<int64_t>(), sigmas.size(0)});
+    return forward({sigmas, rgbs, t_starts, t_ends, background}, R,
+                   composite_layout::PackedRays{offsets.const_data_ptr<int64_t>(), sigmas.size(0)});
   }
 
   static CompositeBackward packed_bwd(const std::optional<at::Tensor>& grad_color,
@@ -249,10 +273,8 @@ struct CompositeOps {
                                       const std::optional<at::Tensor>& background, const at::Tensor& offsets,
                                       bool interval_grads) {
     const int64_t R = check_packed(sigmas, offsets, Device::kind);
-    check_composite_inputs(sigmas, rgbs, t_starts, t_ends, background, R, Device::kind);
-    return Device::backward(grad_color, grad_depth, grad_opacity, grad_weights, sigmas, rgbs, t_starts, t_ends,
-                            background, interval_grads, R,
-                            composite_layout::PackedRays{offsets.const_data_ptr<int64_t>(), sigmas.size(0)});
+    return backward({grad_color, grad_depth, grad_opacity, grad_weights}, {sigmas, rgbs, t_starts, t_ends, background},
+                    interval_grads, R, composite_layout::PackedRays{offsets.const_data_ptr<int64_t>(), sigmas.size(0)});
   }
 
   static void register_ops(torch::Library& m) {

