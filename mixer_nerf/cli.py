@@ -21,6 +21,8 @@ from .train.config import DEMO_SETTINGS, TrainConfig
 DEMO_OUT = "runs/demo"
 DEMO_VIDEO_FRAMES = 40
 VIDEO_PATHS = ("auto", "turntable", "spiral", "train", "test")
+EVAL_VIEWS_CPU = 1  # a 400x400 view of preset D takes minutes on a CPU (docs/training.md#memory)
+
 
 class UserError(Exception):
     """A problem the user can fix; printed as one line."""
@@ -181,8 +183,11 @@ def run_train(args: argparse.Namespace) -> int:
     if rank:
         return 0  # rank 0 evaluates and reports
     ckpt = Path(summary["checkpoint"])
-    views = args.eval_views
+    views = eval_views(args.eval_views, summary["device"], builtin=cfg.data is None)
     held_out = None if views == 0 else _evaluate(ckpt, device=cfg.device, backend=cfg.backend, max_images=views)
+    if held_out is not None and args.eval_views is None and views is not None:
+        held_out["notes"].append(f"a CPU scores {views} held-out view by default after training; "
+                                 f"--eval-views all, or `mixer-nerf eval --ckpt {ckpt}`, scores every view")
     video = (
         _render(ckpt, DEMO_VIDEO_FRAMES, device=cfg.device, backend=cfg.backend)
         if cfg.data is None
@@ -409,20 +414,29 @@ def _add_train_options(parser: argparse.ArgumentParser, default_out: str) -> Non
     parser.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint "
                         "(a new --steps extends it; --device moves it; other settings must match)")
     parser.add_argument("--overwrite", action="store_true", help="delete the run in --out and start over")
-    parser.add_argument("--eval-views", type=_eval_views, metavar="N|none",
-                        help="held-out views scored after training (default: all; none: skip)")
+    parser.add_argument("--eval-views", type=_eval_views, metavar="N|all|none",
+                        help=f"held-out views scored after training (default: all on a GPU, {EVAL_VIEWS_CPU} on "
+                        "a CPU; none: skip)")
     parser.add_argument("--devices", type=int, metavar="N",
                         help="train on N processes under torchrun: one per GPU, or CPU processes with "
                         "--device cpu (docs/distributed.md)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
-def _eval_views(text: str) -> int:
-    """``--eval-views``: a positive count, or "none" (0)."""
-    if text == "none":
-        return 0
+def eval_views(typed: int | str | None, device: str, builtin: bool = False) -> int | None:
+    """The held-out views scored after training (None: all) for ``--eval-views`` as parsed (None:
+    not given) on ``device``: all on a GPU or of the tiny built-in scene, else ``EVAL_VIEWS_CPU``."""
+    if typed is None:
+        return EVAL_VIEWS_CPU if device.startswith("cpu") and not builtin else None
+    return None if typed == "all" else typed
+
+
+def _eval_views(text: str) -> int | str:
+    """``--eval-views``: a positive count, "all" or "none" (0)."""
+    if text in ("all", "none"):
+        return 0 if text == "none" else text
     if not text.isdigit() or int(text) < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive number of views or 'none', got {text!r}")
+        raise argparse.ArgumentTypeError(f"expected a positive number of views, 'all' or 'none', got {text!r}")
     return int(text)
 
 

@@ -9,6 +9,7 @@ their resumed result must equal an uninterrupted run's bit for bit.
 
 from __future__ import annotations
 
+import dataclasses
 import errno
 import os
 import random
@@ -26,9 +27,14 @@ import torch
 from mixer_nerf import cli
 from mixer_nerf.data import ensure_procedural_scene
 from mixer_nerf.data.images import downscale, read_image, write_png
+from mixer_nerf.metrics import psnr
 from mixer_nerf.render import render_rays
+from mixer_nerf.render.image_renderer import RENDER_SAMPLES
+from mixer_nerf.render.skipping import OccupancyGrid
 from mixer_nerf.train import OutputError, TrainConfig, Trainer, load_checkpoint
 from mixer_nerf.train.output import atomic_path, prepare_run_folder, remove_stale_temporaries
+from mixer_nerf.train.restore import load_trained
+from mixer_nerf.train.sampling import RenderGrid, image_renderer, measures_render_grid
 from mixer_nerf.video import write_video
 from test_cli import TINY_DEMO, TINY_FLAGS
 
@@ -345,6 +351,8 @@ def test_train_eval_views(tmp_path, capsys):
     assert "eval (" not in capsys.readouterr().out and not (tmp_path / "none" / "eval_test").exists()
     assert cli.main(train_argv(tmp_path / "one", "--steps", "2", "--eval-views", "1")) == 0
     assert "eval (test, 1 views)" in capsys.readouterr().out
+    assert cli.main(train_argv(tmp_path / "all", "--steps", "2", "--eval-views", "all")) == 0
+    assert "eval (test, " in capsys.readouterr().out
     with pytest.raises(SystemExit):
         cli.main(train_argv(tmp_path / "bad", "--eval-views", "0"))
 
@@ -383,6 +391,60 @@ def test_no_render_chunk_shades_more_than_the_budget(tmp_path):
     renderer(rays_o, rays_d)
     assert len(shaded) > 1 and max(shaded) <= 20_000
     assert renderer.chunk == 19  # a ray may cross the box diagonal in 1000 steps
+
+
+def warmup_run(tmp_path: Path, steps: int) -> Trainer:
+    """A tiny CPU occupancy run of ``steps`` steps whose grid is still in warm-up (every cell occupied)."""
+    cfg = TrainConfig(procedural_resolution=16, procedural_views=4, model_overrides=TINY_DEMO["model_overrides"],
+                      sampler="occupancy", grid_resolution=16, grid_warmup=1000, grid_every=1000, steps=steps,
+                      target_samples=4096, val_every=steps, ckpt_every=steps, device="cpu", backend="torch",
+                      progress=False, out=str(tmp_path / "run"))
+    trainer = Trainer(cfg, log=lambda _: None)
+    trainer.fit()
+    return trainer
+
+
+def test_a_cpu_render_in_warm_up_skips_what_the_field_holds_empty(tmp_path):
+    """A run that ends in its grid's warm-up renders through a grid measured from its field: fewer
+    samples than the dense training grid, no lower PSNR, and the same image from its checkpoint."""
+    trainer = warmup_run(tmp_path, steps=60)
+    dense = image_renderer(trainer.cfg, trainer.fields, trainer.val_scene.near, trainer.val_scene.far,
+                           trainer.background, grid=trainer.fields.grid)  # a given grid is marched as is
+    rays_o, rays_d = trainer.val_scene.rays_for_image(0)
+    target = trainer.val_scene.image(0)
+    (measured, shaded, _), (full, dense_shaded, _) = (r.render_counted(rays_o, rays_d) for r in (trainer.renderer, dense))
+    assert trainer.fields.grid.occupied.all(), "training's grid is left in its warm-up"
+    assert shaded < 0.9 * dense_shaded
+    image = lambda out: out.color.reshape(target.shape).clamp(0, 1)  # noqa: E731
+    assert psnr(image(measured), target) >= psnr(image(full), target) - 0.01
+    run = load_trained(tmp_path / "run" / "checkpoint.pt")
+    torch.testing.assert_close(run.render(rays_o, rays_d).color, measured.color)
+
+
+def test_gpu_renders_and_defaults_are_unchanged():
+    """The CPU-only bounds leave a GPU run as it was: its settings, its grid in warm-up, all views."""
+    gpu = TrainConfig().resolved(cuda_available=True).with_recipe("occupancy")
+    pinned = {"device": "cuda", "precision": "tf32", "bf16_density_passes": True, "grid_warmup": 256,
+              "grid_every": 16, "grid_threshold": 0.01, "grid_resolution": 128, "target_samples": 131072,
+              "render_samples": None, "step_size": None, "early_stop_eps": 1e-4, "val_images": 3, "chunk": 8192}
+    assert {k: gpu.to_dict()[k] for k in pinned} == pinned
+    assert RENDER_SAMPLES["cuda"] == 1 << 22
+    cpu = dataclasses.replace(gpu, device="cpu")
+    assert not measures_render_grid(gpu, 0) and measures_render_grid(cpu, 255) and not measures_render_grid(cpu, 256)
+    grid = OccupancyGrid([-1, -1, -1, 1, 1, 1], 4)
+    assert RenderGrid(gpu, grid, field=None, step=lambda: 0)() is grid
+    assert cli.eval_views(None, "cuda") is None and cli.eval_views(None, "cuda:1") is None
+    assert cli.eval_views(None, "cpu") == cli.EVAL_VIEWS_CPU and cli.eval_views(None, "cpu", builtin=True) is None
+    assert cli.eval_views("all", "cpu") is None and cli.eval_views(3, "cpu") == 3
+
+
+def test_a_cpu_scores_a_bounded_number_of_views_by_default(blender_scene, tmp_path, capsys):
+    argv = ["train", "--data", str(blender_scene), "--steps", "2", "--sampler", "hierarchical", *TINY_FLAGS]
+    assert cli.main([*argv, "--out", str(tmp_path / "default")]) == 0
+    out = capsys.readouterr().out
+    assert f"eval (test, {cli.EVAL_VIEWS_CPU} views)" in out and "--eval-views all" in out
+    assert cli.main([*argv, "--out", str(tmp_path / "all"), "--eval-views", "all"]) == 0
+    assert "eval (test, 2 views)" in capsys.readouterr().out
 
 
 class NegativeField(torch.nn.Module):

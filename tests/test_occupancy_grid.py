@@ -105,6 +105,27 @@ def test_threshold_is_capped_by_the_mean(gen):
     assert torch.equal(grid.occupied, expected)
 
 
+def test_measured_copy_holds_the_field_and_leaves_the_grid(gen):
+    """A render of a run in warm-up marches a measured copy: the sphere's cells, the same ones each
+    time, while the training grid stays dense and unmeasured."""
+    grid = OccupancyGrid(AABB, 16)
+    measured = grid.measured(sphere(radius=0.8))
+    distance = cell_corners(grid).norm(dim=-1)
+    assert measured.occupied[(distance < 0.8).all(-1)].all()
+    assert not measured.occupied[~(distance.amin(-1) < 0.8 + 3 / 16 * math.sqrt(3))].any()
+    assert torch.equal(measured.bitfield, grid.measured(sphere(radius=0.8)).bitfield)
+    assert grid.occupied.all() and (grid.opacity == 0).all()
+
+
+def test_measured_threshold_is_capped_by_the_mean():
+    """As a refresh after warm-up: a faint field keeps its cells (a young field is faint)."""
+    grid = OccupancyGrid(AABB, 8, step_size=0.01)
+    faint = grid.measured(lambda x: (x[:, 0] > 1.125).float() * 0.01, threshold=0.01)
+    expected = torch.zeros(grid.resolution, dtype=torch.bool)
+    expected[-1] = True
+    assert torch.equal(faint.occupied, expected)
+
+
 def test_after_warmup_only_a_subset_is_measured(gen):
     grid = OccupancyGrid(AABB, 16)
     grid.update(0, constant(1.0), warmup_steps=1, generator=gen)

@@ -63,6 +63,7 @@ def load_trained(
         raise CheckpointError(f"{path}: weights do not match the model they claim: {e}") from e
     dev = torch.device(cfg.device)
     fields.to(dev).eval()
-    scene = state["scene"]
-    renderer = image_renderer(cfg, fields, scene["near"], scene["far"], scene["background"].to(dev, torch.float32))
-    return TrainedRun(path, cfg, int(state["step"]), scene, renderer, dev, fields)
+    scene, step = state["scene"], int(state["step"])
+    renderer = image_renderer(cfg, fields, scene["near"], scene["far"], scene["background"].to(dev, torch.float32),
+                              step=lambda: step)
+    return TrainedRun(path, cfg, step, scene, renderer, dev, fields)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable
 
 import torch
 
@@ -96,20 +97,22 @@ def image_renderer(
     background: torch.Tensor,
     grid: OccupancyGrid | None = None,
     marching: MarchingOptions | None = None,
+    step: Callable[[], int] | None = None,
 ) -> ImageRenderer:
     """The chunked, deterministic renderer of a run's ``fields`` for its sampler (resolved ``cfg``).
     ``grid`` and ``marching`` replace the fields' grid and the config's marching options (e.g. to
-    measure what a skip saves)."""
+    measure what a skip saves). ``step`` reads the run's training step: with it, a CPU render of a
+    run still in its grid warm-up marches a grid measured from the field (:class:`RenderGrid`)."""
     device = background.device
     coarse, fine = fields.runners(cfg.precision, device)
-    grid = fields.grid if grid is None else grid
+    render_grid = RenderGrid(cfg, fields.grid if grid is None else grid, coarse, step if grid is None else None)
     if fields.proposal is not None:
         def render_chunk(rays_o: torch.Tensor, rays_d: torch.Tensor) -> ChunkResult:
             out, samples = render_rays_proposal(coarse, fields.proposal, rays_o, rays_d, near, far,
                                                 stratified=False, background=background, backend=cfg.backend)
             shaded = samples.t_starts.numel()
             return ChunkResult(out.color, out.depth, out.opacity, shaded, shaded)
-    elif grid is None:
+    elif render_grid.grid is None:
         def render_chunk(rays_o: torch.Tensor, rays_d: torch.Tensor) -> ChunkResult:
             return chunk_result(render_rays(
                 coarse, rays_o, rays_d, near, far, cfg.num_coarse, cfg.num_fine, fine, stratified=False,
@@ -118,12 +121,39 @@ def image_renderer(
         options = cfg.marching() if marching is None else marching
 
         def render_chunk(rays_o: torch.Tensor, rays_d: torch.Tensor) -> ChunkResult:
-            out = render_rays_marched(coarse, rays_o, rays_d, grid, near, far, options, stratified=False,
+            out = render_rays_marched(coarse, rays_o, rays_d, render_grid(), near, far, options, stratified=False,
                                       background=background, backend=cfg.backend)
             return ChunkResult(out.color, out.depth, out.opacity, out.samples.t_starts.shape[0],
                                out.num_marched)
     budget = cfg.render_samples or RENDER_SAMPLES[device.type]
-    return ImageRenderer(render_chunk, fields, device, rays_per_chunk(budget, samples_per_ray(cfg, grid), cfg.chunk))
+    per_ray = samples_per_ray(cfg, render_grid.grid)
+    return ImageRenderer(render_chunk, fields, device, rays_per_chunk(budget, per_ray, cfg.chunk))
+
+
+def measures_render_grid(cfg: TrainConfig, step: int) -> bool:
+    """Whether renders of a resolved ``cfg``'s run at ``step`` march a grid measured from the field:
+    on a CPU while training's grid is still all-occupied (warm-up). There each ray would shade
+    ~1000 samples (an hour a 400x400 view on 2 cores); a GPU gets past warm-up in seconds."""
+    return cfg.sampler == "occupancy" and torch.device(cfg.device).type == "cpu" and step < cfg.grid_warmup
+
+
+class RenderGrid:
+    """The grid a run's renders march (None without one): ``grid`` itself, or, where
+    :func:`measures_render_grid` says so at ``step()`` (``step`` None: never), a copy measured from
+    ``field.density`` by :meth:`OccupancyGrid.measured`, measured again only when the step changed."""
+
+    def __init__(self, cfg: TrainConfig, grid: OccupancyGrid | None, field: torch.nn.Module,
+                 step: Callable[[], int] | None) -> None:
+        self.cfg, self.grid, self.field, self.step = cfg, grid, field, step
+        self._measured: tuple[int, OccupancyGrid] | None = None
+
+    def __call__(self) -> OccupancyGrid | None:
+        step = None if self.step is None or self.grid is None else self.step()
+        if step is None or not measures_render_grid(self.cfg, step):
+            return self.grid
+        if self._measured is None or self._measured[0] != step:
+            self._measured = (step, self.grid.measured(self.field.density, self.cfg.grid_threshold))
+        return self._measured[1]
 
 
 def samples_per_ray(cfg: TrainConfig, grid: OccupancyGrid | None) -> int:

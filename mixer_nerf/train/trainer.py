@@ -193,7 +193,7 @@ class Trainer:
             self.params, lr=cfg.lr, eps=cfg.adam_eps, fused=self.device.type == "cuda"
         )
         near, far = self.train_scene.near, self.train_scene.far
-        self.renderer = image_renderer(cfg, self.fields, near, far, self.background)
+        self.renderer = image_renderer(cfg, self.fields, near, far, self.background, step=lambda: self.step)
         self.sampler = RaySampler(self.train_scene, cfg.batch_rays, rank_seed(cfg.seed, self.rank))
         self.batches = None
         if self.fields.grid is not None:

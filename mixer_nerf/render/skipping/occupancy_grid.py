@@ -8,6 +8,7 @@ cache. Both are buffers: the grid checkpoints and moves with the model.
 
 from __future__ import annotations
 
+import copy
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -128,6 +129,26 @@ class OccupancyGrid(nn.Module):
         )
         self.bitfield.copy_(pack_bits(occupied))
         return True
+
+    @torch.no_grad()
+    def measured(
+        self,
+        density_fn: Callable[[torch.Tensor], torch.Tensor],
+        threshold: float = 0.01,
+        chunk_size: int = 1 << 18,
+        seed: int = 0,
+    ) -> OccupancyGrid:
+        """A copy whose cells say what ``density_fn(x (n, 3)) -> sigma (n,)`` holds now: every cell
+        measured at one jittered point (``seed``: the same points each time, so renders repeat)
+        and occupied above ``min(threshold, mean)``, the rule of a refresh after warm-up. This
+        grid is left as it is (training goes on with it)."""
+        generator = torch.Generator(self.opacity.device).manual_seed(seed)
+        cells = torch.arange(self.num_cells, device=self.opacity.device)
+        opacity = self._opacity(self._jittered_points(cells, generator), density_fn, chunk_size, None)
+        grid = copy.deepcopy(self)
+        grid.opacity.copy_(opacity.view(self.resolution))
+        grid.bitfield.copy_(pack_bits(opacity > opacity.mean().clamp(max=threshold)))
+        return grid
 
     def _cells_to_update(
         self, everything: bool, generator: torch.Generator | None, share: CellShare | None
