@@ -439,7 +439,8 @@ def test_gpu_renders_and_defaults_are_unchanged():
 
 
 def test_a_cpu_scores_a_bounded_number_of_views_by_default(blender_scene, tmp_path, capsys):
-    argv = ["train", "--data", str(blender_scene), "--steps", "2", "--sampler", "hierarchical", *TINY_FLAGS]
+    argv = ["train", "--data", str(blender_scene), "--steps", "2", "--sampler", "hierarchical", "--batch-rays", "16",
+            "--num-coarse", "4", "--num-fine", "4", *TINY_FLAGS]  # preset D's full model: few samples keep it quick
     assert cli.main([*argv, "--out", str(tmp_path / "default")]) == 0
     out = capsys.readouterr().out
     assert f"eval (test, {cli.EVAL_VIEWS_CPU} views)" in out and "--eval-views all" in out
