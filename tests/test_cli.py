@@ -191,6 +191,8 @@ def test_train_with_data_then_resume(tmp_path, capsys):
         "1",
         "--sampler",
         "hierarchical",
+        "--eval-views",
+        "all",  # a CPU's default is one view
         "--out",
         str(out),
         *TINY_FLAGS,
