@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # GPU checks in one device call: JIT-build the kernels, then the named stages in order.
 # Usage on the GPU machine: bash tools/gpu_check.sh [STAGE ...]   (default: every stage)
-#   pytest[:PATH] the whole test suite, or one test file
+#   pytest[:PATH] the whole test suite, or one test file ($PYTEST_WORKERS: pytest-xdist workers)
 #   memcheck      compute-sanitizer memcheck over the CUDA tests of every op ($MEMCHECK_TESTS: some)
 #   racecheck     compute-sanitizer racecheck over those of the kernels with shared memory
 #                 ($RACECHECK_TESTS: some)
@@ -34,7 +34,7 @@ stages=("$@")
 [ ${#stages[@]} -eq 0 ] && stages=(crash pytest error_budget bench memcheck racecheck)
 for stage in "${stages[@]}"; do
   case $stage in
-    pytest*) paths=${stage#pytest}; step pytest 360 python -m pytest -q -p no:cacheprovider -rs ${paths#:} ;;
+    pytest*) paths=${stage#pytest}; step pytest 360 python -m pytest -q -p no:cacheprovider -rs ${PYTEST_WORKERS:+-n $PYTEST_WORKERS} ${paths#:} ;;
     # memcheck: every op's CUDA tests. racecheck (shared-memory hazards, ~10x slower): the
     # kernels with shared memory, without the largest cases (more blocks, no new hazards).
     memcheck) step memcheck 420 compute-sanitizer --tool memcheck --error-exitcode 1 python -m pytest -q \

@@ -130,7 +130,11 @@ __global__ void sample_forward_kernel(int64_t rays, WarpLayout layout, Rows rows
   const scalar_t* edges_row = edges_or_z + ray_bins.edges;
   const acc* u_row = positions.u ? positions.u + ray * positions.u_row_stride : nullptr;
   uint64_t seed = 0, offset = 0;
-  if (!u_row) std::tie(seed, offset) = at::cuda::philox::unpack(positions.philox);
+  if (!u_row) {  // std::get, not std::tie: tuple assignment is host-only before C++20
+    const auto philox = at::cuda::philox::unpack(positions.philox);
+    seed = std::get<0>(philox);
+    offset = std::get<1>(philox);
+  }
   const int longest = max(max(B + 2, N), 1);
   for (int i = lane; i < longest; i += kWarpSize) {
     if (i < B) sh.w[i] = PaddedWeights<acc, scalar_t>{weights_row, pad}(i);
