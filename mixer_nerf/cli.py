@@ -350,18 +350,21 @@ def _train(cfg: TrainConfig, resume: bool, overwrite: bool) -> dict[str, Any]:
     c = trainer.cfg
     if trainer.rank:
         return trainer.fit()
-    sampling = (
-        f"occupancy-grid sampling, ~{c.target_samples} samples per step"
-        if c.sampler == "occupancy"
-        else f"{c.batch_rays} rays x ({c.num_coarse} + {c.num_fine}) samples"
-    )
-    print(
-        f"training {c.steps} steps on {c.device} ({c.precision}, backend {c.backend}), preset {c.preset}, "
-        f"{sampling} -> {trainer.files.root}"
-    )
+    print(f"training {c.steps} steps on {c.device} ({c.precision}, backend {c.backend}), preset {c.preset}, "
+          f"{sampling_summary(c)} -> {trainer.files.root}")
     summary = trainer.fit()
     print(f"training {summary['status']} at step {summary['step']} after {summary['train_seconds']:.1f} s")
     return summary
+
+
+def sampling_summary(c: TrainConfig) -> str:
+    """What a step of a resolved config shades, in words."""
+    if c.sampler == "occupancy":
+        return f"occupancy-grid sampling, ~{c.target_samples} samples per step"
+    if c.sampler == "proposal":
+        rounds = " + ".join(str(n) for n in c.proposal_rounds)
+        return f"{c.batch_rays} rays x {c.proposal_samples} samples (proposal rounds {rounds})"
+    return f"{c.batch_rays} rays x ({c.num_coarse} + {c.num_fine}) samples"
 
 
 def _evaluate(ckpt: Path, **kwargs: Any) -> dict[str, Any]:

@@ -91,6 +91,19 @@ def test_data_uses_the_full_defaults():
 
 
 @pytest.mark.parametrize(
+    ("sampler", "expected"),
+    [
+        ("occupancy", "occupancy-grid sampling, ~262144 samples per step"),
+        ("proposal", "4096 rays x 48 samples (proposal rounds 128 + 64)"),
+        ("hierarchical", "4096 rays x (64 + 128) samples"),
+    ],
+)
+def test_the_start_line_says_what_each_sampler_shades(sampler, expected):
+    cfg = parse_train("--data", "scenes/lego", "--sampler", sampler, "--target-samples", "262144")
+    assert cli.sampling_summary(cfg) == expected
+
+
+@pytest.mark.parametrize(
     "argv",
     [
         ["train", "--steps", "many"],

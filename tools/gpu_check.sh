@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # GPU checks in one device call: JIT-build the kernels, then the named stages in order.
 # Usage on the GPU machine: bash tools/gpu_check.sh [STAGE ...]   (default: every stage)
-#   pytest[:PATH] the whole test suite, or one test file ($PYTEST_WORKERS: pytest-xdist workers)
+#   pytest[:PATH] the whole test suite, or one test file ($PYTEST_WORKERS: pytest-xdist workers, each
+#                 with $PYTEST_THREADS (2) CPU threads; $PYTEST_LIMIT: seconds, default 360)
 #   memcheck      compute-sanitizer memcheck over the CUDA tests of every op ($MEMCHECK_TESTS: some)
 #   racecheck     compute-sanitizer racecheck over those of the kernels with shared memory
 #                 ($RACECHECK_TESTS: some)
@@ -17,7 +18,7 @@
 # The builds go into $OUT/gpu_cache.tar by tools/gpu_build.sh (unpack it into .gpu_cache and carry
 # that to skip the builds next time); a summary is printed last.
 source tools/gpu_env.sh >/dev/null
-OUT=${OUT:-/tmp/gpu_check}; mkdir -p "$OUT/results"
+OUT=${OUT:-/tmp/gpu_check}; LOGS=$OUT/gpu_check_logs; mkdir -p "$OUT/results" "$LOGS"
 summary=$(mktemp)
 # $DEADLINE (seconds since the start, default 570) caps every step, so that the results are packed
 # before the device call's own limit.
@@ -25,16 +26,21 @@ step() {  # step NAME SECONDS CMD...: run with a time limit, keep the log, recor
   local name=$1 limit=$2; shift 2
   local t0=$SECONDS left=$((${DEADLINE:-570} - SECONDS))
   [ "$left" -lt "$limit" ] && limit=$((left > 1 ? left : 1))
-  timeout "$limit" "$@" >"$OUT/$name.log" 2>&1
+  timeout "$limit" "$@" >"$LOGS/$name.log" 2>&1
   local rc=$?
-  echo "$name rc=$rc $((SECONDS - t0))s: $(grep -E 'passed|failed|ERROR SUMMARY|error' "$OUT/$name.log" | tail -1)" >>"$summary"
+  echo "$name rc=$rc $((SECONDS - t0))s: $(grep -E 'passed|failed|ERROR SUMMARY|error' "$LOGS/$name.log" | tail -1)" >>"$summary"
 }
 bash tools/gpu_build.sh >>"$summary"
+mv "$OUT/build.log" "$OUT/nerfacc_build.log" "$LOGS/" 2>/dev/null
 stages=("$@")
 [ ${#stages[@]} -eq 0 ] && stages=(crash pytest error_budget bench memcheck racecheck)
 for stage in "${stages[@]}"; do
   case $stage in
-    pytest*) paths=${stage#pytest}; step pytest 360 python -m pytest -q -p no:cacheprovider -rs ${PYTEST_WORKERS:+-n $PYTEST_WORKERS} ${paths#:} ;;
+    # Each xdist worker would otherwise start as many CPU threads as the machine has cores.
+    pytest*) paths=${stage#pytest}
+      ( [ -n "$PYTEST_WORKERS" ] && export OMP_NUM_THREADS=${PYTEST_THREADS:-2}
+        step pytest "${PYTEST_LIMIT:-360}" python -m pytest -q -p no:cacheprovider -rs \
+          ${PYTEST_WORKERS:+-n $PYTEST_WORKERS} ${paths#:} ) ;;
     # memcheck: every op's CUDA tests. racecheck (shared-memory hazards, ~10x slower): the
     # kernels with shared memory, without the largest cases (more blocks, no new hazards).
     memcheck) step memcheck 420 compute-sanitizer --tool memcheck --error-exitcode 1 python -m pytest -q \
@@ -55,16 +61,17 @@ for stage in "${stages[@]}"; do
       --section SpeedOfLight --section ComputeWorkloadAnalysis --section Occupancy --section WarpStateStats \
       --section MemoryWorkloadAnalysis python tools/profile_composite.py
       tag=$(python -c "from benchmarks.harness import device_tag; print(device_tag('cuda'))")
-      mkdir -p "$OUT/results/ops" && cp "$OUT/ncu.log" "$OUT/results/ops/${tag}_composite_ncu.txt" ;;
+      mkdir -p "$OUT/results/ops" && cp "$LOGS/ncu.log" "$OUT/results/ops/${tag}_composite_ncu.txt" ;;
     field) step field 400 python -m benchmarks.bench_field --out "$OUT/results/field" $FIELD_ARGS ;;
-    crash) timeout 400 python tools/diagnose_exception_crash.py >"$OUT/crash.log" 2>&1 & ;;
+    crash) timeout 400 python tools/diagnose_exception_crash.py >"$LOGS/crash.log" 2>&1 & ;;
     *) echo "unknown stage $stage"; exit 2 ;;
   esac
 done
 wait
-tail -n 40 "$OUT/bench_ops.log" 2>/dev/null
-tail -n 45 "$OUT/field.log" 2>/dev/null
-tail -n 16 "$OUT/long_run.log" 2>/dev/null
-cat "$OUT/crash.log" 2>/dev/null
-(cd "$OUT" && tar czf gpu_check.tgz results *.log && rm -r results *.log)
+tail -n 40 "$LOGS/bench_ops.log" 2>/dev/null
+tail -n 45 "$LOGS/field.log" 2>/dev/null
+tail -n 16 "$LOGS/long_run.log" 2>/dev/null
+cat "$LOGS/crash.log" 2>/dev/null
+# Only this script's logs: a caller's own files in $OUT stay where they are.
+(cd "$OUT" && tar czf gpu_check.tgz results -C "$LOGS" . && rm -r results "$LOGS")
 cat "$summary"

@@ -60,21 +60,34 @@ def check_same_dtype(**tensors: torch.Tensor | None) -> torch.dtype:
     return next(iter(dtypes))
 
 
+# The messages of the value checks, shared with the kernels' deferred reports (deferred_checks).
+def sorted_message(name: str) -> str:
+    return f"{name} must be sorted (non-decreasing) along its last dimension"
+
+
+def nonnegative_message(name: str) -> str:
+    return f"{name} must be non-negative"
+
+
+def in_range_message(name: str, low: float, high: float) -> str:
+    return f"{name} must lie in [{low}, {high}]"
+
+
 def check_sorted(name: str, t: torch.Tensor) -> None:
     """Non-decreasing along the last dimension (NaN entries are not judged here)."""
     if t.shape[-1] > 1 and bool((t[..., 1:] < t[..., :-1]).any()):
-        raise ValueError(f"{name} must be sorted (non-decreasing) along its last dimension")
+        raise ValueError(sorted_message(name))
 
 
 def check_nonnegative(name: str, t: torch.Tensor) -> None:
     if t.numel() and bool((t < 0).any()):
-        raise ValueError(f"{name} must be non-negative")
+        raise ValueError(nonnegative_message(name))
 
 
 def check_in_range(name: str, t: torch.Tensor, low: float, high: float) -> None:
     """Every entry in [low, high] (NaN fails)."""
     if t.numel() and not bool(((t >= low) & (t <= high)).all()):
-        raise ValueError(f"{name} must lie in [{low}, {high}]")
+        raise ValueError(in_range_message(name, low, high))
 
 
 def check_int(name: str, value: object, minimum: int = 0) -> int:

@@ -26,6 +26,7 @@ from ._checks import (
     check_same_dtype,
     check_shape,
     check_tensor,
+    nonnegative_message,
 )
 from . import deferred_checks
 from ._dispatch import use_kernel
@@ -66,9 +67,10 @@ def composite(
         :class:`CompositeResult` (color (R, C), depth (R,), opacity (R,), weights (R, S)), all
         differentiable with respect to every input.
     """
-    deferred = check_values and deferred_checks.in_kernel(backend, sigmas)
+    kernel = use_kernel(backend, check_tensor("sigmas", sigmas).device)
+    deferred = check_values and deferred_checks.in_kernel(kernel, sigmas)
     _validate(sigmas, rgbs, t_starts, t_ends, background, check_values and not deferred)
-    if not use_kernel(backend, sigmas.device):
+    if not kernel:
         return CompositeResult(*composite_reference(sigmas, rgbs, t_starts, t_ends, background))
     *result, invalid = _COMPOSITE(sigmas, rgbs, t_starts, t_ends, background)
     if deferred:
@@ -105,9 +107,10 @@ def composite_packed(
         :class:`CompositeResult` (color (R, C), depth (R,), opacity (R,), weights (N,)),
         differentiable with respect to sigmas, rgbs, t_starts, t_ends and background.
     """
-    deferred = check_values and deferred_checks.in_kernel(backend, sigmas)
+    kernel = use_kernel(backend, check_tensor("sigmas", sigmas).device)
+    deferred = check_values and deferred_checks.in_kernel(kernel, sigmas)
     _validate_packed(sigmas, rgbs, t_starts, t_ends, offsets, background, check_values and not deferred)
-    if not use_kernel(backend, sigmas.device):
+    if not kernel:
         return CompositeResult(
             *composite_packed_reference(sigmas, rgbs, t_starts, t_ends, offsets, background)
         )
@@ -117,9 +120,11 @@ def composite_packed(
     return CompositeResult(*result)
 
 
+INTERVALS_MESSAGE = "t_ends must be >= t_starts everywhere (intervals of non-negative length)"
+
 INVALID_INPUT = {
-    1: "sigmas must be non-negative",
-    2: "t_ends must be >= t_starts everywhere (intervals of non-negative length)",
+    1: nonnegative_message("sigmas"),
+    2: INTERVALS_MESSAGE,
     4: "offsets must start at 0, end at N (the number of samples) and be non-decreasing",
 }
 """The kernels' ``invalid`` bits (``InvalidInput`` in csrc/composite.h) and what each says."""
@@ -172,7 +177,7 @@ def _check_samples(sigmas, rgbs, t_starts, t_ends, background, num_rays: int, ch
     if check_values:
         check_nonnegative("sigmas", sigmas)
         if t_ends.numel() and bool((t_ends < t_starts).any()):
-            raise ValueError("t_ends must be >= t_starts everywhere (intervals of non-negative length)")
+            raise ValueError(INTERVALS_MESSAGE)
 
 
 def _composite_fwd_fake(sigmas, rgbs, t_starts, t_ends, background, *layout):

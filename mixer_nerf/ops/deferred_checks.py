@@ -16,7 +16,6 @@ from dataclasses import dataclass
 
 import torch
 
-from ._dispatch import use_kernel
 
 MAX_PENDING = 256
 """Checks in flight before :func:`watch` waits for the oldest (bounds pinned memory and events)."""
@@ -52,10 +51,10 @@ def watch(invalid: torch.Tensor, op: str, messages: dict[int, str]) -> None:
         raise_ready()
 
 
-def in_kernel(backend: str, like: object) -> bool:
+def in_kernel(kernel: bool, like: torch.Tensor) -> bool:
     """Whether an op whose kernel checks its values should leave them to it: on a GPU, when the
-    kernel runs (the CPU and the reference path check before the op)."""
-    return isinstance(like, torch.Tensor) and like.device.type == "cuda" and use_kernel(backend, like.device)
+    kernel runs (``kernel``, decided once by the op; the CPU and the reference path check before it)."""
+    return kernel and like.device.type == "cuda"
 
 
 def raise_ready() -> None:

@@ -15,6 +15,10 @@ from ._checks import (
     check_same_dtype,
     check_shape,
     check_sorted,
+    check_tensor,
+    in_range_message,
+    nonnegative_message,
+    sorted_message,
 )
 from . import deferred_checks
 from ._dispatch import use_kernel
@@ -61,12 +65,12 @@ def hierarchical_samples(
     Returns:
         (R, S + N) sorted depths in the dtype of ``z_coarse``.
     """
-    deferred = check_values and deferred_checks.in_kernel(backend, z_coarse)
+    kernel = use_kernel(backend, check_tensor("z_coarse", z_coarse).device)
+    deferred = check_values and deferred_checks.in_kernel(kernel, z_coarse)
     _validate(z_coarse, weights_coarse, check_values and not deferred)
     check_int("num_fine", num_fine)
     pad = check_weight_padding(weight_padding)
     z_coarse, weights_coarse = z_coarse.detach(), weights_coarse.detach()
-    kernel = use_kernel(backend, z_coarse.device)
     if kernel and u is None and not deterministic:  # the kernel draws the stratified positions itself
         check_generator(generator, z_coarse)
         merged, invalid = _HIERARCHICAL_STRATIFIED(z_coarse, weights_coarse, num_fine, generator, pad)
@@ -82,10 +86,10 @@ def hierarchical_samples(
 
 
 INVALID_INPUT = {
-    1: "weights_coarse must be non-negative",
-    2: "z_coarse must be sorted (non-decreasing) along its last dimension",
-    4: "u must lie in [0.0, 1.0]",
-    8: "u must be sorted (non-decreasing) along its last dimension",
+    1: nonnegative_message("weights_coarse"),
+    2: sorted_message("z_coarse"),
+    4: in_range_message("u", 0.0, 1.0),
+    8: sorted_message("u"),
 }
 """The kernels' ``invalid`` bits (``InvalidInput`` in csrc/sample_pdf.h) and what each says."""
 

@@ -15,6 +15,7 @@ PRESETS = ("A", "B", "C", "D")
 PRECISIONS = ("bf16", "tf32", "fp32")
 BACKENDS = ("auto", "kernel", "torch")
 SAMPLERS = ("auto", "occupancy", "proposal", "hierarchical")
+VAL_IMAGES = {"cuda": 3, "cpu": 1}  # views per validation, by device type
 
 
 def option(default: Any, help: str, **argparse_options: Any) -> Any:
@@ -68,7 +69,9 @@ class TrainConfig:
     backend: str = option("auto", "ops: compiled kernels or the PyTorch reference", choices=BACKENDS)
     out: str = "runs/default"
     val_every: int = option(2500, "validate every N steps")
-    val_images: int = 3  # validation renders this many val views
+    val_images: int | None = option(
+        None, f"val views each validation renders (default: {VAL_IMAGES['cuda']} on CUDA, {VAL_IMAGES['cpu']} on CPU, "
+        "where a full-size view of preset D takes minutes)", metavar="N")
     ckpt_every: int = option(1000, "checkpoint every N steps (a killed run loses at most N)")
     log_every: int = option(100, "log a training row (train_log.csv, TensorBoard) every N steps")
     # validation excluded; None: no limit
@@ -124,8 +127,6 @@ class TrainConfig:
         _one_of("preset", self.preset, PRESETS)
         _one_of("backend", self.backend, BACKENDS)
         _one_of("sampler", self.sampler, SAMPLERS)
-        if self.target_samples is not None and self.target_samples < 1:
-            raise ValueError(f"target_samples must be positive, got {self.target_samples}")
         if not self.empty_space_weight >= 0:
             raise ValueError(f"empty_space_weight must be >= 0, got {self.empty_space_weight}")
         self.marching()  # checks step_size, early_stop_eps, alpha_threshold
@@ -138,7 +139,6 @@ class TrainConfig:
             "batch_rays",
             "num_coarse",
             "val_every",
-            "val_images",
             "ckpt_every",
             "grid_resolution",
             "grid_every",
@@ -171,18 +171,22 @@ class TrainConfig:
             raise ValueError(f"adam_eps must be positive, got {self.adam_eps}")
         if self.time_budget is not None and not 0 < self.time_budget < math.inf:
             raise ValueError(f"time_budget must be a positive, finite number of seconds, got {self.time_budget}")
-        if self.render_samples is not None and self.render_samples < 1:
-            raise ValueError(f"render_samples must be positive, got {self.render_samples}")
+        for name in ("val_images", "render_samples", "target_samples"):  # None: chosen per machine
+            if getattr(self, name) is not None and getattr(self, name) < 1:
+                raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
 
     def resolved(self, cuda_available: bool) -> TrainConfig:
-        """A copy with ``device``, ``precision`` and ``bf16_density_passes`` chosen for this machine."""
+        """A copy with ``device``, ``precision``, ``bf16_density_passes`` and ``val_images`` chosen
+        for this machine."""
         device = self.device or ("cuda" if cuda_available else "cpu")
         if device.startswith("cuda") and not cuda_available:
             raise ValueError("device 'cuda' was asked for but torch sees no CUDA GPU")
         on_cuda = device.startswith("cuda")
         precision = self.precision or ("tf32" if on_cuda else "fp32")
         bf16_passes = on_cuda if self.bf16_density_passes is None else self.bf16_density_passes
-        return dataclasses.replace(self, device=device, precision=precision, bf16_density_passes=bf16_passes)
+        val_images = self.val_images or VAL_IMAGES["cuda" if on_cuda else "cpu"]
+        return dataclasses.replace(self, device=device, precision=precision, bf16_density_passes=bf16_passes,
+                                   val_images=val_images)
 
     def with_recipe(self, sampler: str) -> TrainConfig:
         """A copy for ``sampler`` ("occupancy" or "hierarchical") with the learning-rate settings

@@ -38,7 +38,7 @@ RESUMABLE_OVERRIDES = ("steps", "time_budget", "device", "backend", "data", "ren
 learning-rate schedule to the new end), where it runs, where its scene now is and how much a
 render may hold at once. Any other
 setting that differs from the checkpoint is refused by name: the run continues as it began."""
-DEVICE_SETTINGS = ("precision", "bf16_density_passes")
+DEVICE_SETTINGS = ("precision", "bf16_density_passes", "val_images")
 """Picked anew for the machine when a resumed run moves to another device type (unless typed)."""
 
 
