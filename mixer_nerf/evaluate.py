@@ -16,7 +16,8 @@ import torch
 from . import metrics
 from .train.output import atomic_path, ensure_writable_folder, write_text_atomic
 from .train.restore import load_trained
-from .train.scenes import held_out_split, load_split, locate_scene
+from .data import load_split
+from .train.scenes import held_out_split, locate_scene
 from .video import colorize_depth, depth_range, to_uint8, write_png
 
 SPLITS = ("test", "val", "train")

@@ -121,10 +121,13 @@ def test_config_round_trips_and_resolves_for_the_machine():
     with pytest.raises(ValueError, match="unknown training settings"):
         TrainConfig.from_dict({**cfg.to_dict(), "bogus": 1})
     cpu = cfg.resolved(cuda_available=False)
-    assert (cpu.device, cpu.precision, cpu.bf16_density_passes) == ("cpu", "fp32", False)
+    assert (cpu.device, cpu.precision, cpu.bf16_density_passes, cpu.val_images) == ("cpu", "fp32", False, 1)
     gpu = cfg.resolved(cuda_available=True)
-    assert (gpu.device, gpu.precision, gpu.bf16_density_passes) == ("cuda", "tf32", True)
+    assert (gpu.device, gpu.precision, gpu.bf16_density_passes, gpu.val_images) == ("cuda", "tf32", True, 3)
     assert not TrainConfig(bf16_density_passes=False).resolved(cuda_available=True).bf16_density_passes
+    assert TrainConfig(val_images=5).resolved(cuda_available=False).val_images == 5
+    with pytest.raises(ValueError, match="val_images must be positive"):
+        TrainConfig(val_images=0)
     with pytest.raises(ValueError, match="cuda"):
         TrainConfig(device="cuda").resolved(cuda_available=False)
 

@@ -26,6 +26,7 @@ __all__ = [
     "load_llff",
     "load_nerfstudio",
     "load_scene",
+    "load_split",
     "ndc_rays",
     "pixel_rays",
 ]
@@ -73,3 +74,11 @@ def load_scene(path: str | Path | None = None, format: str = "auto", split: str 
     if format == "auto":
         format = detect_format(path)
     return LOADERS[format](path, split=split, **kwargs)
+
+
+def load_split(folder: str | Path, format: str, split: str, downscale: float = 1) -> Scene:
+    """One split, refusing an empty one (a loader may return zero views for a short capture)."""
+    scene = load_scene(folder, format=format, split=split, downscale=downscale)  # every loader takes it
+    if len(scene) == 0:
+        raise DatasetError(f"{folder}: the {split!r} split has no images")
+    return scene

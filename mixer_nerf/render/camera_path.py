@@ -24,6 +24,8 @@ from typing import Any
 import numpy as np
 import torch
 
+from ..data import load_split
+
 
 class CameraPathError(ValueError):
     """A camera-path file is unreadable or does not follow nerfstudio's schema."""
@@ -65,8 +67,6 @@ def fixed_intrinsics_path(poses: torch.Tensor, scene: dict[str, Any], kind: str)
 
 def split_path(folder: Path, format: str, split: str, downscale: float) -> CameraPath:
     """The cameras of a dataset split, with their own intrinsics."""
-    from ..train.scenes import load_split
-
     scene = load_split(folder, format, split, downscale)
     focals = torch.full((len(scene),), float(scene.focal))
     return CameraPath(scene.poses.float().cpu(), focals, scene.H, scene.W, scene.cx, scene.cy, split)

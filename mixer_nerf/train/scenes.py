@@ -6,7 +6,7 @@ import hashlib
 from pathlib import Path
 from typing import Any
 
-from ..data import DatasetError, MissingFileError, Scene, detect_format, ensure_procedural_scene, load_scene
+from ..data import DatasetError, MissingFileError, Scene, detect_format, ensure_procedural_scene, load_split
 from ..data.colmap import find_model
 from ..data.colmap_model import model_suffix
 from ..data.nerfstudio import TRANSFORMS
@@ -68,15 +68,6 @@ def camera_file(folder: Path, format: str) -> Path:
             raise MissingFileError(f"{folder}: no COLMAP model")
         return model / f"images{model_suffix(model)}"
     return folder / {"blender": "transforms_train.json", "llff": "poses_bounds.npy", "nerfstudio": TRANSFORMS}[format]
-
-
-def load_split(folder: Path, format: str, split: str, downscale: float = 1) -> Scene:
-    """One split, refusing an empty one (a loader may return zero views for a short capture)."""
-    kwargs = {"downscale": downscale}  # every loader takes it
-    scene = load_scene(folder, format=format, split=split, **kwargs)
-    if len(scene) == 0:
-        raise DatasetError(f"{folder}: the {split!r} split has no images")
-    return scene
 
 
 def held_out_split(folder: Path, format: str, preferred: str, downscale: float = 1) -> tuple[Scene, str]:

@@ -15,6 +15,7 @@ from typing import Any
 import torch
 import torch.nn.functional as F
 
+from ..data import load_split
 from ..metrics import psnr
 from ..render import render_rays
 from ..render.skipping import proposal_loss, render_rays_proposal, shade_samples
@@ -31,7 +32,7 @@ from .output import RunFiles, prepare_run_folder, write_text_atomic
 from .precision import set_matmul_precision
 from .sampler import RaySampler
 from .sampling import image_renderer, make_fields, occupancy_sampler, resolve_sampler
-from .scenes import held_out_split, load_split, locate_scene, scene_info, scene_source
+from .scenes import held_out_split, locate_scene, scene_info, scene_source
 
 RESUMABLE_OVERRIDES = ("steps", "time_budget", "device", "backend", "data", "render_samples", "progress")
 """Settings a resumed run may change: how long it trains (a longer ``steps`` stretches the
