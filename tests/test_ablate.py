@@ -6,6 +6,9 @@ from __future__ import annotations
 import csv
 import json
 import math
+import os
+import subprocess
+import sys
 
 import pytest
 from test_cli import TINY_DEMO
@@ -99,6 +102,27 @@ def test_interrupted_run_resumes(tmp_path, capsys, monkeypatch):
     assert "resuming at step 2" in capsys.readouterr().out
     record = json.loads((out / "B_seed3" / "ablation_run.json").read_text())
     assert record["steps"] == 4 and record["status"] == "finished"
+
+
+def test_two_processes_share_one_folder_then_one_table(blender_scene, tmp_path):
+    """One process per GPU, each its own presets, into one folder; a last call writes the table."""
+    out = tmp_path / "shared"
+    tiny = ["--data", str(blender_scene), "--sampler", "hierarchical", "--batch-rays", "32", "--num-coarse", "6",
+            "--num-fine", "6", "--val-every", "2", "--ckpt-every", "2",
+            *(f"--model-override={k}={json.dumps(v)}" for k, v in TINY_DEMO["model_overrides"].items())]
+    command = [sys.executable, "-m", "mixer_nerf", "ablate", "--out", str(out), "--steps", "3", "--seeds", "0",
+               "--resume", *FLAGS, *tiny]
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    workers = [subprocess.Popen([*command, "--presets", p], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                text=True) for p in ("A", "D")]
+    for worker in workers:
+        _, err = worker.communicate(timeout=600)
+        assert worker.returncode == 0, err[-2000:]
+    assert cli.main(["ablate", "--out", str(out), "--steps", "3", "--seeds", "0", "--resume", "--presets", "AD",
+                     *FLAGS, *tiny]) == 0
+    table = json.loads((out / "table.json").read_text())
+    assert [(r["preset"], r["steps"]) for r in table["runs"]] == [("A", 3), ("D", 3)]
+    assert not list(out.glob(".*.tmp*"))
 
 
 def test_model_overrides_are_recorded(tmp_path):

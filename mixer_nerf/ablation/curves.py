@@ -6,6 +6,7 @@ import math
 from pathlib import Path
 
 from ..train.logbook import CsvLog
+from ..train.output import atomic_path
 
 PRESET_COLORS = {"A": "tab:blue", "B": "tab:orange", "C": "tab:green", "D": "tab:red"}
 SEED_STYLES = ("-", "--", ":", "-.")
@@ -42,6 +43,7 @@ def plot_curves(curves: dict[str, list[tuple[int, float, float]]], path: Path) -
         ax.grid(alpha=0.3)
     by_step.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=100)
     plt.close(fig)
     return path

@@ -10,6 +10,7 @@ from typing import Any
 
 from ..model.config import PRESETS, ModelConfig, preset_config
 from ..train.config import TrainConfig
+from ..train.output import write_text_atomic
 
 PLAN_FILE = "ablation.json"
 PER_RUN_SETTINGS = ("preset", "seed", "out", "progress")
@@ -72,7 +73,8 @@ class AblationPlan:
             if differs:
                 raise AblationError(f"{path}: the ablation there was started with other settings ({', '.join(differs)})")
         self.out.mkdir(parents=True, exist_ok=True)
-        path.write_text(json.dumps({"presets": list(self.presets), "seeds": list(self.seeds),
+        # Atomic: processes sharing the folder (one per GPU) read it while another writes it.
+        write_text_atomic(path, json.dumps({"presets": list(self.presets), "seeds": list(self.seeds),
                                     "settings": self.settings()}, indent=1))
 
 

@@ -11,7 +11,7 @@ from typing import Any
 from ..train.checkpoint import load_checkpoint
 from ..train.config import TrainConfig
 from ..train.fields import model_config_from_dict
-from ..train.output import RunFiles
+from ..train.output import RunFiles, write_text_atomic
 from ..train.sampling import make_fields
 from .plan import AblationError, AblationPlan
 from .table import build_table, write_table
@@ -66,7 +66,7 @@ def run_one(plan: AblationPlan, preset: str, seed: int, log: Callable[[str], Non
         "params": count_parameters(files.checkpoint),
         **_scores(plan, cfg, files, complete=summary["status"] in COMPLETE),
     }
-    record_path.write_text(json.dumps(record, indent=1))
+    write_text_atomic(record_path, json.dumps(record, indent=1))
     return record
 
 

@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from ..train.logbook import CsvLog
+from ..train.output import atomic_path, write_text_atomic
 from .curves import plot_curves, val_curve
 from .plan import AblationPlan
 
@@ -59,8 +60,8 @@ def write_table(table: dict[str, Any], out: Path) -> list[Path]:
     """``ablation.md``, ``table.json``, ``table.csv`` (one row per preset), ``runs.csv`` (one row
     per run) and ``curves.png`` in ``out``; returns their paths."""
     paths = [out / "ablation.md", out / "table.json", out / "table.csv", out / "runs.csv", out / "curves.png"]
-    paths[0].write_text(markdown(table))
-    paths[1].write_text(json.dumps(table, indent=1))
+    write_text_atomic(paths[0], markdown(table))
+    write_text_atomic(paths[1], json.dumps(table, indent=1))
     _write_csv(paths[2], PRESET_COLUMNS, table["presets"])
     _write_csv(paths[3], RUN_COLUMNS, table["runs"])
     plot_curves(table["curves"], paths[4])
@@ -150,7 +151,7 @@ def _num(value: float | None, digits: int, signed: bool = False) -> str:
 
 
 def _write_csv(path: Path, columns: list[str], rows: list[dict[str, Any]]) -> None:
-    with path.open("w", newline="") as f:
+    with atomic_path(path) as tmp, tmp.open("w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=columns, extrasaction="ignore")
         writer.writeheader()
         writer.writerows(rows)
