@@ -37,10 +37,19 @@ stages=("$@")
 for stage in "${stages[@]}"; do
   case $stage in
     # Each xdist worker would otherwise start as many CPU threads as the machine has cores.
-    pytest*) paths=${stage#pytest}
+    # -v names each finished test, so a run cut by its limit says which tests never finished
+    # (and a process list taken 20 s before the limit says what they were doing).
+    pytest*) paths=${stage#pytest}; limit=$(( ${PYTEST_LIMIT:-360} < ${DEADLINE:-570} - SECONDS ? ${PYTEST_LIMIT:-360} : ${DEADLINE:-570} - SECONDS ))
+      ( sleep $((limit - 20)); ps -eo pid,ppid,etime,pcpu,rss,args --sort=-pcpu | cut -c1-300 | head -60 \
+          >"$LOGS/pytest_ps.txt" ) & watcher=$!
       ( [ -n "$PYTEST_WORKERS" ] && export OMP_NUM_THREADS=${PYTEST_THREADS:-2}
-        step pytest "${PYTEST_LIMIT:-360}" python -m pytest -q -p no:cacheprovider -rs \
-          ${PYTEST_WORKERS:+-n $PYTEST_WORKERS} ${paths#:} ) ;;
+        step pytest "$limit" python -m pytest -v -p no:cacheprovider -rs \
+          ${PYTEST_WORKERS:+-n $PYTEST_WORKERS} ${paths#:} )
+      kill $watcher 2>/dev/null
+      python -m pytest --collect-only -q -p no:cacheprovider ${paths#:} 2>/dev/null | grep '::' | sort >"$LOGS/collected.txt"
+      grep -E 'PASSED|FAILED|SKIPPED|ERROR|XFAIL|XPASS' "$LOGS/pytest.log" | grep -oE 'tests/[^ ]+::[^ ]+' | sort -u >"$LOGS/finished.txt"
+      comm -23 "$LOGS/collected.txt" "$LOGS/finished.txt" >"$LOGS/unfinished.txt"
+      echo "pytest: $(wc -l <"$LOGS/finished.txt") of $(wc -l <"$LOGS/collected.txt") finished; unfinished: $(head -c 3000 "$LOGS/unfinished.txt" | tr '\n' ' ')" >>"$summary" ;;
     # memcheck: every op's CUDA tests. racecheck (shared-memory hazards, ~10x slower): the
     # kernels with shared memory, without the largest cases (more blocks, no new hazards).
     memcheck) step memcheck 420 compute-sanitizer --tool memcheck --error-exitcode 1 python -m pytest -q \
