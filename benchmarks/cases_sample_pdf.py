@@ -7,6 +7,9 @@ interior coarse weights (peaked, like compositing weights, every ray with some m
 Cases:
   * hierarchical_samples fwd, positions u (R, N) given (stratified, drawn once outside the timed
     region): the fine pass's sampling + merge; byte floor z + weights + u read, merged written.
+  * hierarchical_samples fwd, stratified positions drawn by each variant (the default call:
+    our kernel draws them by Philox inside its one launch, the others by torch.rand): no error
+    column, as every variant draws other positions (the u-given case measures the same math).
   * hierarchical_samples fwd, deterministic positions (i + 1/2) / N: the same positions nerfacc
     0.5.3's importance_sampling uses, so its error column is comparable (nerfacc samples, then
     torch.sort merges, as its users do).
@@ -110,6 +113,32 @@ def hierarchical_case(size: str, inputs: dict, device: torch.device, determinist
     )
 
 
+def stratified_u(R: int, device: torch.device) -> torch.Tensor:
+    """NeRF's stratified fine positions, drawn afresh as a caller without a kernel would."""
+    return (torch.arange(FINE, device=device) + torch.rand(R, FINE, device=device)) / FINE
+
+
+def hierarchical_stratified_case(size: str, inputs: dict, device: torch.device) -> Case:
+    z, weights = inputs["z"], inputs["weights"]
+    R = z.shape[0]
+    drawn = lambda: hierarchical_samples_reference(z, weights, stratified_u(R, device))  # noqa: E731
+    variants = [
+        Variant("kernel", lambda: hierarchical_samples(z, weights, FINE, backend="kernel", check_values=False)),
+        Variant("ours, defaults", lambda: hierarchical_samples(z, weights, FINE)),
+        Variant("torch", drawn),
+    ]
+    if device.type == "cuda":
+        variants.append(Variant("torch.compile", torch.compile(drawn)))
+    return Case(
+        op="hierarchical_samples",
+        mode="fwd",
+        size=f"{size} stratified, drawn (default)",
+        variants=variants,
+        truth=None,
+        min_bytes=(2 * R * COARSE + R * (COARSE + FINE)) * z.element_size(),
+    )
+
+
 def pdf_of(inputs: dict) -> tuple[torch.Tensor, torch.Tensor]:
     z = inputs["z"]
     return (0.5 * (z[:, 1:] + z[:, :-1])).contiguous(), inputs["weights"][:, 1:-1].contiguous()
@@ -203,6 +232,7 @@ def cases(device: torch.device) -> list[Case]:
     inputs = make_inputs(R, device)
     size = f"R={R} S={COARSE} N={FINE}"
     return [
+        hierarchical_stratified_case(size, inputs, device),
         hierarchical_case(size, inputs, device, deterministic=False),
         hierarchical_case(size, inputs, device, deterministic=True),
         *sample_pdf_cases(size, inputs, device),
