@@ -21,9 +21,9 @@ def _kernels_and_a_clean_queue():
     if not _extension.available():
         pytest.skip("compiled kernels unavailable")
     composite(torch.ones(1, 1), torch.ones(1, 1, 3), torch.zeros(1, 1), torch.ones(1, 1))  # loads the ops
-    deferred_checks._pending.clear()
+    deferred_checks._discard_pending()
     yield
-    deferred_checks._pending.clear()
+    deferred_checks._discard_pending()
 
 
 def _rays(device, rays=37, samples=19):
@@ -156,6 +156,28 @@ def test_on_a_gpu_the_checks_never_synchronise_and_a_bad_value_is_reported():
         torch.cuda.set_sync_debug_mode("default")
     with pytest.raises(ValueError, match="hierarchical_samples: z_coarse must be sorted"):
         check_pending()
+
+
+def test_host_slots_are_taken_and_given_back():
+    slots = deferred_checks.HostSlots(3, pin=False)
+    taken = [slots.take() for _ in range(3)]
+    assert [slot for slot, _ in taken] == [0, 1, 2]
+    taken[1][1].fill_(5)
+    assert slots.buffer.tolist() == [0, 5, 0]
+    slots.give(1)
+    assert slots.take()[0] == 1
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU")
+def test_more_checks_than_slots_in_flight_wait_for_the_oldest_and_reuse_its_slot():
+    sigmas, rgbs, t_starts, t_ends = _rays("cuda")
+    for _ in range(3 * deferred_checks.MAX_PENDING):
+        composite(sigmas, rgbs, t_starts, t_ends)
+        assert len(deferred_checks._pending) <= deferred_checks.MAX_PENDING
+    check_pending()
+    assert not deferred_checks._pending
+    assert len(deferred_checks._SLOTS.free) == deferred_checks.MAX_PENDING
 
 
 @pytest.mark.cuda

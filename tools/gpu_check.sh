@@ -13,6 +13,7 @@
 #   ncu           Nsight Compute sections of the composite forward and backward kernels
 #   field         python -m benchmarks.bench_field $FIELD_ARGS (the MLP's cost per preset and precision)
 #   crash         tools/diagnose_exception_crash.py (in the background, alongside later stages)
+#   checks        tools/profile_checks.py (what the default value checks cost a composite step, and where)
 # Logs and results are packed into $OUT/gpu_check.tgz (the device returns at most 8 files); its
 # results/ folder is laid out as benchmarks/results/ (<benchmark>/<device>.*), to be copied over it.
 # The builds go into $OUT/gpu_cache.tar by tools/gpu_build.sh (unpack it into .gpu_cache and carry
@@ -72,6 +73,7 @@ for stage in "${stages[@]}"; do
       tag=$(python -c "from benchmarks.harness import device_tag; print(device_tag('cuda'))")
       mkdir -p "$OUT/results/ops" && cp "$LOGS/ncu.log" "$OUT/results/ops/${tag}_composite_ncu.txt" ;;
     field) step field 400 python -m benchmarks.bench_field --out "$OUT/results/field" $FIELD_ARGS ;;
+    checks) step checks 120 python tools/profile_checks.py ;;
     crash) timeout 400 python tools/diagnose_exception_crash.py >"$LOGS/crash.log" 2>&1 & ;;
     *) echo "unknown stage $stage"; exit 2 ;;
   esac
@@ -81,6 +83,7 @@ tail -n 40 "$LOGS/bench_ops.log" 2>/dev/null
 tail -n 45 "$LOGS/field.log" 2>/dev/null
 tail -n 16 "$LOGS/long_run.log" 2>/dev/null
 cat "$LOGS/crash.log" 2>/dev/null
+tail -n 30 "$LOGS/checks.log" 2>/dev/null
 # Only this script's logs: a caller's own files in $OUT stay where they are.
 (cd "$OUT" && tar czf gpu_check.tgz results -C "$LOGS" . && rm -r results "$LOGS")
 cat "$summary"

@@ -23,13 +23,32 @@ MAX_PENDING = 256
 
 @dataclass
 class _Pending:
-    bits: torch.Tensor  # (1,) int32 on the host: pinned, filled by an asynchronous copy
+    bits: torch.Tensor  # (1,) int32 on the host: a slot of _SLOTS, filled by an asynchronous copy
     done: torch.cuda.Event | None  # None: ``bits`` is ready (a CPU flag)
     op: str
     messages: dict[int, str]  # bit -> what is wrong, naming the argument
+    slot: int | None = None  # the slot of _SLOTS that ``bits`` views, given back once read
+
+
+class HostSlots:
+    """``capacity`` int32 flags in one host buffer (pinned where CUDA is), allocated once: a
+    pinned allocation per call would go through the host allocator, which may call cudaHostAlloc
+    while the previous flag's buffer still waits for its event."""
+
+    def __init__(self, capacity: int, pin: bool):
+        self.buffer = torch.zeros(capacity, dtype=torch.int32, pin_memory=pin)
+        self.free = list(range(capacity - 1, -1, -1))
+
+    def take(self) -> tuple[int, torch.Tensor]:
+        slot = self.free.pop()
+        return slot, self.buffer[slot : slot + 1]
+
+    def give(self, slot: int) -> None:
+        self.free.append(slot)
 
 
 _pending: deque[_Pending] = deque()
+_SLOTS: HostSlots | None = None  # made at the first GPU check
 
 
 def watch(invalid: torch.Tensor, op: str, messages: dict[int, str]) -> None:
@@ -38,17 +57,20 @@ def watch(invalid: torch.Tensor, op: str, messages: dict[int, str]) -> None:
     if invalid.device.type == "cuda" and torch.cuda.is_current_stream_capturing():
         return  # a capture forbids event queries, and its replays would not report anyway
     raise_ready()
-    if invalid.device.type == "cuda":
-        bits = torch.empty(invalid.shape, dtype=invalid.dtype, pin_memory=True)
-        bits.copy_(invalid, non_blocking=True)
-        done = torch.cuda.Event()
-        done.record()
-    else:
-        bits, done = invalid, None
-    _pending.append(_Pending(bits, done, op, messages))
-    if len(_pending) > MAX_PENDING:
+    if len(_pending) >= MAX_PENDING:
         _wait(_pending[0])
         raise_ready()
+    if invalid.device.type == "cuda":
+        global _SLOTS
+        if _SLOTS is None:
+            _SLOTS = HostSlots(MAX_PENDING, pin=True)
+        slot, bits = _SLOTS.take()
+        bits.copy_(invalid.reshape(1), non_blocking=True)
+        done = torch.cuda.Event()
+        done.record()
+        _pending.append(_Pending(bits, done, op, messages, slot))
+    else:
+        _pending.append(_Pending(invalid, None, op, messages))
 
 
 def in_kernel(kernel: bool, like: torch.Tensor) -> bool:
@@ -74,6 +96,15 @@ def check_pending() -> None:
     raise_ready()
 
 
+def _discard_pending() -> None:
+    """Forget every check in flight, unread (tests start from an empty queue)."""
+    for pending in _pending:
+        if pending.slot is not None:
+            _wait(pending)
+            _SLOTS.give(pending.slot)
+    _pending.clear()
+
+
 def _is_ready(pending: _Pending) -> bool:
     return pending.done is None or pending.done.query()
 
@@ -85,6 +116,8 @@ def _wait(pending: _Pending) -> None:
 
 def _raise_if_bad(pending: _Pending) -> None:
     found = int(pending.bits.max()) if pending.bits.numel() else 0
+    if pending.slot is not None:
+        _SLOTS.give(pending.slot)
     if found:
         what = "; ".join(message for bit, message in pending.messages.items() if found & bit)
         raise ValueError(f"{pending.op}: {what} (found on the device by an earlier call: on a GPU the values "
