@@ -19,6 +19,7 @@ from mixer_nerf.ops import mlca
 from mixer_nerf.ops.mlca import MAX_CHANNELS, MAX_TOKEN_DIM, MAX_TOKENS
 from mixer_nerf.ops.mlca_reference import mlca_reference
 from cuda_poison import poison_allocator
+from dispatch_count import dispatched_ops
 
 needs_kernels = pytest.mark.skipif(not _extension.available(), reason="mixer_nerf kernels not built")
 on_cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU")
@@ -300,6 +301,18 @@ def test_module_casts_its_parameters_to_the_input_dtype(dtype, tol, gen):
     torch.testing.assert_close(out.float(), module(x), rtol=tol, atol=tol)
     out.float().sum().backward()
     assert module.token_weight.grad.dtype == torch.float32
+
+
+@needs_kernels
+def test_module_on_packed_rows_dispatches_only_its_kernels(gen):
+    """Parameters in the input's dtype and rows (N, T*D): no casts, no reshapes, forward or backward
+    (autograd's detach of each accumulated gradient aside)."""
+    module = randomized(MLCA(21, 3, 8, backend="kernel"), gen)
+    x, upstream = torch.randn(30, 63, generator=gen), torch.randn(30, 168, generator=gen)
+    with dispatched_ops() as ops:
+        module(x).backward(upstream)
+    assert ops["mixer_nerf.mlca_fwd"] == ops["mixer_nerf.mlca_bwd"] == 1
+    assert set(ops) <= {"mixer_nerf.mlca_fwd", "mixer_nerf.mlca_bwd", "aten.detach"}, ops
 
 
 @needs_kernels

@@ -73,7 +73,9 @@ class MLCA(nn.Module):
                 f"{self.num_tokens * self.token_dim} features, got shape {tuple(encoded.shape)}"
             )
         weights = (self.lift, self.token_weight, self.token_bias, self.channel_weight, self.channel_bias)
-        return mlca(encoded, *(w.to(encoded.dtype) for w in weights), backend=self.backend)
+        if self.lift.dtype != encoded.dtype:  # all five share one dtype: skip five no-op casts per call
+            weights = tuple(w.to(encoded.dtype) for w in weights)
+        return mlca(encoded, *weights, backend=self.backend)
 
     def extra_repr(self) -> str:
         return f"tokens={self.num_tokens}, token_dim={self.token_dim}, channels={self.channels}"

@@ -84,6 +84,8 @@ def mlca(
 
     if not use_kernel(backend, encoded.device):
         return mlca_reference(encoded, lift, token_weight, token_bias, channel_weight, channel_bias)
+    if encoded.dim() == 2:  # packed rows are the kernel's layout: no views to record and backpropagate
+        return _MLCA(encoded, lift, token_weight, token_bias, channel_weight, channel_bias)
     flat = encoded.reshape(-1, num_tokens * token_dim)
     out = _MLCA(flat, lift, token_weight, token_bias, channel_weight, channel_bias)
     return out.view(*encoded.shape[:-1], num_tokens * channels)
