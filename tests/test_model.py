@@ -12,6 +12,7 @@ import torch.nn.functional as F
 
 from mixer_nerf import _extension
 from mixer_nerf.model import MLCA, MixerNeRF, ModelConfig, SqueezeExcitation, mean_over_ray_indices, preset_config
+from dispatch_count import dispatched_ops
 
 # Small networks keep the file fast; the structure (skips, SE, MLCA, heads) is the full one.
 SMALL = dict(
@@ -133,6 +134,14 @@ def test_se_packed_equals_dense_for_full_rays():
     packed = se(dense.reshape(-1, 16), ray_indices, num_rays=R)
     torch.testing.assert_close(packed, se(dense).reshape(-1, 16))
     torch.testing.assert_close(se(dense.reshape(-1, 16), ray_indices), packed)  # num_rays inferred
+
+
+def test_se_dense_squeeze_dispatches_no_reshapes():
+    """The gate runs on the squeezed (R, C), so its linears need no views of an (R, 1, C)."""
+    se = randomize_(SqueezeExcitation(16, reduction=4))
+    with dispatched_ops() as ops:
+        se(torch.randn(4, 6, 16))
+    assert ops["aten.addmm"] == 2 and not ops["aten.view"] and not ops["aten._to_copy"], ops
 
 
 def test_se_gradcheck_dense_and_packed():

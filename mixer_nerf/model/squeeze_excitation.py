@@ -92,7 +92,9 @@ class SqueezeExcitation(nn.Module):
             return self.gate(squeezed)[ray_indices] * features
         if features.dim() == 3:
             acc = torch.promote_types(features.dtype, torch.float32)
-            return self.gate(features.mean(dim=1, keepdim=True, dtype=acc).to(features.dtype)) * features
+            # squeezed (R, C) rather than (R, 1, C): the gate's linears then dispatch no reshapes
+            squeezed = features.mean(dim=1, dtype=acc).to(features.dtype)
+            return self.gate(squeezed).unsqueeze(1) * features
         return self.gate(features) * features
 
     def gate(self, squeezed: torch.Tensor) -> torch.Tensor:
