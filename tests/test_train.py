@@ -28,6 +28,7 @@ from mixer_nerf.train.checkpoint import capture_rng_state, restore_rng_state
 from mixer_nerf.train.sampling import resolve_sampler
 from mixer_nerf.train.guard import NonFiniteGuard
 from mixer_nerf.train.logbook import CsvLog, plot_curves
+from dispatch_count import dispatched_ops
 
 TINY_MODEL = {
     "depth": 2,
@@ -445,6 +446,18 @@ def test_guard_reports_first_bad_step_and_tensor():
     with pytest.raises(NonFiniteError, match=r"step 3: loss_fine; gradient of b\.bias") as info:
         guard.raise_if_bad()
     assert info.value.step == 3
+
+
+def test_guard_dispatches_no_op_per_gradient():
+    """One multi-tensor norm for all gradients: a model with more parameters costs no more ops."""
+    counts = []
+    for n in (2, 20):
+        guard = NonFiniteGuard([f"p{i}" for i in range(n)], torch.device("cpu"))
+        guard.observe_grads(1, [torch.ones(3)] * n)  # the first call also makes the guard's zero
+        with dispatched_ops() as ops:
+            guard.observe_grads(2, [torch.ones(3)] * n)
+        counts.append(ops)
+    assert counts[0] == counts[1], counts
 
 
 def test_nan_stops_training_and_keeps_the_last_good_checkpoint(tmp_path, monkeypatch):

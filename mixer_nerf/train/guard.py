@@ -31,12 +31,13 @@ class NonFiniteGuard:
         for name, value in losses.items():
             self._record(name, step, ~torch.isfinite(value.detach()))
 
+    @torch.no_grad()  # rather than a detach per gradient: one op per parameter less each step
     def observe_grads(self, step: int, grads: list[torch.Tensor | None]) -> None:
         """Record ``step`` per parameter (ordered as ``param_names``) whose gradient is not finite.
         A missing gradient counts as finite; nothing here copies from the host or synchronises."""
         if self._zero is None:
             self._zero = torch.zeros((), device=self.device)
-        norms = torch._foreach_norm([self._zero if g is None else g.detach() for g in grads])
+        norms = torch._foreach_norm([self._zero if g is None else g for g in grads])
         self._record("gradients", step, ~torch.isfinite(torch.stack(norms)))
 
     def raise_if_bad(self) -> None:
