@@ -8,7 +8,8 @@ size), then profiles ``--steps`` steps with torch.profiler. Prints ms per step (
 busy ms per step (sum of kernel times), and the kernels sorted by CUDA time; a wall time well
 above the busy time means the step waits on the host (Python, launches, synchronisations). The
 file in ``--out`` also lists the Python functions by their own host time (cProfile, ``--steps``
-more steps) and the host ms per step when the GPU has nothing left to do: the step's host cost.
+more steps) and the host ms per step when the GPU has nothing left to do: the step's host cost,
+then every call of ``--steps`` more steps that makes the host wait for the GPU, by its line.
 """
 
 from __future__ import annotations
@@ -74,10 +75,40 @@ def main() -> None:
     # named by the step profiled, before the host profile's steps
     name = f"{device_tag('cuda')}_{args.preset}_{args.precision}{passes}_step{trainer.step}.txt"
     host = _host_profile(trainer, args.steps)
+    syncs = _sync_sites(trainer, args.steps)
+    print(syncs)
     if args.out:
         path = Path(args.out) / name
         path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(header + "\n" + table + "\n" + host + "\n")
+        path.write_text(header + "\n" + table + "\n" + host + "\n" + syncs + "\n")
+
+
+def _sync_sites(trainer: Trainer, steps: int) -> str:
+    """Every call of ``steps`` steps that makes the host wait for the GPU (torch's sync debug
+    mode), by the line of mixer_nerf that made it and its count per step."""
+    import collections
+    import traceback
+    import warnings
+
+    sites: collections.Counter[str] = collections.Counter()
+
+    def record(message, category, filename, lineno, file=None, line=None):
+        frames = [f for f in traceback.extract_stack()[:-1] if "/mixer_nerf/" in f.filename]
+        where = f"{frames[-1].filename.split('/mixer_nerf/')[-1]}:{frames[-1].lineno} {frames[-1].line}" if frames \
+            else f"{filename}:{lineno}"
+        sites[f"{where}  [{str(message).splitlines()[0][:60]}]"] += 1
+
+    torch.cuda.set_sync_debug_mode("warn")
+    try:
+        with warnings.catch_warnings():  # restores showwarning on exit
+            warnings.simplefilter("always")
+            warnings.showwarning = record
+            for _ in range(steps):
+                trainer.train_step()
+    finally:
+        torch.cuda.set_sync_debug_mode("default")
+    lines = [f"{count / steps:6.2f} per step  {site}" for site, count in sites.most_common()]
+    return "host waits (torch.cuda.set_sync_debug_mode), per step:\n" + ("\n".join(lines) or "  none")
 
 
 def _host_profile(trainer: Trainer, steps: int) -> str:
