@@ -247,7 +247,10 @@ def run_ablate(args: argparse.Namespace) -> int:
     import dataclasses
 
     from .ablation import AblationPlan, parse_model_overrides, parse_presets, parse_seeds, run_ablation
+    from .ablation.runner import run_each
+    from .ablation.workers import parse_gpus, parse_runs, train_on_gpus
 
+    gpus = None if args.gpus is None else parse_gpus(args.gpus)
     if args.steps is None and args.time_budget is None:
         raise UserError("give --steps N (equal steps) or --time-budget SECONDS (equal training time)")
     if args.max_images is not None and args.max_images < 1:
@@ -259,12 +262,32 @@ def run_ablate(args: argparse.Namespace) -> int:
         seeds=parse_seeds(args.seeds), out=Path(args.out), target_psnr=args.target_psnr, split=args.split,
         max_images=args.max_images,
     )
-    table = run_ablation(plan, resume=args.resume)
+    if args.runs is not None:  # a worker of --gpus: its share of the runs; the caller writes the table
+        plan.claim_folder(resume=True)
+        run_each(plan, parse_runs(args.runs, plan), print)
+        return 0
+    if gpus is not None:
+        plan.claim_folder(args.resume)
+        train_on_gpus(plan, _without_option(args.argv, "--gpus"), gpus)
+    table = run_ablation(plan, resume=args.resume or gpus is not None)
     print(f"table: {Path(args.out) / 'ablation.md'}")
     for row in table["presets"]:
         psnr = "-" if row["psnr_mean"] is None else f"{row['psnr_mean']:.2f} dB"
         print(f"  preset {row['preset']} ({row['model']}): held-out PSNR {psnr} over {row['seeds']} seed(s)")
     return 0
+
+
+def _without_option(argv: Sequence[str], flag: str) -> list[str]:
+    """``argv`` without ``flag VALUE`` or ``flag=VALUE``."""
+    kept, skip = [], False
+    for item in argv:
+        if skip:
+            skip = False
+        elif item == flag:
+            skip = True
+        elif not item.startswith(flag + "="):
+            kept.append(item)
+    return kept
 
 
 def run_export(args: argparse.Namespace) -> int:
@@ -464,6 +487,10 @@ def _add_ablate_parser(commands: Any) -> None:
     ablate.add_argument("--resume", action="store_true",
                         help="continue the ablation in --out: skip finished runs, resume unfinished ones")
     ablate.add_argument("--no-progress", action="store_true", help="no progress bar")
+    ablate.add_argument("--gpus", metavar="LIST",
+                        help="train the runs in one process per GPU, e.g. 0,1 (each sees only its GPU; "
+                        "logs in --out/worker_gpu<N>.log), then write the table")
+    ablate.add_argument("--runs", help=argparse.SUPPRESS)  # a --gpus worker's share: PRESET:SEED,...
 
 
 def _add_device_options(parser: argparse.ArgumentParser) -> None:

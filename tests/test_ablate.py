@@ -7,15 +7,18 @@ import csv
 import json
 import math
 import os
-import subprocess
+import signal
 import sys
+import threading
+import time
+from pathlib import Path
 
 import pytest
 from test_cli import TINY_DEMO
 
 from mixer_nerf import cli
-from mixer_nerf.ablation import AblationError, parse_model_overrides, parse_presets, parse_seeds
-from mixer_nerf.train import Trainer
+from mixer_nerf.ablation import AblationError, AblationPlan, parse_model_overrides, parse_presets, parse_seeds
+from mixer_nerf.train import TrainConfig, Trainer
 from mixer_nerf.train import trainer as trainer_module
 
 # test_cli's tiny demo, at 32x32 (LPIPS needs 31x31 images or more) and without a steps default.
@@ -104,25 +107,29 @@ def test_interrupted_run_resumes(tmp_path, capsys, monkeypatch):
     assert record["steps"] == 4 and record["status"] == "finished"
 
 
-def test_two_processes_share_one_folder_then_one_table(blender_scene, tmp_path):
-    """One process per GPU, each its own presets, into one folder; a last call writes the table."""
+def test_gpus_trains_each_share_in_its_own_process_then_one_table(blender_scene, tmp_path, monkeypatch):
+    """--gpus: one worker process per GPU (here on the CPU: the device is what --device says),
+    each its share of the runs into one folder, then the caller writes the table of all."""
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")
     out = tmp_path / "shared"
     tiny = ["--data", str(blender_scene), "--sampler", "hierarchical", "--batch-rays", "32", "--num-coarse", "6",
             "--num-fine", "6", "--val-every", "2", "--ckpt-every", "2",
             *(f"--model-override={k}={json.dumps(v)}" for k, v in TINY_DEMO["model_overrides"].items())]
-    command = [sys.executable, "-m", "mixer_nerf", "ablate", "--out", str(out), "--steps", "3", "--seeds", "0",
-               "--resume", *FLAGS, *tiny]
-    env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    workers = [subprocess.Popen([*command, "--presets", p], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                text=True) for p in ("A", "D")]
-    for worker in workers:
-        _, err = worker.communicate(timeout=600)
-        assert worker.returncode == 0, err[-2000:]
-    assert cli.main(["ablate", "--out", str(out), "--steps", "3", "--seeds", "0", "--resume", "--presets", "AD",
-                     *FLAGS, *tiny]) == 0
+    assert cli.main(["ablate", "--out", str(out), "--steps", "3", "--seeds", "0,1", "--presets", "AD",
+                     "--gpus", "0,1", *FLAGS, *tiny]) == 0
     table = json.loads((out / "table.json").read_text())
-    assert [(r["preset"], r["steps"]) for r in table["runs"]] == [("A", 3), ("D", 3)]
+    assert [(r["preset"], r["seed"], r["steps"]) for r in table["runs"]] == [
+        ("A", 0, 3), ("A", 1, 3), ("D", 0, 3), ("D", 1, 3)]
+    logs = [(out / f"worker_gpu{gpu}.log").read_text() for gpu in (0, 1)]
+    assert "preset A, seed 0" in logs[0] and "preset D, seed 0" in logs[0] and "seed 1" not in logs[0]
+    assert "preset A, seed 1" in logs[1] and "preset D, seed 1" in logs[1] and "seed 0" not in logs[1]
     assert not list(out.glob(".*.tmp*"))
+
+
+def test_a_failed_gpu_worker_is_one_line_naming_its_log(tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr(sys, "executable", "false")  # every worker exits 1 at once
+    assert ablate(tmp_path / "failed", "--presets", "A", "--seeds", "0", "--gpus", "3") == 1
+    assert f"the worker on GPU 3 failed (exit 1); see {tmp_path / 'failed' / 'worker_gpu3.log'}" in capsys.readouterr().err
 
 
 def test_model_overrides_are_recorded(tmp_path):
@@ -165,6 +172,49 @@ def test_existing_ablation_needs_resume_and_the_same_settings(finished, capsys):
     assert "pass --resume" in capsys.readouterr().err
     assert ablate(finished, "--presets", "A", "--resume", "--lr", "1e-2") == 1
     assert "other settings (lr)" in capsys.readouterr().err
+
+
+def test_sigterm_stops_the_gpu_workers(tmp_path, monkeypatch):
+    """A GPU call's `timeout` sends SIGTERM to the ablation: its workers must not outlive it."""
+    from mixer_nerf.ablation.workers import train_on_gpus
+
+    worker = tmp_path / "worker.sh"
+    worker.write_text(f"#!/bin/sh\necho $$ >> {tmp_path / 'pids'}\nexec sleep 60\n")
+    worker.chmod(0o755)
+    monkeypatch.setattr(sys, "executable", str(worker))
+    plan = AblationPlan(base=TrainConfig(steps=1), presets=("A", "D"), seeds=(0,), out=tmp_path)
+    pid_file = tmp_path / "pids"
+
+    def stop_once_both_run():
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and len(pid_file.read_text().split() if pid_file.exists() else []) < 2:
+            time.sleep(0.05)
+        os.kill(os.getpid(), signal.SIGTERM)
+
+    threading.Thread(target=stop_once_both_run, daemon=True).start()
+    with pytest.raises(SystemExit):
+        train_on_gpus(plan, ["ablate"], (0, 1), log=lambda _: None)
+    pids = [int(p) for p in pid_file.read_text().split()]
+    assert len(pids) == 2
+    for pid in pids:
+        with pytest.raises(ProcessLookupError):
+            os.kill(pid, 0)
+
+
+def test_worker_arguments():
+    from mixer_nerf.ablation.workers import format_runs, parse_gpus, parse_runs
+
+    plan = AblationPlan(base=TrainConfig(steps=1), presets=("A", "D"), seeds=(0, 1), out=Path("x"))
+    assert parse_gpus("0,1") == (0, 1) and parse_gpus("2 2 3") == (2, 3)
+    for bad in ("", "a", "-1"):
+        with pytest.raises(AblationError, match="--gpus takes device indices"):
+            parse_gpus(bad)
+    runs = [("D", 1), ("A", 0)]
+    assert parse_runs(format_runs(runs), plan) == runs
+    for bad in ("B:0", "A:2", "A", "A:x"):
+        with pytest.raises(AblationError, match="is not a run of this ablation"):
+            parse_runs(bad, plan)
+    assert cli._without_option(["ablate", "--gpus", "0,1", "--out", "o", "--gpus=2"], "--gpus") == ["ablate", "--out", "o"]
 
 
 def test_parsers():

@@ -47,6 +47,10 @@ class AblationPlan:
             except (TypeError, ValueError) as e:
                 raise AblationError(f"model overrides for preset {preset}: {e}") from e
 
+    def runs(self) -> list[tuple[str, int]]:
+        """Every (preset, seed), presets first."""
+        return [(preset, seed) for preset in self.presets for seed in self.seeds]
+
     def run_config(self, preset: str, seed: int) -> TrainConfig:
         return dataclasses.replace(self.base, preset=preset, seed=seed, out=str(self.run_folder(preset, seed)))
 

@@ -30,7 +30,14 @@ def run_ablation(plan: AblationPlan, resume: bool = False, log: Callable[[str], 
         AblationError: ``plan.out`` holds another ablation, or ``resume`` is False and it holds one.
     """
     plan.claim_folder(resume)
-    runs = [(p, s) for p in plan.presets for s in plan.seeds]
+    table = build_table(plan, run_each(plan, plan.runs(), log))
+    paths = write_table(table, plan.out)
+    log(f"ablation table: {', '.join(str(p) for p in paths)}")
+    return table
+
+
+def run_each(plan: AblationPlan, runs: list[tuple[str, int]], log: Callable[[str], None]) -> list[dict[str, Any]]:
+    """The records of ``runs`` (preset, seed) of ``plan``, one after another (see :func:`run_one`)."""
     records = []
     for i, (preset, seed) in enumerate(runs, 1):
         log(f"[{i}/{len(runs)}] preset {preset}, seed {seed}: {plan.run_folder(preset, seed)}")
@@ -38,10 +45,7 @@ def run_ablation(plan: AblationPlan, resume: bool = False, log: Callable[[str], 
         r = records[-1]
         log(f"[{i}/{len(runs)}] preset {preset}, seed {seed}: {r['status']} at step {r['steps']} "
             f"({r['train_seconds']:.1f} s), held-out PSNR {_fmt(r['psnr'])}")
-    table = build_table(plan, records)
-    paths = write_table(table, plan.out)
-    log(f"ablation table: {', '.join(str(p) for p in paths)}")
-    return table
+    return records
 
 
 def run_one(plan: AblationPlan, preset: str, seed: int, log: Callable[[str], None]) -> dict[str, Any]:
