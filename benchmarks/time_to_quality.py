@@ -18,6 +18,10 @@ Writes the run into ``<out>/<scene>_<device>.json`` (default
 ``benchmarks/results/time_to_quality/lego_h100.json`` for Lego on an H100), a list of runs in which it
 replaces the run of its label or comes last, after every checkpoint (a run cut short keeps its
 points); ``benchmarks.plot_time_to_quality`` plots and tabulates that file.
+A curve longer than one call: ``--run-dir DIR`` (ours, nerfacc-proposal) keeps the run's state in
+DIR, saved every ``--save-every`` training seconds and at each checkpoint; the same command again
+resumes it there (same batches, the training clock going on). ``--stop-after S`` ends a call after S
+seconds of training, saved, before a device call's limit would kill it.
 """
 
 from __future__ import annotations
@@ -26,6 +30,7 @@ import argparse
 import json
 import math
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
@@ -34,34 +39,67 @@ import torch.nn.functional as F
 from benchmarks.harness import RESULTS, device_tag
 from benchmarks.skip_report import skip_report
 from benchmarks.validation import validate
+from mixer_nerf.ablation import parse_model_overrides
 from mixer_nerf.data import load_scene
+from mixer_nerf.train.output import write_text_atomic
 from mixer_nerf.train.trainer import TrainingClock
 
 
+@dataclass
+class Method:
+    """A method's training step, validation render, trainer (ours-based methods) and, for a run
+    kept in ``--run-dir``, how to save and restore the state the trainer's checkpoint lacks."""
+
+    step_fn: Callable[[int], dict]
+    render: Callable
+    trainer: object = None
+    save_extra: Callable[[Path], None] | None = None
+    load_extra: Callable[[Path, int], None] | None = None
+
+
 def run_curve(step_fn: Callable[[int], dict], render: Callable, val, checkpoints: list[float], log: Callable,
-              clock: TrainingClock) -> list[dict]:
+              clock: TrainingClock, start: tuple[int, int] | None = None, save: Callable[[int], None] | None = None,
+              save_every: float = math.inf, stop_after: float = math.inf) -> int:
     """Train with ``step_fn(step)`` until the last checkpoint, validating at each one (``clock``
     pauses meanwhile). Step 0 runs before the clock starts: it builds any JIT kernels (nerfacc's,
-    ours) and warms up caches."""
-    step_fn(0)
-    curve, step, stats = [], 1, {}
-    pending = sorted(checkpoints)
+    ours) and warms up caches. ``start``: (step, checkpoints done) of a resumed run, which skips
+    the warm-up. ``save(step)`` runs, clock paused, every ``save_every`` training seconds, at each
+    checkpoint and before a stop after ``stop_after`` seconds. Returns the checkpoints reached."""
+    if start is None:
+        step_fn(0)
+        step, done = 1, 0
+    else:
+        step, done = start
+    pending = sorted(checkpoints)[done:]
+    next_save = clock.elapsed + save_every
     clock.start()
     while pending:
         stats = step_fn(step)
         step += 1
-        if step % 16 == 0 and clock.now() >= pending[0]:
+        if step % 16:
+            continue
+        now = clock.now()
+        if now >= pending[0]:
             elapsed = clock.pause()
             point = {"seconds": round(elapsed, 2), "step": step, "val_psnr": validate(render, val), **stats}
-            curve.append(point)
-            log(point)
             pending.pop(0)
-            if pending:
-                clock.start()
-    return curve
+            done += 1
+            log(point)
+        elif now >= min(next_save, stop_after):
+            clock.pause()
+        else:
+            continue
+        if save is not None:
+            save(step)
+            next_save = clock.elapsed + save_every
+        if clock.elapsed >= stop_after:
+            break
+        if pending:
+            clock.start()
+    return done
 
 
-def nerfacc_method(args, train, val, device) -> tuple[Callable, Callable, None]:
+def nerfacc_method(args, train, val, device) -> Method:
     import nerfacc
 
     from mixer_nerf.model import MixerNeRF, preset_config
@@ -127,17 +165,17 @@ def nerfacc_method(args, train, val, device) -> tuple[Callable, Callable, None]:
         estimator.eval()
         return render(rays_o, rays_d)[0]
 
-    return step_fn, render_val, None
+    return Method(step_fn, render_val)
 
 
-def nerfacc_proposal_method(args, train, val, device) -> tuple[Callable, Callable, object]:
+def nerfacc_proposal_method(args, train, val, device) -> Method:
     import nerfacc
     from nerfacc.estimators.prop_net import get_proposal_requires_grad_fn
 
     from mixer_nerf.render.volume import query_field
 
     args.sampler = "proposal"
-    _, _, trainer = ours_method(args, train, val, device)
+    trainer = ours_method(args, train, val, device).trainer
     cfg, fields = trainer.cfg, trainer.fields
     networks = list(fields.proposal.networks)
     proposal_params = [p for net in networks for p in net.parameters()]
@@ -192,7 +230,19 @@ def nerfacc_proposal_method(args, train, val, device) -> tuple[Callable, Callabl
         with torch.no_grad():
             return render(rays_o, rays_d)[0]
 
-    return step_fn, render_val, trainer
+    def save_extra(run_dir: Path) -> None:  # the trainer's checkpoint holds the fields, not these
+        partial = run_dir / "nerfacc_state.pt.partial"
+        torch.save({"optimizer": optimizer.state_dict(), "estimator": estimator.optimizer.state_dict()}, partial)
+        partial.replace(run_dir / "nerfacc_state.pt")
+
+    def load_extra(run_dir: Path, step: int) -> None:
+        state = torch.load(run_dir / "nerfacc_state.pt", map_location=device)
+        optimizer.load_state_dict(state["optimizer"])
+        estimator.optimizer.load_state_dict(state["estimator"])
+        for past in range(step):  # nerfacc's schedule keeps its count in a closure: replay it
+            requires_grad_at(past)
+
+    return Method(step_fn, render_val, trainer, save_extra, load_extra)
 
 
 TRAINER_OPTIONS = (
@@ -202,7 +252,7 @@ TRAINER_OPTIONS = (
 """Options of ours passed to TrainConfig only when given: unset, they keep the trainer's defaults."""
 
 
-def ours_method(args, train, val, device) -> tuple[Callable, Callable, object]:
+def ours_method(args, train, val, device) -> Method:
     import tempfile
 
     from mixer_nerf.train import TrainConfig, Trainer
@@ -212,10 +262,12 @@ def ours_method(args, train, val, device) -> tuple[Callable, Callable, object]:
         device=str(device), seed=args.seed, val_every=10**9, ckpt_every=10**9, log_every=10**9,
         # as a user training for a fixed time would: the schedule ends at the last checkpoint
         time_budget=max(float(c) for c in args.checkpoints.split(",")),
-        progress=False, out=tempfile.mkdtemp(prefix="ttq_"), backend=args.backend,
+        progress=False, out=args.run_dir or tempfile.mkdtemp(prefix="ttq_"), backend=args.backend,
+        model_overrides=parse_model_overrides(args.model_override),
         # the options left unset keep the trainer's defaults
         **{k: getattr(args, k) for k in TRAINER_OPTIONS if getattr(args, k) is not None})
-    trainer = Trainer(cfg, log=lambda _: None)
+    resume = args.run_dir is not None and (Path(args.run_dir) / "checkpoint.pt").is_file()
+    trainer = Trainer(cfg, resume=resume, overwrite=args.run_dir is not None and not resume, log=lambda _: None)
 
     def step_fn(step: int) -> dict:
         trainer.fields.train()
@@ -226,7 +278,7 @@ def ours_method(args, train, val, device) -> tuple[Callable, Callable, object]:
                 "marched_per_ray": trainer.marched_seen / max(trainer.rays_seen, 1),
                 "lr": trainer.optimizer.param_groups[0]["lr"]}
 
-    return step_fn, trainer.render_rgb, trainer
+    return Method(step_fn, trainer.render_rgb, trainer)
 
 
 METHODS = {"nerfacc": nerfacc_method, "nerfacc-proposal": nerfacc_proposal_method, "ours": ours_method}
@@ -294,9 +346,21 @@ def main() -> None:
     parser.add_argument("--backend", default="auto", help="ours: auto | kernel | torch (the pure-PyTorch path)")
     parser.add_argument("--skip-report", action="store_true",
                         help="ours, occupancy sampler: after training, time one val render under each skip")
+    parser.add_argument("--model-override", action="append", default=[], metavar="NAME=VALUE",
+                        help="ours: a ModelConfig setting, e.g. se_per_point=true (repeatable)")
+    parser.add_argument("--run-dir", help="ours, nerfacc-proposal: keep the run's state here and resume it "
+                        "from there (a curve longer than one call)")
+    parser.add_argument("--save-every", type=float, default=60.0,
+                        help="with --run-dir: training seconds between saves (default 60)")
+    parser.add_argument("--stop-after", type=float, default=math.inf,
+                        help="with --run-dir: end this call after this many seconds of training, saved")
     args = parser.parse_args()
     if args.skip_report and (args.method != "ours" or args.sampler != "occupancy"):
         parser.error("--skip-report needs --method ours --sampler occupancy")
+    if args.run_dir is not None and args.method == "nerfacc":
+        parser.error("--run-dir needs --method ours or nerfacc-proposal")
+    if args.stop_after != math.inf and args.run_dir is None:
+        parser.error("--stop-after needs --run-dir (a stopped run is resumed from there)")
 
     torch.manual_seed(args.seed)
     torch.backends.cuda.matmul.allow_tf32 = True
@@ -307,7 +371,8 @@ def main() -> None:
     checkpoints = [float(c) for c in args.checkpoints.split(",")]
     label = args.label or args.method
 
-    step_fn, render, trainer = METHODS[args.method](args, train, val, device)
+    method = METHODS[args.method](args, train, val, device)
+    trainer = method.trainer
 
     scene = args.scene or Path(args.data).name.split("_")[0]
     path = Path(args.out) / f"{scene}_{device_tag(device)}.json"
@@ -320,9 +385,34 @@ def main() -> None:
         record["curve"].append(point)
         save_run(path, record)
 
+    start, save = None, None
+    if args.run_dir is not None:
+        run_dir = Path(args.run_dir)
+        state_path = run_dir / "ttq_state.json"
+        if (run_dir / "checkpoint.pt").is_file():
+            state = json.loads(state_path.read_text())
+            if state["trainer_step"] != trainer.step:
+                raise SystemExit(f"{run_dir}: its checkpoint (step {trainer.step}) and {state_path.name} "
+                                 f"(step {state['trainer_step']}) disagree: the run was killed while saving")
+            record["curve"] = state["curve"]
+            start = (state["step"], len(state["curve"]))
+            if method.load_extra is not None:
+                method.load_extra(run_dir, trainer.step)
+            print(label, f"resumed at {trainer.clock.elapsed:.1f} s of training", flush=True)
+
+        def save(step: int) -> None:
+            if method.save_extra is not None:
+                method.save_extra(run_dir)
+            trainer.save()
+            write_text_atomic(state_path, json.dumps({"step": step, "trainer_step": trainer.step,
+                                                      "curve": record["curve"]}))
+
     clock = trainer.clock if trainer is not None else TrainingClock(device)
-    run_curve(step_fn, render, val, checkpoints, log=log, clock=clock)
-    if args.skip_report:
+    done = run_curve(method.step_fn, method.render, val, checkpoints, log=log, clock=clock, start=start, save=save,
+                     save_every=args.save_every, stop_after=args.stop_after)
+    if done < len(checkpoints):
+        print(label, f"stopped at {clock.elapsed:.1f} s of training; the same command resumes it", flush=True)
+    elif args.skip_report:
         record["skip_report"] = skip_report(trainer, val)
         print(label, json.dumps(record["skip_report"]), flush=True)
         save_run(path, record)

@@ -1,0 +1,38 @@
+"""benchmarks.time_to_quality: a curve longer than one call, stopped and resumed from --run-dir."""
+
+from __future__ import annotations
+
+import json
+import sys
+
+from test_cli import TINY_DEMO
+
+from benchmarks import time_to_quality
+from mixer_nerf.data import ensure_procedural_scene
+
+
+def run(monkeypatch, *argv: str) -> None:
+    monkeypatch.setattr(sys, "argv", ["time_to_quality", *argv])
+    time_to_quality.main()
+
+
+def test_a_stopped_curve_resumes_from_its_run_dir(tmp_path, monkeypatch, capsys):
+    scene = ensure_procedural_scene(resolution=16, n_train=4, n_val=2, n_test=2)
+    overrides = [f"--model-override={k}={json.dumps(v)}" for k, v in TINY_DEMO["model_overrides"].items()]
+    argv = ["--method", "ours", "--device", "cpu", "--backend", "torch", "--data", str(scene), "--label", "tiny",
+            "--sampler", "hierarchical", "--batch-rays", "16", "--checkpoints", "0.5,1.5", "--out", str(tmp_path),
+            "--run-dir", str(tmp_path / "run"), "--save-every", "0.3", *overrides]
+    run(monkeypatch, *argv, "--stop-after", "0.8")
+    assert "stopped at" in capsys.readouterr().out
+    (first,) = json.loads(next(tmp_path.glob("*_cpu.json")).read_text())
+    assert len(first["curve"]) == 1
+    state = json.loads((tmp_path / "run" / "ttq_state.json").read_text())
+    assert state["curve"] == first["curve"]
+
+    run(monkeypatch, *argv)
+    assert "resumed at" in capsys.readouterr().out
+    (record,) = json.loads(next(tmp_path.glob("*_cpu.json")).read_text())
+    points = record["curve"]
+    assert len(points) == 2 and points[0] == first["curve"][0]
+    assert 0.5 <= points[0]["seconds"] < points[1]["seconds"] and points[1]["seconds"] >= 1.5
+    assert points[1]["step"] > state["step"] >= points[0]["step"]
