@@ -44,7 +44,7 @@ for stage in "${stages[@]}"; do
       ( sleep $((limit - 20)); ps -eo pid,ppid,etime,pcpu,rss,args --sort=-pcpu | cut -c1-300 | head -60 \
           >"$LOGS/pytest_ps.txt" ) & watcher=$!
       ( [ -n "$PYTEST_WORKERS" ] && export OMP_NUM_THREADS=${PYTEST_THREADS:-2}
-        step pytest "$limit" python -m pytest -v -p no:cacheprovider -rs \
+        step pytest "$limit" python -m pytest -v -p no:cacheprovider -rs --durations=25 \
           ${PYTEST_WORKERS:+-n $PYTEST_WORKERS} ${paths#:} )
       kill $watcher 2>/dev/null
       python -m pytest --collect-only -q -p no:cacheprovider ${paths#:} 2>/dev/null | grep '::' | sort >"$LOGS/collected.txt"
