@@ -45,7 +45,7 @@ def train_on_gpus(plan: AblationPlan, argv: Sequence[str], gpus: Sequence[int],
                   log: Callable[[str], None] = print) -> None:
     """Train ``plan``'s runs in one ``mixer-nerf ablate`` process per GPU of ``gpus`` (``argv``: the
     command's own arguments without ``--gpus``), run i on GPU i mod len(gpus); each process sees
-    only its GPU and logs to ``<out>/worker_gpu<N>.log``. Waits for all of them.
+    only its GPU and appends to ``<out>/worker_gpu<N>.log``. Waits for all of them.
 
     Raises:
         AblationError: a worker failed (naming its log).
@@ -61,19 +61,19 @@ def train_on_gpus(plan: AblationPlan, argv: Sequence[str], gpus: Sequence[int],
             log_path = plan.out / f"worker_gpu{gpu}.log"
             command = [sys.executable, "-m", "mixer_nerf", *argv, "--resume", "--no-progress",
                        "--runs", format_runs(share)]
-            with open(log_path, "w") as log_file:
+            with open(log_path, "a") as log_file:  # a resumed ablation's workers add to their logs
                 process = subprocess.Popen(command, env={**os.environ, "CUDA_VISIBLE_DEVICES": str(gpu)},
                                            stdout=log_file, stderr=subprocess.STDOUT)
             workers.append((gpu, process, log_path))
             log(f"GPU {gpu}: runs {format_runs(share)}, log {log_path}")
-        failed = [(gpu, process.wait(), path) for gpu, process, path in workers]
+        codes = [(gpu, process.wait(), path) for gpu, process, path in workers]
     finally:
         signal.signal(signal.SIGTERM, previous)
         for _, process, _ in workers:  # interrupted: no orphan keeps training
             if process.poll() is None:
                 process.terminate()
                 process.wait()
-    failed = [(gpu, code, path) for gpu, code, path in failed if code != 0]
+    failed = [(gpu, code, path) for gpu, code, path in codes if code != 0]
     if failed:
         gpu, code, path = failed[0]
         raise AblationError(f"the worker on GPU {gpu} failed (exit {code}); see {path}")
