@@ -14,6 +14,8 @@
 #   field         python -m benchmarks.bench_field $FIELD_ARGS (the MLP's cost per preset and precision)
 #   crash         tools/diagnose_exception_crash.py (in the background, alongside later stages)
 #   checks        tools/profile_checks.py (what the default value checks cost a composite step, and where)
+#   train_step    tools/profile_train_step.py for presets A and D on .data/lego_400 ($STEP_PRESETS), one
+#                 after the other: ms per step, GPU busy, kernels, host waits
 # Logs and results are packed into $OUT/gpu_check.tgz (the device returns at most 8 files); its
 # results/ folder is laid out as benchmarks/results/ (<benchmark>/<device>.*), to be copied over it.
 # The builds go into $OUT/gpu_cache.tar by tools/gpu_build.sh (unpack it into .gpu_cache and carry
@@ -74,6 +76,10 @@ for stage in "${stages[@]}"; do
       mkdir -p "$OUT/results/ops" && cp "$LOGS/ncu.log" "$OUT/results/ops/${tag}_composite_ncu.txt" ;;
     field) step field 400 python -m benchmarks.bench_field --out "$OUT/results/field" $FIELD_ARGS ;;
     checks) step checks 120 python tools/profile_checks.py ;;
+    train_step) for preset in ${STEP_PRESETS:-A D}; do
+        step "train_step_$preset" 150 python tools/profile_train_step.py --preset "$preset" --warmup 1000 \
+          --out "$OUT/results/train_step"
+        head -n 1 "$LOGS/train_step_$preset.log"; done ;;
     crash) timeout 400 python tools/diagnose_exception_crash.py >"$LOGS/crash.log" 2>&1 & ;;
     *) echo "unknown stage $stage"; exit 2 ;;
   esac
