@@ -76,38 +76,29 @@ def nerfacc_composite_packed(sigmas, rgbs, t_starts, t_ends, offsets, background
     return color, depth.squeeze(-1), opacity.squeeze(-1), weights
 
 
-def implementations(device: torch.device) -> dict:
+def _implementations(op, reference, peer, device: torch.device) -> dict:
     impls = {
-        "kernel": lambda *a: tuple(composite(*a, backend="kernel", check_values=False)),
-        "ours, defaults": lambda *a: tuple(composite(*a)),  # what a user calls: values checked
-        "torch": lambda *a: tuple(composite(*a, backend="torch", check_values=False)),
+        "kernel": lambda *a: tuple(op(*a, backend="kernel", check_values=False)),
+        "ours, defaults": lambda *a: tuple(op(*a)),  # what a user calls: values checked
+        "torch": lambda *a: tuple(op(*a, backend="torch", check_values=False)),
     }
     if device.type == "cuda":
-        impls["torch.compile"] = torch.compile(composite_reference)
+        impls["torch.compile"] = torch.compile(reference)
         try:
             import nerfacc  # noqa: F401
 
-            impls["nerfacc"] = nerfacc_composite
+            impls["nerfacc"] = peer
         except ImportError:
             pass
     return impls
+
+
+def implementations(device: torch.device) -> dict:
+    return _implementations(composite, composite_reference, nerfacc_composite, device)
 
 
 def packed_implementations(device: torch.device) -> dict:
-    impls = {
-        "kernel": lambda *a: tuple(composite_packed(*a, backend="kernel", check_values=False)),
-        "ours, defaults": lambda *a: tuple(composite_packed(*a)),
-        "torch": lambda *a: tuple(composite_packed(*a, backend="torch", check_values=False)),
-    }
-    if device.type == "cuda":
-        impls["torch.compile"] = torch.compile(composite_packed_reference)
-        try:
-            import nerfacc  # noqa: F401
-
-            impls["nerfacc"] = nerfacc_composite_packed
-        except ImportError:
-            pass
-    return impls
+    return _implementations(composite_packed, composite_packed_reference, nerfacc_composite_packed, device)
 
 
 def _layout(inputs: dict) -> tuple[int, int, int]:
