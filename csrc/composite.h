@@ -262,7 +262,7 @@ struct CompositeOps {
                                      const at::Tensor& offsets) {
     const int64_t R = check_packed(sigmas, offsets, Device::kind);
     return forward({sigmas, rgbs, t_starts, t_ends, background}, R,
-                   composite_layout::PackedRays{offsets.const_data_ptr<int64_t>(), sigmas.size(0)});
+                   composite_layout::PackedRays{offsets.const_data_ptr<int64_t>(), sigmas.size(0), R});
   }
 
   static CompositeBackward packed_bwd(const std::optional<at::Tensor>& grad_color,
@@ -274,7 +274,7 @@ struct CompositeOps {
                                       bool interval_grads) {
     const int64_t R = check_packed(sigmas, offsets, Device::kind);
     return backward({grad_color, grad_depth, grad_opacity, grad_weights}, {sigmas, rgbs, t_starts, t_ends, background},
-                    interval_grads, R, composite_layout::PackedRays{offsets.const_data_ptr<int64_t>(), sigmas.size(0)});
+                    interval_grads, R, composite_layout::PackedRays{offsets.const_data_ptr<int64_t>(), sigmas.size(0), R});
   }
 
   static void register_ops(torch::Library& m) {

@@ -24,14 +24,17 @@ struct DenseRays {
 };
 
 // Packed (CSR): ray r owns rows offsets[r] .. offsets[r+1] - 1 of N. Offsets are validated in
-// Python unless the caller opts out; clamping them into [0, N] (an end never before its start)
-// keeps even unchecked offsets from reading or writing outside the arrays.
+// Python unless the caller opts out; unchecked ones are clamped into [0, N] (an end never before
+// its start), so no kernel reads or writes outside the arrays, and taken as 0 before the first ray
+// and N after the last, as valid ones are: then every row has a ray that writes its outputs (the
+// clamped bounds only jump down, so each row lies on a ray between 0 and N), never left unwritten.
 struct PackedRays {
   const int64_t* offsets;  // (R + 1)
   int64_t total;           // N
+  int64_t num_rays;        // R
   C10_HOST_DEVICE RaySpan operator()(int64_t ray) const {
-    const int64_t begin = clamp(offsets[ray], 0, total);
-    const int64_t end = clamp(offsets[ray + 1], begin, total);
+    const int64_t begin = ray == 0 ? 0 : clamp(offsets[ray], 0, total);
+    const int64_t end = ray + 1 == num_rays ? total : clamp(offsets[ray + 1], begin, total);
     return {begin, end - begin};
   }
   // Whether ray `ray` of `rays` has offsets a validation would accept: in [0, N], not decreasing,

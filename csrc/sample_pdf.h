@@ -134,7 +134,7 @@ struct SamplePdfOps {
                                const at::Tensor& u, double weight_padding) {
     const RayBatch batch = check_packed_batch(bins, weights, offsets, u, Device::kind);
     return Device::forward(bins, weights, u, weight_padding, batch,
-                           PackedBins{offsets.const_data_ptr<int64_t>(), weights.size(0)}, offsets);
+                           PackedBins{offsets.const_data_ptr<int64_t>(), weights.size(0), offsets.size(0) - 1}, offsets);
   }
 
   static std::tuple<at::Tensor, at::Tensor> packed_bwd(const at::Tensor& grad_samples, const at::Tensor& bins,
@@ -142,7 +142,7 @@ struct SamplePdfOps {
                                                        const at::Tensor& u, double weight_padding) {
     const RayBatch batch = check_packed_batch(bins, weights, offsets, u, Device::kind);
     return Device::backward(grad_samples, bins, weights, u, weight_padding, batch,
-                            PackedBins{offsets.const_data_ptr<int64_t>(), weights.size(0)}, offsets);
+                            PackedBins{offsets.const_data_ptr<int64_t>(), weights.size(0), offsets.size(0) - 1}, offsets);
   }
 
   // -> merged depths (R, S + N) and invalid (1) int32 (InvalidInput bits).

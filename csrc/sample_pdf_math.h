@@ -46,8 +46,9 @@ struct DenseBins {
 struct PackedBins {
   const int64_t* offsets;  // (R + 1)
   int64_t total;           // N
+  int64_t num_rays;        // R
   C10_HOST_DEVICE RayBins operator()(int64_t ray) const {
-    const composite_layout::RaySpan weights = composite_layout::PackedRays{offsets, total}(ray);
+    const composite_layout::RaySpan weights = composite_layout::PackedRays{offsets, total, num_rays}(ray);
     return {weights.offset, weights.offset + ray, static_cast<int>(weights.count)};
   }
 };

@@ -43,7 +43,7 @@ at::Tensor segment_mean_fwd_cpu(const at::Tensor& values, const at::Tensor& offs
   at::Tensor out = at::empty({R, C}, values.options());
   MIXER_NERF_DISPATCH_FLOATING(values.scalar_type(), "segment_mean_fwd_cpu", [&] {
     using acc = acc_t<scalar_t>;
-    const PackedRays rays{offsets.const_data_ptr<int64_t>(), N};
+    const PackedRays rays{offsets.const_data_ptr<int64_t>(), N, R};
     const scalar_t* v = values.const_data_ptr<scalar_t>();
     scalar_t* mean = out.data_ptr<scalar_t>();
     at::parallel_for(0, R, ray_grain(N * C, R), [&](int64_t begin, int64_t end) {
@@ -70,7 +70,7 @@ at::Tensor segment_mean_bwd_cpu(const at::Tensor& grad, const at::Tensor& offset
   at::Tensor grad_values = at::empty({num_rows, C}, grad.options());
   MIXER_NERF_DISPATCH_FLOATING(grad.scalar_type(), "segment_mean_bwd_cpu", [&] {
     using acc = acc_t<scalar_t>;
-    const PackedRays rays{offsets.const_data_ptr<int64_t>(), num_rows};
+    const PackedRays rays{offsets.const_data_ptr<int64_t>(), num_rows, R};
     const scalar_t* g = grad.const_data_ptr<scalar_t>();
     scalar_t* dv = grad_values.data_ptr<scalar_t>();
     at::parallel_for(0, R, ray_grain(num_rows * C, R), [&](int64_t begin, int64_t end) {
@@ -93,7 +93,7 @@ at::Tensor ray_scale_fwd_cpu(const at::Tensor& features, const at::Tensor& scale
   at::Tensor out = at::empty_like(features);
   MIXER_NERF_DISPATCH_FLOATING(features.scalar_type(), "ray_scale_fwd_cpu", [&] {
     using acc = acc_t<scalar_t>;
-    const PackedRays rays{offsets.const_data_ptr<int64_t>(), N};
+    const PackedRays rays{offsets.const_data_ptr<int64_t>(), N, R};
     const scalar_t* f = features.const_data_ptr<scalar_t>();
     const scalar_t* s = scale.const_data_ptr<scalar_t>();
     scalar_t* o = out.data_ptr<scalar_t>();
@@ -119,7 +119,7 @@ std::tuple<at::Tensor, at::Tensor> ray_scale_bwd_cpu(const at::Tensor& grad_out,
   at::Tensor grad_features = at::empty_like(features), grad_scale = at::empty_like(scale);
   MIXER_NERF_DISPATCH_FLOATING(features.scalar_type(), "ray_scale_bwd_cpu", [&] {
     using acc = acc_t<scalar_t>;
-    const PackedRays rays{offsets.const_data_ptr<int64_t>(), N};
+    const PackedRays rays{offsets.const_data_ptr<int64_t>(), N, R};
     const scalar_t* g = grad_out.const_data_ptr<scalar_t>();
     const scalar_t* f = features.const_data_ptr<scalar_t>();
     const scalar_t* s = scale.const_data_ptr<scalar_t>();

@@ -671,21 +671,30 @@ def test_packed_cpu_adversarial_values(gen, C):
     assert_each_element_close(grads, want_grads)
 
 
+# Unchecked bad offsets of 2 rays over 5 samples, and the valid ones the kernels take them as:
+# clamped into [0, N], the first ray from 0 and the last to N, so that every row is written.
+BAD_OFFSETS = [([0, 100, 5], [0, 5, 5]), ([-7, 2, 5], [0, 2, 5]), ([0, 4, 2], [0, 4, 5]), ([3, 1, 0], [0, 1, 5])]
+
+
+def check_bad_offsets_act_as_clamped(device, gen):
+    inputs, _ = make_packed([3, 2], 3, gen, "shared", device=device)
+    for bad, taken_as in BAD_OFFSETS:
+        upstream = random_upstream(inputs, gen, num_rays=2)
+        got = run(inputs, upstream, packed_fn(torch.tensor(bad)), backend="kernel", check_values=False)
+        want = run(inputs, upstream, packed_fn(torch.tensor(taken_as)), backend="kernel", check_values=False)
+        for a, b in zip(got[0] + got[1], want[0] + want[1], strict=True):
+            torch.testing.assert_close(a, b, rtol=0, atol=0)
+    # Three rays, the middle one reversed: rows 1..3 lie on two rays and none is left unwritten.
+    out, grads = run(inputs, random_upstream(inputs, gen, num_rays=3), packed_fn(torch.tensor([0, 4, 1, 5])),
+                     backend="kernel", check_values=False)
+    assert all(torch.isfinite(t).all() for t in out + grads)
+
+
 @needs_kernels
 def test_packed_unchecked_bad_offsets_stay_in_bounds(gen):
-    """check_values=False skips the offsets' value checks; the kernels clamp them into [0, N]
-    instead of reading or writing outside the arrays (a ray past N is empty)."""
-    inputs, _ = make_packed([3, 2], 3, gen, "shared")
-    for bad in ([0, 100, 5], [-7, 2, 5], [0, 4, 2], [3, 1, 0]):
-        offsets = torch.tensor(bad)
-        out, grads = run(
-            inputs,
-            random_upstream(inputs, gen, num_rays=2),
-            packed_fn(offsets),
-            backend="kernel",
-            check_values=False,
-        )
-        assert all(torch.isfinite(t).all() for t in out + grads)
+    """check_values=False skips the offsets' value checks; the kernels neither read nor write
+    outside the arrays, nor leave an output row unwritten."""
+    check_bad_offsets_act_as_clamped("cpu", gen)
 
 
 def valid_packed():
@@ -816,17 +825,8 @@ def test_packed_cuda_float64_gradcheck(gen):
 @on_cuda
 @needs_kernels
 def test_packed_cuda_unchecked_bad_offsets_stay_in_bounds(gen):
-    inputs, _ = make_packed([3, 2], 3, gen, "shared", device="cuda")
-    for bad in ([0, 100, 5], [-7, 2, 5], [0, 4, 2], [3, 1, 0]):
-        out, grads = run(
-            inputs,
-            random_upstream(inputs, gen, num_rays=2),
-            packed_fn(torch.tensor(bad)),
-            backend="kernel",
-            check_values=False,
-        )
-        torch.cuda.synchronize()
-        assert all(torch.isfinite(t).all() for t in out + grads)
+    poison_allocator([torch.empty(5, 3, device="cuda"), torch.empty(5, device="cuda")])
+    check_bad_offsets_act_as_clamped("cuda", gen)
 
 
 @pytest.mark.cuda

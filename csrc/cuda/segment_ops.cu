@@ -216,7 +216,7 @@ at::Tensor segment_mean_fwd_cuda(const at::Tensor& values, const at::Tensor& off
     with_column_width<scalar_t>(C, {v, m}, [&](auto width) {
       constexpr int V = decltype(width)::value;
       segment_mean_fwd_kernel<scalar_t, V><<<grid_for(R), block_for(C / V), 0, c10::cuda::getCurrentCUDAStream()>>>(
-          v, PackedRays{offsets.const_data_ptr<int64_t>(), N}, C / V, m);
+          v, PackedRays{offsets.const_data_ptr<int64_t>(), N, R}, C / V, m);
       C10_CUDA_KERNEL_LAUNCH_CHECK();
     });
   });
@@ -236,7 +236,7 @@ at::Tensor segment_mean_bwd_cuda(const at::Tensor& grad, const at::Tensor& offse
     with_column_width<scalar_t>(C, {g, dv}, [&](auto width) {
       constexpr int V = decltype(width)::value;
       segment_mean_bwd_kernel<scalar_t, V><<<grid_for(R), block_for(C / V), 0, c10::cuda::getCurrentCUDAStream()>>>(
-          g, PackedRays{offsets.const_data_ptr<int64_t>(), num_rows}, C / V, dv);
+          g, PackedRays{offsets.const_data_ptr<int64_t>(), num_rows, R}, C / V, dv);
       C10_CUDA_KERNEL_LAUNCH_CHECK();
     });
   });
@@ -257,7 +257,7 @@ at::Tensor ray_scale_fwd_cuda(const at::Tensor& features, const at::Tensor& scal
     with_column_width<scalar_t>(C, {f, s, o}, [&](auto width) {
       constexpr int V = decltype(width)::value;
       ray_scale_fwd_kernel<scalar_t, V><<<grid_for(R), block_for(C / V), 0, c10::cuda::getCurrentCUDAStream()>>>(
-          f, s, PackedRays{offsets.const_data_ptr<int64_t>(), N}, C / V, o);
+          f, s, PackedRays{offsets.const_data_ptr<int64_t>(), N, R}, C / V, o);
       C10_CUDA_KERNEL_LAUNCH_CHECK();
     });
   });
@@ -282,7 +282,7 @@ std::tuple<at::Tensor, at::Tensor> ray_scale_bwd_cuda(const at::Tensor& grad_out
     with_column_width<scalar_t>(C, {g, f, s, df, ds}, [&](auto width) {
       constexpr int V = decltype(width)::value;
       ray_scale_bwd_kernel<scalar_t, V><<<grid_for(R), block_for(C / V), 0, c10::cuda::getCurrentCUDAStream()>>>(
-          g, f, s, PackedRays{offsets.const_data_ptr<int64_t>(), N}, C / V, df, ds);
+          g, f, s, PackedRays{offsets.const_data_ptr<int64_t>(), N, R}, C / V, df, ds);
       C10_CUDA_KERNEL_LAUNCH_CHECK();
     });
   });

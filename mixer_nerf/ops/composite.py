@@ -100,8 +100,8 @@ def composite_packed(
         backend: ``"auto"``, ``"kernel"`` or ``"torch"`` (see :mod:`mixer_nerf.ops`).
         check_values: also check ``sigmas >= 0``, ``t_ends >= t_starts`` and the values of
             ``offsets``, as :func:`composite` does (on a GPU in the kernel, reported later). The
-            kernels clamp offsets into [0, N], so even unchecked offsets never reach outside the
-            arrays.
+            kernels clamp unchecked offsets into [0, N] and run the first ray from 0 and the last
+            to N, so they never reach outside the arrays and write every output row.
 
     Returns:
         :class:`CompositeResult` (color (R, C), depth (R,), opacity (R,), weights (N,)),

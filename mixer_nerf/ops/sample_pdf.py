@@ -116,8 +116,8 @@ def sample_pdf_packed(
         num_samples, deterministic, u, weight_padding, generator, backend: as in
             :func:`sample_pdf` (``u`` is (R, S) or (S,)).
         check_values: also check the offsets' values and that each ray's edges are sorted (host
-            syncs on a GPU). The kernels clamp offsets into [0, N], so unchecked ones never reach
-            outside the arrays. On CUDA the kernels size shared memory by the longest ray, which
+            syncs on a GPU). The kernels clamp unchecked offsets into [0, N] (the first ray from
+            0, the last to N), so they never reach outside the arrays. On CUDA the kernels size shared memory by the longest ray, which
             costs one host sync per call whatever ``check_values``.
 
     Returns:

@@ -39,9 +39,9 @@ def segment_mean(
         offsets: (R+1,) int64, non-decreasing from 0 to N.
         backend: ``"auto"``, ``"kernel"`` or ``"torch"`` (see :mod:`mixer_nerf.ops`).
         check_values: also check the values of ``offsets`` (a host sync on a GPU; pass False where
-            they hold by construction). The kernels clamp offsets into [0, N], so even unchecked
-            offsets never reach outside the arrays (rows outside every ray then get unspecified
-            outputs and gradients).
+            they hold by construction). The kernels clamp unchecked offsets into [0, N] and run
+            the first ray from 0 and the last to N, so they never reach outside the arrays and
+            write every row.
 
     Returns:
         (R, C) in values' dtype, 0 for a ray with no row; differentiable with respect to values.
