@@ -409,7 +409,7 @@ def main() -> None:
 
     clock = trainer.clock if trainer is not None else TrainingClock(device)
     done = run_curve(method.step_fn, method.render, val, checkpoints, log=log, clock=clock, start=start, save=save,
-                     save_every=args.save_every, stop_after=args.stop_after)
+                     save_every=args.save_every if save else math.inf, stop_after=args.stop_after)
     if done < len(checkpoints):
         print(label, f"stopped at {clock.elapsed:.1f} s of training; the same command resumes it", flush=True)
     elif args.skip_report:
