@@ -121,7 +121,10 @@ def stratified_u(R: int, device: torch.device) -> torch.Tensor:
 def hierarchical_stratified_case(size: str, inputs: dict, device: torch.device) -> Case:
     z, weights = inputs["z"], inputs["weights"]
     R = z.shape[0]
-    drawn = lambda: hierarchical_samples_reference(z, weights, stratified_u(R, device))  # noqa: E731
+
+    def drawn():
+        return hierarchical_samples_reference(z, weights, stratified_u(R, device))
+
     variants = [
         Variant("kernel", lambda: hierarchical_samples(z, weights, FINE, backend="kernel", check_values=False)),
         Variant("ours, defaults", lambda: hierarchical_samples(z, weights, FINE)),

@@ -14,9 +14,9 @@ from typing import Any
 import torch
 
 from . import metrics
+from .data import load_split
 from .train.output import atomic_path, ensure_writable_folder, write_text_atomic
 from .train.restore import load_trained
-from .data import load_split
 from .train.scenes import held_out_split, locate_scene
 from .video import colorize_depth, depth_range, to_uint8, write_png
 

@@ -19,7 +19,7 @@ def parse_gpus(text: str) -> tuple[int, ...]:
     try:
         gpus = tuple(dict.fromkeys(int(p) for p in text.replace(" ", ",").split(",") if p))
     except ValueError:
-        raise AblationError(f"--gpus takes device indices separated by commas, e.g. 0,1; got {text!r}") from None
+        gpus = ()
     if not gpus or min(gpus) < 0:
         raise AblationError(f"--gpus takes device indices separated by commas, e.g. 0,1; got {text!r}")
     return gpus
@@ -36,7 +36,8 @@ def parse_runs(text: str, plan: AblationPlan) -> list[Run]:
         preset, _, seed = item.partition(":")
         run = (preset.strip().upper(), int(seed)) if seed.strip().lstrip("-").isdigit() else None
         if run not in plan.runs():
-            raise AblationError(f"--runs: {item!r} is not a run of this ablation (PRESET:SEED of --presets and --seeds)")
+            raise AblationError(f"--runs: {item!r} is not a run of this ablation "
+                                "(PRESET:SEED of --presets and --seeds)")
         runs.append(run)
     return runs
 

@@ -16,7 +16,6 @@ from dataclasses import dataclass
 
 import torch
 
-
 MAX_PENDING = 256
 """Checks in flight before :func:`watch` waits for the oldest (bounds pinned memory and events)."""
 

@@ -117,8 +117,9 @@ def sample_pdf_packed(
             :func:`sample_pdf` (``u`` is (R, S) or (S,)).
         check_values: also check the offsets' values and that each ray's edges are sorted (host
             syncs on a GPU). The kernels clamp unchecked offsets into [0, N] (the first ray from
-            0, the last to N), so they never reach outside the arrays. On CUDA the kernels size shared memory by the longest ray, which
-            costs one host sync per call whatever ``check_values``.
+            0, the last to N), so they never reach outside the arrays. On CUDA the kernels size
+            shared memory by the longest ray, which costs one host sync per call whatever
+            ``check_values``.
 
     Returns:
         (R, num_samples) samples in the dtype of ``bins``, sorted along each ray, differentiable
