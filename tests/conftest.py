@@ -2,15 +2,23 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterator
-from pathlib import Path
+import os
 
-import numpy as np
-import pytest
+# MIXER_NERF_TEST_GPUS=N spreads pytest-xdist workers over N GPUs (worker k sees GPU k mod N); it
+# must be set before anything initialises CUDA, hence before the imports below.
+_gpus, _worker = int(os.environ.get("MIXER_NERF_TEST_GPUS") or 0), os.environ.get("PYTEST_XDIST_WORKER", "")
+if _gpus > 1 and _worker.startswith("gw"):
+    os.environ["CUDA_VISIBLE_DEVICES"] = str(int(_worker[2:]) % _gpus)
 
-from mixer_nerf.data.blender import write_blender_split
-from mixer_nerf.data.images import write_png
-from mixer_nerf.data.procedural import orbit_poses
+from collections.abc import Iterator  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+
+from mixer_nerf.data.blender import write_blender_split  # noqa: E402
+from mixer_nerf.data.images import write_png  # noqa: E402
+from mixer_nerf.data.procedural import orbit_poses  # noqa: E402
 
 LLFF_HWF = (32.0, 48.0, 40.0)  # full-resolution H, W, focal of the llff_scene fixture
 LLFF_FACTOR = 4  # its images are in images_4/
