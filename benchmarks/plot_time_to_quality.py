@@ -1,10 +1,12 @@
 """Plot and tabulate the curves written by ``benchmarks.time_to_quality``.
 
-    python -m benchmarks.plot_time_to_quality [PATH ...] [--targets 25,28,31]
+    python -m benchmarks.plot_time_to_quality [PATH ...] [--targets 25,28,31] [--add FILE ...]
 
 Each PATH is a runs file (``<scene>_<device>.json``, a list of runs) or a folder of them (default
 ``benchmarks/results/time_to_quality``); for each file, writes ``<scene>_<device>.png`` and ``.md``
-beside it. ``--targets`` are the PSNRs (dB) whose time to reach the table gives.
+beside it. ``--targets`` are the PSNRs (dB) whose time to reach the table gives. ``--add`` first
+merges the runs of each FILE (e.g. curves run side by side on several GPUs) into the runs file of
+its name in the first PATH folder, each in place of a run of its label.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 from benchmarks.harness import RESULTS  # noqa: E402
+from benchmarks.time_to_quality import save_runs  # noqa: E402
 
 
 def plot(path: str | Path, targets_db: tuple[float, ...] = (25.0, 28.0, 31.0)) -> None:
@@ -61,8 +64,11 @@ def main() -> None:
     parser.add_argument("paths", nargs="*", default=[str(RESULTS / "time_to_quality")],
                         help="runs files or folders of them")
     parser.add_argument("--targets", default="25,28,31", help="comma-separated PSNRs in dB")
+    parser.add_argument("--add", nargs="+", default=[], metavar="FILE", help="runs files to merge in first")
     args = parser.parse_args()
     targets = tuple(float(t) for t in args.targets.split(","))
+    for added in map(Path, args.add):
+        save_runs(Path(args.paths[0]) / added.name, json.loads(added.read_text()))
     for given in map(Path, args.paths):
         for runs in sorted(given.glob("*.json")) if given.is_dir() else [given]:
             plot(runs, targets)

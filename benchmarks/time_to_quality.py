@@ -284,14 +284,16 @@ def ours_method(args, train, val, device) -> Method:
 METHODS = {"nerfacc": nerfacc_method, "nerfacc-proposal": nerfacc_proposal_method, "ours": ours_method}
 
 
-def save_run(path: Path, record: dict) -> None:
-    """Write ``record`` into the list of runs in ``path``: in place of the run of its label, else last."""
+def save_runs(path: Path, records: list[dict]) -> None:
+    """Write each of ``records`` into the list of runs in ``path``: in place of the run of its
+    label, else last."""
     runs = json.loads(path.read_text()) if path.exists() else []
-    labels = [run["label"] for run in runs]
-    if record["label"] in labels:
-        runs[labels.index(record["label"])] = record
-    else:
-        runs.append(record)
+    for record in records:
+        labels = [run["label"] for run in runs]
+        if record["label"] in labels:
+            runs[labels.index(record["label"])] = record
+        else:
+            runs.append(record)
     path.write_text(json.dumps(runs, indent=1))
 
 
@@ -383,7 +385,7 @@ def main() -> None:
     def log(point: dict) -> None:  # the file after every checkpoint: a run cut short keeps its points
         print(label, json.dumps(point), flush=True)
         record["curve"].append(point)
-        save_run(path, record)
+        save_runs(path, [record])
 
     start, save = None, None
     if args.run_dir is not None:
@@ -415,7 +417,7 @@ def main() -> None:
     elif args.skip_report:
         record["skip_report"] = skip_report(trainer, val)
         print(label, json.dumps(record["skip_report"]), flush=True)
-        save_run(path, record)
+        save_runs(path, [record])
 
 
 if __name__ == "__main__":

@@ -126,6 +126,33 @@ def test_gpus_trains_each_share_in_its_own_process_then_one_table(blender_scene,
     assert not list(out.glob(".*.tmp*"))
 
 
+def test_resumed_gpu_workers_share_only_the_runs_not_done(tmp_path, monkeypatch):
+    """A resumed --gpus ablation spreads the runs left over every GPU, not its full plan (where
+    the GPUs whose runs were done would idle while another trains two)."""
+    from mixer_nerf.ablation import workers
+    from mixer_nerf.ablation.runner import RUN_RECORD
+
+    plan = AblationPlan(base=TrainConfig(steps=1), presets=("A", "B", "C", "D"), seeds=(0, 1), out=tmp_path)
+    for run in plan.runs():
+        if run[1] == 0:  # seed 0 done everywhere
+            plan.run_folder(*run).mkdir(parents=True)
+            (plan.run_folder(*run) / RUN_RECORD).write_text("{}")
+    shares = {}
+
+    class Worker:
+        def __init__(self, command, env, **_):
+            shares[env["CUDA_VISIBLE_DEVICES"]] = command[command.index("--runs") + 1]
+
+        def wait(self):
+            return 0
+
+        poll = wait
+
+    monkeypatch.setattr(workers.subprocess, "Popen", Worker)
+    workers.train_on_gpus(plan, ["ablate"], (0, 1, 2, 3), log=lambda _: None)
+    assert shares == {"0": "A:1", "1": "B:1", "2": "C:1", "3": "D:1"}
+
+
 def test_a_failed_gpu_worker_is_one_line_naming_its_log(tmp_path, capsys, monkeypatch):
     monkeypatch.setattr(sys, "executable", "false")  # every worker exits 1 at once
     assert ablate(tmp_path / "failed", "--presets", "A", "--seeds", "0", "--gpus", "3") == 1

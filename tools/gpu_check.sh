@@ -2,7 +2,8 @@
 # GPU checks in one device call: JIT-build the kernels, then the named stages in order.
 # Usage on the GPU machine: bash tools/gpu_check.sh [STAGE ...]   (default: every stage)
 #   pytest[:PATH] the whole test suite, or one test file ($PYTEST_WORKERS: pytest-xdist workers, each
-#                 with $PYTEST_THREADS (2) CPU threads; $PYTEST_LIMIT: seconds, default 360)
+#                 with $PYTEST_THREADS (2) CPU threads, spread over $MIXER_NERF_TEST_GPUS GPUs; $PYTEST_LIMIT:
+#                 seconds, default 360)
 #   memcheck      compute-sanitizer memcheck over the CUDA tests of every op ($MEMCHECK_TESTS: some)
 #   racecheck     compute-sanitizer racecheck over those of the kernels with shared memory
 #                 ($RACECHECK_TESTS: some)
@@ -18,7 +19,7 @@
 #                 after the other: ms per step, GPU busy, kernels, host waits
 # Logs and results are packed into $OUT/gpu_check.tgz (the device returns at most 8 files); its
 # results/ folder is laid out as benchmarks/results/ (<benchmark>/<device>.*), to be copied over it.
-# The builds go into $OUT/gpu_cache.tar by tools/gpu_build.sh (unpack it into .gpu_cache and carry
+# The builds go into $OUT/gpu_cache.tgz by tools/gpu_build.sh (unpack it into .gpu_cache and carry
 # that to skip the builds next time); a summary is printed last.
 source tools/gpu_env.sh >/dev/null
 OUT=${OUT:-/tmp/gpu_check}; LOGS=$OUT/gpu_check_logs; mkdir -p "$OUT/results" "$LOGS"
@@ -49,8 +50,11 @@ for stage in "${stages[@]}"; do
         step pytest "$limit" python -m pytest -v -p no:cacheprovider -rs --durations=25 \
           ${PYTEST_WORKERS:+-n $PYTEST_WORKERS} ${paths#:} )
       kill $watcher 2>/dev/null
-      python -m pytest --collect-only -q -p no:cacheprovider ${paths#:} 2>/dev/null | grep '::' | sort >"$LOGS/collected.txt"
-      grep -E 'PASSED|FAILED|SKIPPED|ERROR|XFAIL|XPASS' "$LOGS/pytest.log" | grep -oE 'tests/[^ ]+::[^ ]+' | sort -u >"$LOGS/finished.txt"
+      python -m pytest --collect-only -q -p no:cacheprovider ${paths#:} 2>/dev/null | grep '::' | LC_ALL=C sort >"$LOGS/collected.txt"
+      # A test id runs to the end of its line (parameter ids may hold spaces); xdist puts it after the outcome.
+      outcome='(PASSED|FAILED|SKIPPED|ERROR|XFAIL|XPASS)'
+      sed -nE -e "s/^\[gw[0-9]+\] \[ *[0-9]+%\] $outcome (tests\/.*[^ ]) *\$/\2/p" \
+        -e "s/^(tests\/.*::.*[^ ]) $outcome +\[ *[0-9]+%\]\$/\1/p" "$LOGS/pytest.log" | LC_ALL=C sort -u >"$LOGS/finished.txt"
       comm -23 "$LOGS/collected.txt" "$LOGS/finished.txt" >"$LOGS/unfinished.txt"
       echo "pytest: $(wc -l <"$LOGS/finished.txt") of $(wc -l <"$LOGS/collected.txt") finished; unfinished: $(head -c 3000 "$LOGS/unfinished.txt" | tr '\n' ' ')" >>"$summary" ;;
     # memcheck: every op's CUDA tests. racecheck (shared-memory hazards, ~10x slower): the

@@ -10,6 +10,7 @@ import sys
 from collections.abc import Callable, Sequence
 
 from .plan import AblationError, AblationPlan
+from .runner import RUN_RECORD
 
 Run = tuple[str, int]
 
@@ -45,8 +46,9 @@ def parse_runs(text: str, plan: AblationPlan) -> list[Run]:
 def train_on_gpus(plan: AblationPlan, argv: Sequence[str], gpus: Sequence[int],
                   log: Callable[[str], None] = print) -> None:
     """Train ``plan``'s runs in one ``mixer-nerf ablate`` process per GPU of ``gpus`` (``argv``: the
-    command's own arguments without ``--gpus``), run i on GPU i mod len(gpus); each process sees
-    only its GPU and appends to ``<out>/worker_gpu<N>.log``. Waits for all of them.
+    command's own arguments without ``--gpus``): the i-th run not yet done on GPU i mod len(gpus),
+    so that a resumed ablation keeps every GPU busy; each process sees only its GPU and appends to
+    ``<out>/worker_gpu<N>.log``. Waits for all of them.
 
     Raises:
         AblationError: a worker failed (naming its log).
@@ -54,9 +56,10 @@ def train_on_gpus(plan: AblationPlan, argv: Sequence[str], gpus: Sequence[int],
     workers = []
     # `timeout` (a GPU call's limit) sends SIGTERM: end as on Ctrl-C, so the workers stop with us.
     previous = signal.signal(signal.SIGTERM, lambda *_: sys.exit(128 + signal.SIGTERM))
+    left = [run for run in plan.runs() if not (plan.run_folder(*run) / RUN_RECORD).is_file()]
     try:
         for index, gpu in enumerate(gpus):
-            share = plan.runs()[index :: len(gpus)]
+            share = left[index :: len(gpus)]
             if not share:
                 continue
             log_path = plan.out / f"worker_gpu{gpu}.log"

@@ -65,6 +65,8 @@ class OccupancyGrid(nn.Module):
             raise ValueError(f"step_size must be positive and finite, got {step_size!r}")
         self.resolution: tuple[int, int, int] = res
         self.register_buffer("aabb", box)
+        # On the grid's device, so that a cell's size needs no host-to-device copy (a host wait).
+        self.register_buffer("cells_per_axis", torch.tensor(res, dtype=torch.float32), persistent=False)
         # Moving maximum of each cell's opacity over one marching step.
         self.register_buffer("opacity", torch.zeros(res))
         self.register_buffer("bitfield", pack_bits(torch.ones(self.num_cells, dtype=torch.bool)))
@@ -182,7 +184,7 @@ class OccupancyGrid(nn.Module):
         ijk = torch.stack([cells // (Y * Z), (cells // Z) % Y, cells % Z], dim=-1)
         u = torch.rand(ijk.shape, device=cells.device, generator=generator)
         lo, hi = self.aabb[0], self.aabb[1]
-        size = (hi - lo) / torch.tensor(self.resolution, device=cells.device)
+        size = (hi - lo) / self.cells_per_axis
         return lo + (ijk + u) * size
 
     def _opacity(
