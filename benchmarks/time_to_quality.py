@@ -248,7 +248,7 @@ def nerfacc_proposal_method(args, train, val, device) -> Method:
 TRAINER_OPTIONS = (
     "target_samples", "batch_rays", "precision", "lr", "lr_final", "lr_warmup", "lr_hold", "bf16_density_passes",
     "adam_eps", "early_stop_eps", "empty_space_weight", "grid_warmup", "grid_every", "grid_threshold", "step_size",
-    "proposal_width", "proposal_samples")
+    "proposal_width", "proposal_samples", "proposal_update_every", "proposal_jitter", "proposal_weight_padding")
 """Options of ours passed to TrainConfig only when given: unset, they keep the trainer's defaults."""
 
 
@@ -329,6 +329,12 @@ def main() -> None:
                              "(default: the trainer's, on CUDA)")
     parser.add_argument("--proposal-width", type=int, help="ours, proposal sampler: proposal networks' width")
     parser.add_argument("--proposal-samples", type=int, help="ours, proposal sampler: main-field samples per ray")
+    parser.add_argument("--proposal-update-every", type=int,
+                        help="ours, proposal sampler: train the proposal networks every N steps past step 1000")
+    parser.add_argument("--proposal-jitter", choices=("per_sample", "per_ray"),
+                        help="ours, proposal sampler: stratified jitter per sample or one offset per ray")
+    parser.add_argument("--proposal-weight-padding", type=float,
+                        help="ours, proposal sampler: added to each proposal weight before resampling")
     parser.add_argument("--adam-eps", type=float, help="ours: Adam's epsilon (default: the trainer's)")
     parser.add_argument("--early-stop-eps", type=float,
                         help="ours, occupancy sampler: early ray termination (0: off; default: the trainer's)")

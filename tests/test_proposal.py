@@ -13,6 +13,7 @@ from mixer_nerf.render.skipping import (
     ProposalOptions,
     ProposalSampler,
     proposal_loss,
+    proposal_update_due,
     render_rays_proposal,
 )
 from mixer_nerf.render.skipping.proposal import ProposalRound
@@ -32,7 +33,8 @@ def sampler(rounds=(16, 8), samples=6, spacing="linear") -> ProposalSampler:
 
 @pytest.mark.parametrize("kwargs, match", [
     ({"samples_per_round": ()}, "samples_per_round"), ({"samples_per_round": (4, 0)}, "samples_per_round"),
-    ({"num_samples": 0}, "num_samples"), ({"spacing": "log"}, "spacing"), ({"weight_padding": -1.0}, "padding")])
+    ({"num_samples": 0}, "num_samples"), ({"spacing": "log"}, "spacing"), ({"weight_padding": -1.0}, "padding"),
+    ({"jitter": "per_bin"}, "jitter")])
 def test_options_reject_bad_values(kwargs, match):
     with pytest.raises(ValueError, match=match):
         ProposalOptions(**kwargs)
@@ -54,6 +56,32 @@ def test_samples_are_sorted_contiguous_intervals_inside_near_far(spacing, near, 
     assert (s.t_starts >= near - 1e-6).all() and (s.t_ends <= far * (1 + 1e-5)).all()
     assert [r.weights.shape for r in s.rounds] == [(32, 16), (32, 8)]
     assert all(torch.isfinite(r.weights).all() for r in s.rounds)
+
+
+def test_per_ray_jitter_spaces_a_rays_positions_equally_with_its_own_offset():
+    """With uniform weights the resampled edges are the positions u themselves: per ray, equal steps
+    of 1 / count from one random offset; per sample, steps that vary."""
+    gen = torch.Generator().manual_seed(0)
+    edges = torch.linspace(0, 1, 9).repeat(64, 1)
+    weights = torch.ones(64, 8)
+    spaced = {}
+    for jitter in ("per_ray", "per_sample"):
+        s = ProposalSampler([ProposalNetwork(num_freqs=2, width=8)], ProposalOptions((8,), 4, jitter=jitter))
+        spaced[jitter] = s._resample(edges, weights, 17, True, gen, "torch")
+    steps = spaced["per_ray"].diff(dim=-1)
+    torch.testing.assert_close(steps, torch.full_like(steps, 1 / 17))
+    assert spaced["per_ray"][:, 0].std() > 0.01  # an offset of each ray's own
+    assert spaced["per_sample"].diff(dim=-1).std() > 0.01
+
+
+def test_proposal_updates_ramp_from_every_step_to_every_nth():
+    assert all(proposal_update_due(step, 1) for step in range(3000))
+    due = [step for step in range(2000) if proposal_update_due(step, 6)]
+    assert due[:3] == [0, 1, 2]  # every step at first
+    late = [step for step in due if step >= 1000]
+    assert late == list(range(1002, 2000, 6))
+    ramp = [step for step in due if step < 1000]
+    assert 200 < len(ramp) < 1000  # the interval grows over the ramp
 
 
 def test_sample_rejects_a_disparity_spacing_from_zero_and_infinite_far():

@@ -109,6 +109,9 @@ def params_of(trainer: Trainer) -> dict[str, torch.Tensor]:
         ("num_fine", -1),
         ("empty_space_weight", -1e-3),
         ("empty_space_points", 0),
+        ("proposal_update_every", 0),
+        ("proposal_jitter", "per_bin"),
+        ("proposal_weight_padding", -1e-4),
     ],
 )
 def test_config_rejects_bad_values_naming_them(field, value):
@@ -539,6 +542,21 @@ def test_write_video_reads_back():
         path = write_video(f"{folder}/clip", frames, fps=5)
         assert path.suffix in (".mp4", ".gif") and path.stat().st_size > 0
         assert len(list(iio.imiter(path))) == 4
+
+
+def test_proposal_networks_learn_only_at_their_update_steps(tmp_path):
+    """``proposal_update_every``: a step that is not due trains the main field alone (the proposal
+    networks get no gradient, so Adam leaves them); a due step trains both."""
+    trainer = Trainer(tiny_config(tmp_path, sampler="proposal", proposal_rounds=(12, 8), proposal_samples=6,
+                                  proposal_update_every=6), log=quiet)
+    for step, due in ((1001, False), (1002, True)):
+        trainer.step = step
+        before = params_of(trainer)
+        trainer.train_step()
+        after = params_of(trainer)
+        changed = {k for k in before if not torch.equal(before[k], after[k])}
+        assert any(k.startswith("proposal.") for k in changed) == due, step
+        assert any(not k.startswith("proposal.") for k in changed), step
 
 
 def test_proposal_sampler_trains_its_networks_and_renders_from_the_checkpoint(tmp_path):

@@ -9,7 +9,7 @@ from typing import Any
 
 from ..data import FORMATS
 from ..render.image_renderer import RENDER_SAMPLES
-from ..render.skipping import MarchingOptions
+from ..render.skipping import JITTERS, MarchingOptions
 
 PRESETS = ("A", "B", "C", "D")
 PRECISIONS = ("bf16", "tf32", "fp32")
@@ -116,6 +116,16 @@ class TrainConfig:
     proposal_samples: int = 48
     proposal_width: int = 128  # hidden width of each proposal network (2 layers)
     proposal_loss_weight: float = 1.0
+    proposal_update_every: int = option(
+        1, "proposal sampler: train the proposal networks every N steps from step 1000 (the interval "
+        "grows from 1 over the first 1000 steps; nerfacc's PropNetEstimator recipe is about 6); the "
+        "other steps sample without their gradient (default 1: every step)")
+    proposal_jitter: str = option(
+        "per_sample", "proposal sampler: stratified training positions jittered per sample or with "
+        "one offset per ray (nerfacc's)", choices=JITTERS)
+    proposal_weight_padding: float = option(
+        1e-4, "proposal sampler: added to every proposal weight before resampling, so that no part of "
+        "a ray is given up (0: none, as nerfacc)")
     tensorboard: bool = option(
         False, "log losses, PSNR, learning rate, samples per ray, rays/s and validation renders to "
         "<out>/tensorboard (needs .[tensorboard])"
@@ -167,6 +177,11 @@ class TrainConfig:
                              f"{self.proposal_rounds}, {self.proposal_samples}")
         if self.proposal_width < 1 or not self.proposal_loss_weight >= 0:
             raise ValueError("proposal_width must be positive and proposal_loss_weight >= 0")
+        if self.proposal_update_every < 1:
+            raise ValueError(f"proposal_update_every must be positive, got {self.proposal_update_every}")
+        _one_of("proposal_jitter", self.proposal_jitter, JITTERS)
+        if not self.proposal_weight_padding >= 0:
+            raise ValueError(f"proposal_weight_padding must be >= 0, got {self.proposal_weight_padding}")
         if not self.adam_eps > 0:
             raise ValueError(f"adam_eps must be positive, got {self.adam_eps}")
         if self.time_budget is not None and not 0 < self.time_budget < math.inf:

@@ -68,8 +68,8 @@ def make_proposal(cfg: TrainConfig, model_cfg: ModelConfig, bounded: bool) -> Pr
     networks = [ProposalNetwork(model_cfg.scene_center, model_cfg.scene_scale, width=cfg.proposal_width,
                                 contract_space=not bounded, backend=cfg.backend)
                 for _ in cfg.proposal_rounds]
-    options = ProposalOptions(cfg.proposal_rounds, cfg.proposal_samples,
-                              "linear" if bounded else "disparity")
+    options = ProposalOptions(cfg.proposal_rounds, cfg.proposal_samples, "linear" if bounded else "disparity",
+                              cfg.proposal_weight_padding, cfg.proposal_jitter)
     return ProposalSampler(networks, options)
 
 

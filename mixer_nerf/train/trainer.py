@@ -18,7 +18,7 @@ import torch.nn.functional as F
 from ..data import load_split
 from ..metrics import psnr
 from ..render import render_rays
-from ..render.skipping import proposal_loss, render_rays_proposal, shade_samples
+from ..render.skipping import proposal_loss, proposal_update_due, render_rays_proposal, shade_samples
 from .checkpoint import capture_rng_state, load_checkpoint, restore_rng_state, save_checkpoint
 from .config import TrainConfig
 from .distributed import join, rank_seed, restore_rank_sampler
@@ -281,11 +281,13 @@ class Trainer:
 
     def _proposal_losses(self, rays_o, rays_d, target) -> dict[str, torch.Tensor]:
         cfg = self.cfg
+        update = proposal_update_due(self.step, cfg.proposal_update_every)
         out, samples = render_rays_proposal(
             self.coarse_field, self.fields.proposal, rays_o, rays_d, self.train_scene.near, self.train_scene.far,
-            stratified=True, background=self.background, generator=self.sampler.generator, backend=cfg.backend)
+            stratified=True, background=self.background, generator=self.sampler.generator, backend=cfg.backend,
+            train_proposal=update)
         self.samples_seen += samples.t_starts.numel()
-        loss = proposal_loss(samples.rounds, samples.edges, out.weights)
+        loss = proposal_loss(samples.rounds, samples.edges, out.weights) if update else out.color.new_zeros(())
         return {"loss_coarse": F.mse_loss(out.color, target), "loss_proposal": cfg.proposal_loss_weight * loss}
 
     def _marched_losses(self, batch: MarchedBatch) -> dict[str, torch.Tensor]:

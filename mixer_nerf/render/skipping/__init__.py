@@ -7,8 +7,8 @@ samples (early ray termination) and rays that miss the scene (box clipping), on 
 - :class:`SampleBudget`: ray batches sized to a number of samples per step.
 - :class:`OccupancySampler`: the grid, its refresh schedule, marching and the budget together, as
   the trainer uses them.
-- :class:`ProposalSampler`, :func:`render_rays_proposal`, :func:`proposal_loss`: proposal
-  networks for scenes a grid cannot prune (forward-facing, unbounded).
+- :class:`ProposalSampler`, :func:`render_rays_proposal`, :func:`proposal_loss`,
+  :func:`proposal_update_due`: proposal networks for scenes a grid cannot prune (forward-facing, unbounded).
 """
 
 from .marching import (
@@ -21,10 +21,18 @@ from .marching import (
 )
 from .occupancy_grid import CellShare, OccupancyGrid
 from .occupancy_sampler import GridRefresh, OccupancySampler
-from .proposal import ProposalOptions, ProposalSampler, proposal_loss, render_rays_proposal
+from .proposal import (
+    JITTERS,
+    ProposalOptions,
+    ProposalSampler,
+    proposal_loss,
+    proposal_update_due,
+    render_rays_proposal,
+)
 from .sample_budget import SampleBudget
 
 __all__ = [
+    "JITTERS",
     "CellShare",
     "GridRefresh",
     "MarchedResult",
@@ -37,6 +45,7 @@ __all__ = [
     "SampleBudget",
     "march_samples",
     "proposal_loss",
+    "proposal_update_due",
     "render_rays_marched",
     "render_rays_proposal",
     "shade_samples",

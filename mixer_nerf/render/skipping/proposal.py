@@ -9,7 +9,8 @@ each ray in rounds so that the main field is evaluated at few samples near what 
 Positions along a ray are placed in a spacing coordinate ``s`` in [0, 1]: ``t`` linear in ``s``
 (NDC, bounded) or ``1/t`` linear in ``s`` (``"disparity"``: unbounded scenes, needs ``near > 0``).
 Sampling runs without gradient; the proposal networks get theirs from :func:`proposal_loss`, which
-asks each round's weights to bound the main field's (detached) weights from above.
+asks each round's weights to bound the main field's (detached) weights from above, at the steps
+:func:`proposal_update_due` picks.
 """
 
 from __future__ import annotations
@@ -26,6 +27,18 @@ from ...ops import composite, sample_pdf
 from ..volume import RayBundleResult, composite_samples, query_field
 
 SPACINGS = ("linear", "disparity")
+JITTERS = ("per_sample", "per_ray")
+UPDATE_RAMP_STEPS = 1000
+"""Steps over which :func:`proposal_update_due`'s interval grows from 1 to its final value."""
+
+
+def proposal_update_due(step: int, every: int) -> bool:
+    """Whether the proposal networks learn at ``step``: every step at first, then every ``every``
+    steps from step :data:`UPDATE_RAMP_STEPS`, the interval growing linearly in between (nerfacc's
+    ``get_proposal_requires_grad_fn`` schedule, decided from the step alone so a resumed run
+    keeps it)."""
+    interval = 1 + int(min(step / UPDATE_RAMP_STEPS, 1.0) * (every - 1))
+    return step % interval == 0
 
 
 @dataclass(frozen=True)
@@ -36,12 +49,15 @@ class ProposalOptions:
     spacing: ``"linear"`` or ``"disparity"`` (see the module docstring).
     weight_padding: added to every proposal weight before resampling, so that no part of the
         ray is ever given up entirely.
+    jitter: stratified positions ``u`` jittered each by itself (``"per_sample"``) or all of a
+        ray's by one offset (``"per_ray"``: equal steps in ``u``, as nerfacc's sampler).
     """
 
     samples_per_round: tuple[int, ...] = (128, 64)
     num_samples: int = 48
     spacing: str = "linear"
     weight_padding: float = 1e-4
+    jitter: str = "per_sample"
 
     def __post_init__(self) -> None:
         if not self.samples_per_round or any(n < 1 for n in self.samples_per_round):
@@ -52,6 +68,8 @@ class ProposalOptions:
             raise ValueError(f"spacing must be one of {SPACINGS}, got {self.spacing!r}")
         if not self.weight_padding >= 0:
             raise ValueError(f"weight_padding must be >= 0, got {self.weight_padding}")
+        if self.jitter not in JITTERS:
+            raise ValueError(f"jitter must be one of {JITTERS}, got {self.jitter!r}")
 
 
 class ProposalRound(NamedTuple):
@@ -113,7 +131,11 @@ class ProposalSampler(nn.Module):
 
     @torch.no_grad()
     def _resample(self, edges, weights, count, stratified, generator, backend) -> torch.Tensor:
-        return sample_pdf(edges.contiguous(), weights.detach().contiguous(), count,
+        u = None
+        if stratified and self.options.jitter == "per_ray":
+            offset = torch.rand(edges.shape[0], 1, device=edges.device, dtype=torch.float32, generator=generator)
+            u = (torch.arange(count, device=edges.device, dtype=torch.float32) + offset) / count
+        return sample_pdf(edges.contiguous(), weights.detach().contiguous(), count, u=u,
                           deterministic=not stratified, weight_padding=self.options.weight_padding,
                           generator=generator, backend=backend, check_values=False)
 
@@ -162,12 +184,15 @@ def render_rays_proposal(
     background: torch.Tensor | None = None,
     generator: torch.Generator | None = None,
     backend: str = "auto",
+    train_proposal: bool = True,
 ) -> tuple[RayBundleResult, ProposalSamples]:
     """Render rays ``(R, 3)`` through ``field`` at the intervals ``proposal`` picks (each sample at
     its interval's midpoint): the result (differentiable through the field) and the samples, whose
-    rounds feed :func:`proposal_loss`."""
-    samples = proposal.sample(rays_o, rays_d, near, far, stratified=stratified, generator=generator,
-                              backend=backend)
+    rounds feed :func:`proposal_loss` (with gradient to the proposal networks only where
+    ``train_proposal``)."""
+    with torch.set_grad_enabled(train_proposal and torch.is_grad_enabled()):
+        samples = proposal.sample(rays_o, rays_d, near, far, stratified=stratified, generator=generator,
+                                  backend=backend)
     mids = 0.5 * (samples.t_starts + samples.t_ends)
     sigmas, rgbs = query_field(field, rays_o, rays_d, mids)
     bg = None if background is None else background.to(rays_o.dtype)
