@@ -6,19 +6,22 @@ Runs the ``bench_ops`` composite forward+backward case (R=65536, S=192) with the
 (``check_values=False``) and on (the default: in-kernel checks, ``deferred_checks.watch``), one
 after another: median GPU ms per step from CUDA events, then a torch.profiler pass of each that
 lists the CUDA runtime calls per step (a cudaHostAlloc or a synchronising call is a host wait
-the events show as GPU idle).
+the events show as GPU idle), the host time to enqueue a step and, of it, the time spent in
+``deferred_checks.watch``, and the GPU kernels per step (busy time against the event-timed step:
+the rest is the GPU waiting for the host).
 """
 
 from __future__ import annotations
 
 import argparse
 import statistics
+import time
 
 import torch
 from torch.profiler import ProfilerActivity, profile
 
 from benchmarks.cases_composite import make_inputs
-from mixer_nerf.ops import check_pending, composite
+from mixer_nerf.ops import check_pending, composite, deferred_checks
 
 
 def main() -> None:
@@ -34,6 +37,14 @@ def main() -> None:
         out = composite(*leaves, inputs["t_starts"], inputs["t_ends"], inputs["background"], check_values=check_values)
         torch.autograd.grad(out[:3], leaves, upstream)
 
+    watch, watch_seconds = deferred_checks.watch, []
+
+    def timed_watch(*args, **kwargs):
+        start = time.perf_counter()
+        watch(*args, **kwargs)
+        watch_seconds.append(time.perf_counter() - start)
+
+    deferred_checks.watch = timed_watch
     for check_values in (False, True):
         for _ in range(5):
             step(check_values)
@@ -46,13 +57,29 @@ def main() -> None:
             end.record()
             end.synchronize()
             times.append(start.elapsed_time(end))
+        torch.cuda.synchronize()
+        watch_seconds.clear()
+        host = []
+        for _ in range(args.steps):
+            start = time.perf_counter()
+            step(check_values)
+            host.append(time.perf_counter() - start)
+            torch.cuda.synchronize()
+        watched = 1e3 * sum(watch_seconds) / args.steps
         with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
             for _ in range(args.steps):
                 step(check_values)
             torch.cuda.synchronize()
         check_pending()
-        print(f"\ncheck_values={check_values}: {statistics.median(times):.3f} ms per step (median of {args.steps})")
-        calls = [e for e in prof.key_averages() if e.key.startswith("cuda")]
+        averages = prof.key_averages()
+        kernels = [e for e in averages if e.device_type == torch.autograd.DeviceType.CUDA and e.self_device_time_total > 0]
+        busy = sum(e.self_device_time_total for e in kernels) / args.steps / 1e3
+        print(f"\ncheck_values={check_values}: {statistics.median(times):.3f} ms per step (median of {args.steps}), "
+              f"GPU busy {busy:.3f} ms, host {1e3 * statistics.median(host):.3f} ms to enqueue a step "
+              f"({watched:.3f} ms of it in deferred_checks.watch)")
+        for e in sorted(kernels, key=lambda e: -e.self_device_time_total):
+            print(f"  {e.key[:60]:<60} {e.count / args.steps:4.1f} per step  {e.self_device_time_total / args.steps:8.1f} us per step")
+        calls = [e for e in averages if e.key.startswith("cuda")]
         for e in sorted(calls, key=lambda e: -e.cpu_time_total):
             print(f"  {e.key:<32} {e.count / args.steps:6.1f} per step  {e.cpu_time_total / args.steps:8.1f} us per step")
 
