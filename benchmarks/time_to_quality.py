@@ -41,6 +41,7 @@ from benchmarks.skip_report import skip_report
 from benchmarks.validation import validate
 from mixer_nerf.ablation import parse_model_overrides
 from mixer_nerf.data import load_scene
+from mixer_nerf.render.skipping import JITTERS
 from mixer_nerf.train.output import write_text_atomic
 from mixer_nerf.train.trainer import TrainingClock
 
@@ -331,7 +332,7 @@ def main() -> None:
     parser.add_argument("--proposal-samples", type=int, help="ours, proposal sampler: main-field samples per ray")
     parser.add_argument("--proposal-update-every", type=int,
                         help="ours, proposal sampler: train the proposal networks every N steps past step 1000")
-    parser.add_argument("--proposal-jitter", choices=("per_sample", "per_ray"),
+    parser.add_argument("--proposal-jitter", choices=JITTERS,
                         help="ours, proposal sampler: stratified jitter per sample or one offset per ray")
     parser.add_argument("--proposal-weight-padding", type=float,
                         help="ours, proposal sampler: added to each proposal weight before resampling")

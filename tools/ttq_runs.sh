@@ -4,13 +4,13 @@
 # Each argument is a label then benchmarks.time_to_quality options (--method defaults to ours).
 # One after another on one GPU (never side by side: they would share it); with GPUS=0,1,2,3 side
 # by side, run k alone on GPU k (at most one run per GPU), each into its own folder
-# $OUT/time_to_quality_gpu<k>/ (merge them with python -m benchmarks.merge_time_to_quality).
+# $OUT/time_to_quality_gpu<k>/ (merge them with python -m benchmarks.plot_time_to_quality --add).
 # The runs files of $RESULTS (default benchmarks/results/time_to_quality, the current record; empty
 # for a screen of its own) are copied to $OUT/time_to_quality/ first, and each run goes into its
 # scene's file there (<scene>_<device>.json) after every checkpoint, replacing a run of its label:
 # copy the returned files back over $RESULTS and plot them (python -m benchmarks.plot_time_to_quality).
-# Logs go to $OUT/ttq_logs.tgz when the runs end, so a call keeps within the device's limit on
-# returned files. A summary line per run.
+# Logs go to $OUT/ttq_logs.tgz as runs end (one after another) or once all have (side by side), so
+# a call keeps within the device's limit on returned files. A summary line per run.
 source tools/gpu_env.sh >/dev/null
 OUT=${OUT:-/tmp/ttq_runs}; mkdir -p "$OUT/time_to_quality"
 RESULTS=${RESULTS-benchmarks/results/time_to_quality}
@@ -24,10 +24,10 @@ run() {  # run SPEC OUT_DIR
   python -m benchmarks.time_to_quality --label "$label" --checkpoints "${CHECKPOINTS:-30,60,120,240}" \
     --out "$2" $args >"$logs/$label.log" 2>&1
   echo "$label rc=$? $(grep -o '"seconds": [0-9.]*\|"val_psnr": [0-9.]*\|"rays": [0-9]*' "$logs/$label.log" | tr '\n' ' ')"
-  tar czf "$OUT/ttq_logs.tgz" -C "$(dirname "$logs")" logs
 }
+pack_logs() { tar czf "$OUT/ttq_logs.tgz" -C "$(dirname "$logs")" logs; }
 if [ -z "$GPUS" ]; then
-  for spec in "$@"; do run "$spec" "$OUT/time_to_quality"; done
+  for spec in "$@"; do run "$spec" "$OUT/time_to_quality"; pack_logs; done
 else
   IFS=, read -ra gpus <<<"$GPUS"
   [ $# -le ${#gpus[@]} ] || { echo "ttq_runs.sh: $# runs for ${#gpus[@]} GPUs (one run per GPU)"; exit 2; }
@@ -36,5 +36,5 @@ else
     CUDA_VISIBLE_DEVICES=${gpus[k]} run "$spec" "$OUT/time_to_quality_gpu$k" & k=$((k + 1))
   done
   wait
-  tar czf "$OUT/ttq_logs.tgz" -C "$(dirname "$logs")" logs
+  pack_logs
 fi
