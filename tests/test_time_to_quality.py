@@ -1,4 +1,5 @@
-"""benchmarks.time_to_quality: a curve longer than one call, stopped and resumed from --run-dir."""
+"""benchmarks.time_to_quality: a curve longer than one call, stopped and resumed from --run-dir;
+benchmarks.plot_time_to_quality merging curves run side by side."""
 
 from __future__ import annotations
 
@@ -36,3 +37,23 @@ def test_a_stopped_curve_resumes_from_its_run_dir(tmp_path, monkeypatch, capsys)
     assert len(points) == 2 and points[0] == first["curve"][0]
     assert 0.5 <= points[0]["seconds"] < points[1]["seconds"] and points[1]["seconds"] >= 1.5
     assert points[1]["step"] > state["step"] >= points[0]["step"]
+
+
+def test_plot_adds_runs_from_side_by_side_files_in_place_of_their_labels(tmp_path, monkeypatch):
+    """Curves run side by side on several GPUs come back one file each; ``--add`` merges them into
+    the record, a run of the same label replaced, then plots the merged file."""
+    from benchmarks import plot_time_to_quality
+
+    def record_of(label, psnr):
+        return {"label": label, "method": "ours", "data": "d", "device": "cpu", "val_views": 1,
+                "curve": [{"seconds": 30.0, "step": 10, "val_psnr": psnr, "samples_per_ray": 8.0}]}
+
+    record, side = tmp_path / "record", tmp_path / "gpu1"
+    record.mkdir(), side.mkdir()
+    (record / "fern_cpu.json").write_text(json.dumps([record_of("a", 20.0), record_of("b", 21.0)]))
+    (side / "fern_cpu.json").write_text(json.dumps([record_of("b", 22.0), record_of("c", 23.0)]))
+    monkeypatch.setattr("sys.argv", ["plot", str(record), "--add", str(side / "fern_cpu.json")])
+    plot_time_to_quality.main()
+    merged = json.loads((record / "fern_cpu.json").read_text())
+    assert [(r["label"], r["curve"][0]["val_psnr"]) for r in merged] == [("a", 20.0), ("b", 22.0), ("c", 23.0)]
+    assert (record / "fern_cpu.png").is_file() and "| c |" in (record / "fern_cpu.md").read_text()
