@@ -21,7 +21,7 @@ import torch
 
 from benchmarks.harness import RESULTS, Result, copy_bandwidth_gbps, device_tag, run_case
 
-OPS = ("positional_encoding", "sample_pdf", "composite", "ray_marching", "mlca")
+OPS = ("positional_encoding", "sample_pdf", "composite", "ray_marching", "mlca", "linear_relu")
 
 
 def device_name(device: torch.device) -> str:

@@ -3,11 +3,14 @@
 - ``"kernel"``: our C++ (CPU) or CUDA kernel with its hand-written backward;
 - ``"torch"``: the pure-PyTorch reference path (``<op>_reference.py`` beside each wrapper);
 - ``"auto"``: the kernel where one is built for the tensors' device, else the reference path.
+
+``linear_relu`` has no kernel of ours: its ``"kernel"`` is hand-written passes around cuBLAS(Lt).
 """
 
 from .composite import composite, composite_packed
 from .deferred_checks import check_pending
 from .hierarchical_samples import hierarchical_samples
+from .linear_relu import linear_relu
 from .mlca import mlca
 from .positional_encoding import positional_encoding
 from .ray_marching import PackedSamples, filter_by_transmittance, ray_marching
@@ -21,6 +24,7 @@ __all__ = [
     "composite_packed",
     "filter_by_transmittance",
     "hierarchical_samples",
+    "linear_relu",
     "mlca",
     "positional_encoding",
     "ray_marching",

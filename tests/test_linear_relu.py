@@ -1,0 +1,117 @@
+"""Tests of linear_relu (a hidden layer with its bias and ReLU fused into the GEMM): the fused
+passes against the reference, forward and backward, on fresh random inputs and on the edge of
+the ReLU, on the CPU (the same autograd Function) and, where there is one, a CUDA GPU."""
+
+from __future__ import annotations
+
+import random
+
+import pytest
+import torch
+
+from mixer_nerf.ops import linear_relu
+from mixer_nerf.ops.linear_relu_reference import linear_relu_reference
+
+on_cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU")
+
+
+@pytest.fixture
+def gen():
+    seed = random.getrandbits(32)
+    print(f"seed={seed}")  # shown by pytest when a test fails
+    return torch.Generator().manual_seed(seed)
+
+
+def layer(gen, shape, width_in, width_out, dtype, device="cpu"):
+    def rand(*size):
+        return torch.randn(size, generator=gen, dtype=torch.float64).to(device, dtype)
+
+    return rand(*shape, width_in), rand(width_out, width_in) * width_in**-0.5, rand(width_out) * 0.1
+
+
+def outputs_and_grads(fn, x, weight, bias, upstream):
+    leaves = [t.detach().requires_grad_() for t in (x, weight, bias)]
+    out = fn(*leaves)
+    return out, *torch.autograd.grad(out, leaves, upstream)
+
+
+@pytest.mark.parametrize("shape", [(1,), (37,), (4, 9), (2, 3, 5)])
+@pytest.mark.parametrize("dtype, tol", [(torch.float64, 1e-12), (torch.float32, 1e-5)])
+def test_fused_matches_reference_forward_and_backward(gen, shape, dtype, tol):
+    x, weight, bias = layer(gen, shape, 24, 16, dtype)
+    upstream = torch.randn(*shape, 16, generator=gen, dtype=torch.float64).to(dtype)
+    fused = outputs_and_grads(lambda *a: linear_relu(*a, backend="kernel"), x, weight, bias, upstream)
+    reference = outputs_and_grads(linear_relu_reference, x, weight, bias, upstream)
+    for got, want in zip(fused, reference, strict=True):
+        assert got.shape == want.shape and got.dtype == want.dtype
+        torch.testing.assert_close(got, want, rtol=tol, atol=tol)
+
+
+def test_gradcheck(gen):
+    x, weight, bias = layer(gen, (6,), 5, 4, torch.float64)
+    inputs = [t.requires_grad_() for t in (x, weight, bias)]
+    assert torch.autograd.gradcheck(lambda *a: linear_relu(*a, backend="kernel"), inputs)
+
+
+def test_relu_edge_gets_no_gradient_like_torch_relu():
+    """Pre-activations exactly 0 (a dead unit, zero inputs) pass no gradient, as torch.relu's
+    backward; negative ones none either; only x's rows with positive outputs reach the weights."""
+    x = torch.tensor([[0.0, 0.0], [1.0, -2.0]])
+    weight = torch.tensor([[1.0, 1.0], [1.0, 0.0], [-1.0, 0.0]])
+    bias = torch.zeros(3)
+    upstream = torch.ones(2, 3)
+    fused = outputs_and_grads(lambda *a: linear_relu(*a, backend="kernel"), x, weight, bias, upstream)
+    reference = outputs_and_grads(linear_relu_reference, x, weight, bias, upstream)
+    for got, want in zip(fused, reference, strict=True):
+        torch.testing.assert_close(got, want, rtol=0, atol=0)
+    assert fused[3].tolist() == [0.0, 1.0, 0.0]  # bias gradient: only the unit that fired
+
+
+def test_only_the_needed_gradients_are_computed(gen):
+    x, weight, bias = layer(gen, (8,), 6, 5, torch.float64)
+    weight.requires_grad_()
+    out = linear_relu(x, weight, bias, backend="kernel")
+    (grad,) = torch.autograd.grad(out.sum(), [weight])
+    torch.testing.assert_close(grad, torch.autograd.grad(linear_relu_reference(x, weight, bias).sum(), [weight])[0])
+
+
+def test_auto_on_the_cpu_and_under_autocast_is_the_reference(gen):
+    x, weight, bias = layer(gen, (10,), 8, 4, torch.float32)
+    assert torch.equal(linear_relu(x, weight, bias), linear_relu_reference(x, weight, bias))
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        got = linear_relu(x, weight, bias, backend="kernel")
+        want = linear_relu_reference(x, weight, bias)
+    assert got.dtype == want.dtype == torch.bfloat16 and torch.equal(got, want)
+
+
+@pytest.mark.parametrize("args, error, match", [
+    (lambda x, w, b: (x[..., :3], w, b), ValueError, "weight must have shape"),
+    (lambda x, w, b: (x, w, b[:2]), ValueError, "bias must have shape"),
+    (lambda x, w, b: (x.double(), w, b), TypeError, "one dtype"),
+    (lambda x, w, b: (x.long(), w, b), TypeError, "x must be a floating-point"),
+    (lambda x, w, b: (x[0, 0], w, b), ValueError, "scalar"),
+    (lambda x, w, b: (x.to("meta"), w, b), ValueError, "one device"),
+])
+def test_bad_input_is_refused_naming_the_argument(gen, args, error, match):
+    x, weight, bias = layer(gen, (4,), 6, 5, torch.float32)
+    with pytest.raises(error, match=match):
+        linear_relu(*args(x, weight, bias), backend="kernel")
+    with pytest.raises(ValueError, match="backend"):
+        linear_relu(x, weight, bias, backend="cuda")
+
+
+@on_cuda
+@pytest.mark.cuda
+@pytest.mark.parametrize("tf32", [False, True])
+def test_cuda_fused_matches_reference(gen, tf32, monkeypatch):
+    """On the GPU the fused passes go through cuBLASLt's bias+ReLU epilogue and cuBLAS's gemv;
+    against the reference on the same device, with TF32 matmuls off and on (training's setting)."""
+    monkeypatch.setattr(torch.backends.cuda.matmul, "allow_tf32", tf32)
+    x, weight, bias = layer(gen, (4096,), 256, 256, torch.float32, "cuda")
+    upstream = torch.randn(4096, 256, generator=gen).cuda()
+    fused = outputs_and_grads(linear_relu, x, weight, bias, upstream)
+    reference = outputs_and_grads(linear_relu_reference, x, weight, bias, upstream)
+    tol = 5e-3 if tf32 else 1e-4
+    for got, want in zip(fused, reference, strict=True):
+        assert torch.isfinite(got).all()
+        torch.testing.assert_close(got, want, rtol=tol, atol=tol * want.abs().max().item())
