@@ -5,7 +5,8 @@
 
 Trains ``--warmup`` steps (past the occupancy grid's dense warm-up, so the batch has its steady
 size), then profiles ``--steps`` steps with torch.profiler. Prints ms per step (wall), the GPU's
-busy ms per step (sum of kernel times), and the kernels sorted by CUDA time; a wall time well
+busy ms per step (sum of kernel times; and the time any kernel runs, overlapping streams counted
+once, against the profiled wall time: the GPU idle), and the kernels sorted by CUDA time; a wall time well
 above the busy time means the step waits on the host (Python, launches, synchronisations). The
 file in ``--out`` also lists the Python functions by their own host time (cProfile, ``--steps``
 more steps) and the host ms per step when the GPU has nothing left to do: the step's host cost,
@@ -23,6 +24,19 @@ import torch
 
 from benchmarks.harness import RESULTS, device_tag
 from mixer_nerf.train import TrainConfig, Trainer
+
+
+def active_time_us(events) -> float:
+    """Time some CUDA kernel runs, on any stream, in us: the union of the kernels' intervals (a
+    sum of kernel times counts kernels of overlapping streams twice)."""
+    spans = sorted((e.time_range.start, e.time_range.end) for e in events
+                   if e.device_type == torch.autograd.DeviceType.CUDA)
+    active, reached = 0.0, float("-inf")
+    for begin, end in spans:
+        if end > reached:
+            active += end - max(begin, reached)
+            reached = end
+    return active
 
 
 def main() -> None:
@@ -58,13 +72,18 @@ def main() -> None:
                              zip((trainer.rays_seen, trainer.samples_seen, trainer.marched_seen), seen))
     wall_ms = (time.perf_counter() - start) * 1e3 / args.steps
     with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CUDA]) as prof:
+        start = time.perf_counter()
         for _ in range(args.steps):
             trainer.train_step()
         torch.cuda.synchronize()
+        profiled_ms = (time.perf_counter() - start) * 1e3 / args.steps
     events = prof.key_averages()
     busy_ms = sum(e.self_device_time_total for e in events) / 1e3 / args.steps
+    active_ms = active_time_us(prof.events()) / 1e3 / args.steps
     header = (f"preset {args.preset}, {args.precision}, {args.data}, {torch.cuda.get_device_name()}: "
-              f"{wall_ms:.2f} ms per step (wall, unprofiled), GPU busy {busy_ms:.2f} ms per step, "
+              f"{wall_ms:.2f} ms per step (wall, unprofiled), GPU busy {busy_ms:.2f} ms per step "
+              f"(kernel times summed; {active_ms:.2f} ms with some kernel running on any stream, idle "
+              f"{100 * max(0.0, 1 - active_ms / profiled_ms):.0f}% of the profiled {profiled_ms:.2f} ms), "
               f"batch {trainer.sampler.batch_rays} rays, step {trainer.step}, per ray {marched / rays:.1f} "
               f"marched and {shaded / rays:.1f} shaded samples, bf16 density passes "
               f"{trainer.cfg.bf16_density_passes}")
