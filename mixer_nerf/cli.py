@@ -246,6 +246,7 @@ def run_prepare(args: argparse.Namespace) -> int:
 def run_ablate(args: argparse.Namespace) -> int:
     import dataclasses
 
+    from . import metrics
     from .ablation import AblationPlan, parse_model_overrides, parse_presets, parse_seeds, run_ablation
     from .ablation.runner import run_each
     from .ablation.workers import parse_gpus, parse_runs, train_on_gpus
@@ -262,6 +263,9 @@ def run_ablate(args: argparse.Namespace) -> int:
         seeds=parse_seeds(args.seeds), out=Path(args.out), target_psnr=args.target_psnr, split=args.split,
         max_images=args.max_images,
     )
+    lpips_reason = metrics.lpips_unavailable_reason()
+    if lpips_reason is not None and args.runs is None:  # said before the training, not only in the table
+        print(f"note: {lpips_reason}; runs scored now keep no LPIPS", file=sys.stderr)
     if args.runs is not None:  # a worker of --gpus: its share of the runs; the caller writes the table
         plan.claim_folder(resume=True)
         run_each(plan, parse_runs(args.runs, plan), print)

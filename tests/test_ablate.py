@@ -159,6 +159,16 @@ def test_a_failed_gpu_worker_is_one_line_naming_its_log(tmp_path, capsys, monkey
     assert f"the worker on GPU 3 failed (exit 1); see {tmp_path / 'failed' / 'worker_gpu3.log'}" in capsys.readouterr().err
 
 
+def test_missing_lpips_weights_are_said_before_training(tmp_path, capsys, monkeypatch):
+    """A GPU call without the AlexNet weights learns it at the start, not from the table minutes later."""
+    from mixer_nerf import metrics
+
+    monkeypatch.setattr(metrics, "lpips_unavailable_reason", lambda net="alex": "LPIPS unavailable: no weights")
+    assert ablate(tmp_path / "no_lpips", "--presets", "A", "--seeds", "0") == 0
+    err = capsys.readouterr().err
+    assert err.startswith("note: LPIPS unavailable: no weights; runs scored now keep no LPIPS")
+
+
 def test_model_overrides_are_recorded(tmp_path):
     out = tmp_path / "per_point"
     assert ablate(out, "--presets", "D", "--seeds", "0", "--model-override", "se_per_point=true",
