@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import random
 
 # MIXER_NERF_TEST_GPUS=N spreads pytest-xdist workers over N GPUs (worker k sees GPU k mod N); it
 # must be set before anything initialises CUDA, hence before the imports below.
@@ -15,6 +16,7 @@ from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
+import torch  # noqa: E402
 
 from mixer_nerf.data.blender import write_blender_split  # noqa: E402
 from mixer_nerf.data.images import write_png  # noqa: E402
@@ -22,6 +24,15 @@ from mixer_nerf.data.procedural import orbit_poses  # noqa: E402
 
 LLFF_HWF = (32.0, 48.0, 40.0)  # full-resolution H, W, focal of the llff_scene fixture
 LLFF_FACTOR = 4  # its images are in images_4/
+
+
+@pytest.fixture
+def gen() -> torch.Generator:
+    """A CPU generator seeded afresh each run (inputs drawn new every time), its seed printed so
+    that pytest shows it when a test fails."""
+    seed = random.getrandbits(32)
+    print(f"seed={seed}")
+    return torch.Generator().manual_seed(seed)
 
 
 @pytest.fixture

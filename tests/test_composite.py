@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import random
-
 import pytest
 import torch
 
@@ -22,13 +20,6 @@ cuda = [pytest.mark.cuda, pytest.mark.skipif(not torch.cuda.is_available(), reas
 F32_REL = 1e-4
 F64_REL = 1e-12  # float64 kernel vs float64 reference: same sums in another order
 HALF_REL = {torch.float16: 4e-3, torch.bfloat16: 3e-2}  # storage rounding of inputs/outputs only
-
-
-@pytest.fixture
-def gen():
-    seed = random.getrandbits(32)
-    print(f"seed={seed}")  # shown by pytest when a test fails
-    return torch.Generator().manual_seed(seed)
 
 
 def make_inputs(R, S, C, gen, background="none", dtype=torch.float64, device="cpu", sigma_scale=3.0):

@@ -4,8 +4,6 @@ the ReLU, on the CPU (the same autograd Function) and, where there is one, a CUD
 
 from __future__ import annotations
 
-import random
-
 import pytest
 import torch
 
@@ -13,13 +11,6 @@ from mixer_nerf.ops import linear_relu
 from mixer_nerf.ops.linear_relu_reference import linear_relu_reference
 
 on_cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU")
-
-
-@pytest.fixture
-def gen():
-    seed = random.getrandbits(32)
-    print(f"seed={seed}")  # shown by pytest when a test fails
-    return torch.Generator().manual_seed(seed)
 
 
 def layer(gen, shape, width_in, width_out, dtype, device="cpu"):

@@ -8,8 +8,6 @@ compared tensor: the float32 kernels accumulate in float32, in another order tha
 
 from __future__ import annotations
 
-import random
-
 import pytest
 import torch
 
@@ -35,13 +33,6 @@ SHAPES = [
     ((), 3, 4, 1),
 ]
 REL = {torch.float32: 2e-5, torch.float64: 1e-12, torch.float16: 2e-2, torch.bfloat16: 2e-1}
-
-
-@pytest.fixture
-def gen():
-    seed = random.getrandbits(32)
-    print(f"seed={seed}")  # shown by pytest when a test fails
-    return torch.Generator().manual_seed(seed)
 
 
 def make_inputs(lead, T, C, D, gen, dtype=torch.float32, device="cpu", magnitude=1.0, weight_scale=1.0):

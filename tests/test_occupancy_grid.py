@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import io
 import math
-import random
 
 import pytest
 import torch
@@ -14,13 +13,6 @@ from mixer_nerf.ops.ray_marching import ray_marching
 
 AABB = [-1.5, -1.5, -1.5, 1.5, 1.5, 1.5]
 on_cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU")
-
-
-@pytest.fixture
-def gen():
-    seed = random.getrandbits(32)
-    print(f"seed={seed}")  # shown by pytest when a test fails
-    return torch.Generator().manual_seed(seed)
 
 
 def constant(sigma):

@@ -9,7 +9,6 @@ Kernel tolerances are the error bound documented in positional_encoding's docstr
 from __future__ import annotations
 
 import math
-import random
 import subprocess
 import sys
 
@@ -30,13 +29,6 @@ HALF_ULP = {
     torch.bfloat16: 2.0**-9,
     torch.float64: 2.0**-54,
 }
-
-
-@pytest.fixture
-def gen():
-    seed = random.getrandbits(32)
-    print(f"seed={seed}")  # shown by pytest when a test fails
-    return torch.Generator().manual_seed(seed)
 
 
 def uniform(shape, magnitude, gen, dtype=torch.float32, device="cpu"):

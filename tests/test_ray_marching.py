@@ -10,7 +10,6 @@ samples to differ (see assert_nearly_same).
 from __future__ import annotations
 
 import math
-import random
 
 import pytest
 import torch
@@ -26,13 +25,6 @@ on_cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU"
 
 AABB = [[-1.0, -0.5, -2.0], [1.5, 0.7, 1.0]]
 RES = (12, 7, 9)  # non-cubic, not powers of two: catches swapped axes and bit-packing slips
-
-
-@pytest.fixture
-def gen():
-    seed = random.getrandbits(32)
-    print(f"seed={seed}")  # shown by pytest when a test fails
-    return torch.Generator().manual_seed(seed)
 
 
 def random_grid(gen, fraction=0.3, res=RES, device="cpu"):

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import random
-
 import pytest
 import torch
 
@@ -17,13 +15,6 @@ on_cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU"
 F64_REL = 1e-12  # float64 kernel vs float64 reference: the same sums in another order
 F32_REL = 1e-5  # float32 sums of up to ~1500 rows, errors relative to the tensor's largest value
 HALF_REL = {torch.float16: 2e-3, torch.bfloat16: 1e-2}  # one rounding of each output
-
-
-@pytest.fixture
-def gen():
-    seed = random.getrandbits(32)
-    print(f"seed={seed}")  # shown by pytest when a test fails
-    return torch.Generator().manual_seed(seed)
 
 
 LAYOUTS = {
