@@ -10,10 +10,14 @@
 // moved between global and shared memory with consecutive threads on consecutive addresses.
 //
 // Backward: a persistent grid loops over tiles and recomputes L, Y and the pre-activations from
-// encoded. Weight gradients are sums over points: each block accumulates its own in shared
-// memory, every partial sum owned by one thread (see accumulate), and writes one row per block
-// of a (blocks, params) buffer at the end; the rows are summed afterwards. No atomics: the result
-// is deterministic for a given grid.
+// encoded. Weight gradients are sums over points, three small matrix products per tile read from
+// shared memory: dW_t | db_t = gP [L; 1]^T over the tile's (point, channel) columns, dW_c | db_c =
+// gQ^T [Y, 1] and dlift = dL^T X over its (point, token) rows (the biases through a row or column
+// of ones). Each thread owns a register block of each (see BlockSums), kA x kB sums of one slice
+// of the terms, kept in registers across all of the block's tiles: a term reads kA + kB shared
+// values for kA kB FMAs. At the end the blocks go through shared memory, each entry's slices are
+// added in a fixed order into the block's row of a (blocks, params) buffer, and the rows are
+// summed afterwards. No atomics: the result is deterministic for a given grid.
 #include <torch/library.h>
 
 #include <ATen/ATen.h>
@@ -45,17 +49,20 @@ struct Problem {
   int tile;  // P, points per tile
 };
 
+// Register blocks of the backward's weight-gradient sums (rows x columns of sums per thread, see
+// BlockSums): W_t's take most of the work, and kT = 32 has the fewest registers to spare.
+constexpr int token_block_rows(int kT) { return kT == 32 ? 4 : 3; }
+constexpr int token_block_cols(int kT) { return kT == 21 ? 8 : 4; }
+constexpr int kChannelBlockRows = 4, kChannelBlockCols = 3;  // dW_c (C x C+1 with db_c) and dlift (C x D)
+
 // Offsets (in accumulation-type elements) of the shared-memory arrays of a block.
 struct Layout {
   int token_stride, channel_stride, lift_stride, k_stride;
+  int y_stride, grad_stride;                           // rows of the backward's (P, T, .) tiles
   int token, token_bias, channel, channel_bias, lift;  // the weights
-  int x, grad, a, b;                                     // tiles; grad, a, b in the backward only
-  int slots_token, slots_channel, slots_lift;            // backward partial sums
+  int x, grad, a, b;                                   // tiles; grad, a, b in the backward only
   int total;
 };
-
-// Thread-owned partial sums of a set of `entries` sums (see accumulate): at most max(entries, threads).
-C10_HOST_DEVICE inline int slot_count(int entries, int threads) { return entries > threads ? entries : threads; }
 
 C10_HOST_DEVICE inline Layout make_layout(int kT, const Problem& pr, int threads, bool backward) {
   Layout l{};
@@ -64,6 +71,8 @@ C10_HOST_DEVICE inline Layout make_layout(int kT, const Problem& pr, int threads
   l.channel_stride = C | 1;           // odd strides: threads of different channels hit different banks
   l.lift_stride = D | 1;
   l.k_stride = K | 1;
+  l.y_stride = (C + 1) | 1;  // Y and a column of ones (for db_c)
+  l.grad_stride = C | 1;
   int at = 0;
   auto take = [&](int n) { const int start = at; at += n; return start; };
   l.token = take(kT * l.token_stride);
@@ -75,12 +84,14 @@ C10_HOST_DEVICE inline Layout make_layout(int kT, const Problem& pr, int threads
   if (!backward) {
     l.a = take(pr.tile * T * C);
   } else {
-    l.grad = take(pr.tile * T * C);
-    l.a = take(T * l.k_stride);  // (P, T, C) or (T, K) layouts; P T C <= T K
-    l.b = take(T * l.k_stride);
-    l.slots_token = take(slot_count(T * T + T, threads));
-    l.slots_channel = take(slot_count(C * C + C, threads));
-    l.slots_lift = take(slot_count(C * D, threads));
+    l.grad = take(pr.tile * T * l.grad_stride);
+    const int y = pr.tile * T * l.y_stride, gp = T * l.k_stride;
+    l.a = take(y > gp ? y : gp);       // (P, T, C + 1) or (T, K) layouts
+    l.b = take((T + 1) * l.k_stride);  // L and a row of ones (for db_t)
+    // After the tile loop, the tiles take every thread's register block of one set of sums.
+    const int token = token_block_rows(kT) * token_block_cols(kT), channel = kChannelBlockRows * kChannelBlockCols;
+    const int dump = l.x + threads * (token > channel ? token : channel);
+    if (at < dump) at = dump;
   }
   l.total = at;
   return l;
@@ -126,12 +137,13 @@ template <int kT, typename acc>
 __device__ void lift_tokens(const acc* sm, const Layout& l, const acc* x, int c, const Problem& pr, acc (&L)[kT]) {
   const acc* lift = sm + l.lift + c * l.lift_stride;
 #pragma unroll
-  for (int t = 0; t < kT; ++t) {
-    acc v = 0;
-    if (t < pr.T) {
-      for (int k = 0; k < pr.D; ++k) v += lift[k] * x[t * pr.D + k];
+  for (int t = 0; t < kT; ++t) L[t] = 0;
+  for (int k = 0; k < pr.D; ++k) {  // k outermost: each lift weight read once, the same sums in the same order
+    const acc w = lift[k];
+#pragma unroll
+    for (int t = 0; t < kT; ++t) {
+      if (t < pr.T) L[t] += w * x[t * pr.D + k];
     }
-    L[t] = v;
   }
 }
 
@@ -200,29 +212,107 @@ __global__ void __launch_bounds__(kForwardThreads) mlca_forward(const scalar_t* 
   for (int j = threadIdx.x; j < points * T * C; j += blockDim.x) out[first * T * C + j] = static_cast<scalar_t>(ys[j]);
 }
 
-// Adds to this block's partial sums of `entries` sums of `terms` terms each (sum(entry, begin,
-// end) sums terms [begin, end) of one). With fewer entries than threads, each entry's terms are
-// cut into `slices` ranges so that every thread has work; slot slice * entries + entry is then
-// only ever touched by thread (slot mod blockDim.x), across all tiles: no races, fixed order.
-template <typename acc, typename Sum>
-__device__ void accumulate(acc* slots, int entries, int terms, Sum sum) {
-  const int slices = entries < static_cast<int>(blockDim.x) ? static_cast<int>(blockDim.x) / entries : 1;
-  for (int slot = threadIdx.x; slot < slices * entries; slot += blockDim.x) {
-    const int slice = slot / entries, entry = slot - slice * entries;
-    slots[slot] += sum(entry, terms * slice / slices, terms * (slice + 1) / slices);
-  }
-}
+// One set of a block's weight-gradient sums: S[a][b] = sum over m < terms of A(m, a) B(m, b) for
+// a < rows, b < cols, with A(m, a) at sm[a_at + a a_row + m a_term] and B(m, b) likewise.
+struct Sums {
+  int a_at, a_row, a_term;
+  int b_at, b_row, b_term;
+  int rows, cols, terms;
+  bool interleave;  // slice s takes terms s, s + slices, ... instead of a contiguous range
+};
 
-// This block's totals of one set of sums (slices added in order) into its row of partials.
-template <typename acc>
-__device__ void write_totals(const acc* slots, int entries, acc* row) {
-  const int slices = entries < static_cast<int>(blockDim.x) ? static_cast<int>(blockDim.x) / entries : 1;
-  for (int entry = threadIdx.x; entry < entries; entry += blockDim.x) {
-    acc total = 0;
-    for (int slice = 0; slice < slices; ++slice) total += slots[slice * entries + entry];
-    row[entry] = total;
+// How a block's threads share a set of sums in kA x kB register blocks: thread slice * groups +
+// group owns rows ga + i row_groups (i < kA) and columns gb + j col_groups (j < kB), group = gb
+// row_groups + ga, for one slice of the terms. Interleaved rows and columns put the threads of a
+// warp on neighbouring rows, i.e. on different banks.
+template <int kA, int kB>
+struct Split {
+  int row_groups, col_groups, groups, slices;
+  __device__ Split(int rows, int cols)
+      : row_groups((rows + kA - 1) / kA),
+        col_groups((cols + kB - 1) / kB),
+        groups(row_groups * col_groups),
+        slices(static_cast<int>(blockDim.x) > groups ? static_cast<int>(blockDim.x) / groups : 1) {}
+};
+
+// This thread's kA x kB block of a set of sums, in registers across all the tiles of the block: each
+// term reads kA + kB shared values for kA kB FMAs (one value per FMA would be shared-load bound).
+// Rows and columns past the end repeat the last one and are never written out.
+template <int kA, int kB, typename acc>
+struct BlockSums {
+  acc sum[kA][kB];
+
+  __device__ BlockSums() {
+#pragma unroll
+    for (int i = 0; i < kA; ++i) {
+#pragma unroll
+      for (int j = 0; j < kB; ++j) sum[i][j] = 0;
+    }
   }
+
+  // Adds this tile's terms of this thread's slice.
+  __device__ void add(const acc* sm, const Sums& d) {
+    const Split<kA, kB> sp(d.rows, d.cols);
+    const int tid = threadIdx.x;
+    if (tid >= sp.groups * sp.slices) return;
+    const int slice = tid / sp.groups, group = tid - slice * sp.groups;
+    const int ga = group % sp.row_groups, gb = group / sp.row_groups;
+    int a_at[kA], b_at[kB];
+#pragma unroll
+    for (int i = 0; i < kA; ++i) a_at[i] = d.a_at + min(ga + i * sp.row_groups, d.rows - 1) * d.a_row;
+#pragma unroll
+    for (int j = 0; j < kB; ++j) b_at[j] = d.b_at + min(gb + j * sp.col_groups, d.cols - 1) * d.b_row;
+    const int begin = d.interleave ? slice : d.terms * slice / sp.slices;
+    const int end = d.interleave ? d.terms : d.terms * (slice + 1) / sp.slices;
+    const int step = d.interleave ? sp.slices : 1;
+    for (int m = begin; m < end; m += step) {
+      acc a[kA], b[kB];
+#pragma unroll
+      for (int i = 0; i < kA; ++i) a[i] = sm[a_at[i] + m * d.a_term];
+#pragma unroll
+      for (int j = 0; j < kB; ++j) b[j] = sm[b_at[j] + m * d.b_term];
+#pragma unroll
+      for (int i = 0; i < kA; ++i) {
+#pragma unroll
+        for (int j = 0; j < kB; ++j) sum[i][j] += a[i] * b[j];
+      }
+    }
+  }
+
+  // The block's totals into row[index(a, b)]: every thread's block through dump (sum (i, j) of
+  // thread tid at (i kB + j) owners + tid), then each entry's slices added in order.
+  template <typename Index>
+  __device__ void write_totals(acc* dump, const Sums& d, acc* row, Index index) const {
+    const Split<kA, kB> sp(d.rows, d.cols);
+    const int tid = threadIdx.x, owners = sp.groups * sp.slices;
+    if (tid < owners) {
+#pragma unroll
+      for (int i = 0; i < kA; ++i) {
+#pragma unroll
+        for (int j = 0; j < kB; ++j) dump[(i * kB + j) * owners + tid] = sum[i][j];
+      }
+    }
+    __syncthreads();
+    for (int e = tid; e < d.rows * d.cols; e += blockDim.x) {
+      const int a = e / d.cols, b = e - a * d.cols;
+      const int i = a / sp.row_groups, j = b / sp.col_groups;
+      const acc* slot = dump + (i * kB + j) * owners + (b - j * sp.col_groups) * sp.row_groups + a - i * sp.row_groups;
+      acc total = 0;
+      for (int slice = 0; slice < sp.slices; ++slice) total += slot[slice * sp.groups];
+      row[index(a, b)] = total;
+    }
+    __syncthreads();  // dump is reused by the next set
+  }
+};
+
+// Every thread owns a block of every set (the sums of one group must cover all entries).
+constexpr bool blocks_cover(int kA, int kB, int rows, int cols) {
+  return (rows + kA - 1) / kA * ((cols + kB - 1) / kB) <= kBackwardThreads;
 }
+static_assert(blocks_cover(token_block_rows(9), token_block_cols(9), 9, 10) &&
+              blocks_cover(token_block_rows(21), token_block_cols(21), 21, 22) &&
+              blocks_cover(token_block_rows(32), token_block_cols(32), 32, 33) &&
+              blocks_cover(kChannelBlockRows, kChannelBlockCols, 32, 33));
 
 template <typename scalar_t, int kT>
 __global__ void __launch_bounds__(kBackwardThreads) mlca_backward(
@@ -232,17 +322,29 @@ __global__ void __launch_bounds__(kBackwardThreads) mlca_backward(
   acc* sm = shared_memory<acc>();
   const Layout l = make_layout(kT, pr, blockDim.x, true);
   const int T = pr.T, C = pr.C, D = pr.D, P = pr.tile, K = P * C, Kp = l.k_stride;
+  const int Cy = l.y_stride, Cg = l.grad_stride;
   load_weights<kT>(sm, l, w, pr);
-  for (int i = l.slots_token + threadIdx.x; i < l.total; i += blockDim.x) sm[i] = 0;
   acc* xs = sm + l.x;     // (P, T, D): X
-  acc* gs = sm + l.grad;  // (P, T, C): G, then gQ, then dL
-  acc* as = sm + l.a;     // (P, T, C): Y, then (T, Kp): gP
-  acc* bs = sm + l.b;     // (T, Kp): L
+  acc* gs = sm + l.grad;  // (P, T, Cg): G, then gQ, then dL
+  acc* as = sm + l.a;     // (P, T, Cy): Y and ones, then (T, Kp): gP
+  acc* bs = sm + l.b;     // (T + 1, Kp): L and ones
   const acc* channel = sm + l.channel;
   const acc* lift = sm + l.lift;
+  for (int k = threadIdx.x; k < K; k += blockDim.x) bs[T * Kp + k] = 1;  // never overwritten
+
+  // dW_t | db_t = gP [L; 1]^T over the tile's (point, channel) columns k, dW_c | db_c = gQ^T [Y, 1]
+  // and dlift = dL^T X over its (point, token) rows m (interleaved slices: the rows' odd strides
+  // put consecutive slices on different banks).
+  const Sums token{l.a, Kp, 1, l.b, Kp, 1, T, T + 1, K, false};
+  const Sums channel_sums{l.grad, 1, Cg, l.a, 1, Cy, C, C + 1, P * T, true};
+  const Sums lift_sums{l.grad, 1, Cg, l.x, 1, D, C, D, P * T, true};
+  BlockSums<token_block_rows(kT), token_block_cols(kT), acc> d_token;
+  BlockSums<kChannelBlockRows, kChannelBlockCols, acc> d_channel, d_lift;
 
   const int p = threadIdx.x / C, c = threadIdx.x - p * C, k = threadIdx.x;  // k = p C + c
   const bool active = p < P;  // rows past the last point are zero: they add nothing to the sums
+  // G moves to rows of stride Cg: element j = m C + e of the tile, tracked without dividing by C.
+  const int m_step = blockDim.x / C, e_step = blockDim.x - m_step * C;
   const int64_t tiles = (pr.points + P - 1) / P;
   for (int64_t tile = blockIdx.x; tile < tiles; tile += gridDim.x) {
     const int64_t first = tile * P;
@@ -250,9 +352,14 @@ __global__ void __launch_bounds__(kBackwardThreads) mlca_backward(
     for (int j = threadIdx.x; j < P * T * D; j += blockDim.x) {
       xs[j] = j < points * T * D ? static_cast<acc>(encoded[first * T * D + j]) : acc(0);
     }
-    for (int j = threadIdx.x; j < P * T * C; j += blockDim.x) {
-      gs[j] = j < points * T * C ? static_cast<acc>(grad_out[first * T * C + j]) : acc(0);
+    for (int j = threadIdx.x, m = p, e = c; j < P * T * C; j += blockDim.x, m += m_step, e += e_step) {
+      if (e >= C) {
+        e -= C;
+        ++m;
+      }
+      gs[m * Cg + e] = j < points * T * C ? static_cast<acc>(grad_out[first * T * C + j]) : acc(0);
     }
+    for (int m = threadIdx.x; m < P * T; m += blockDim.x) as[m * Cy + C] = 1;
     __syncthreads();
 
     // Recompute L (kept in bs for dW_t), Y (into as) and GELU'(P).
@@ -266,43 +373,52 @@ __global__ void __launch_bounds__(kBackwardThreads) mlca_backward(
         dp[t] = 0;
         if (t < T) mm::gelu_and_grad(token_pre(sm, l, t, L), g, dp[t]);
         if (t < T) {
-          as[(p * T + t) * C + c] = L[t] + g;
+          as[(p * T + t) * Cy + c] = L[t] + g;
           bs[t * Kp + k] = L[t];
         }
       }
     }
     __syncthreads();
-    // Channel mixing: gQ = G GELU'(Q), in place of G.
+    // Channel mixing: gQ = G GELU'(Q), in place of G; Q = b_c + Y W_c^T with e outermost (each
+    // weight read once, the same sums in the same order as channel_pre).
     if (active) {
+      acc q[kT];
+#pragma unroll
+      for (int t = 0; t < kT; ++t) q[t] = sm[l.channel_bias + c];
+      for (int e = 0; e < C; ++e) {
+        const acc we = channel[c * l.channel_stride + e];
+        const acc* y = as + p * T * Cy + e;
+#pragma unroll
+        for (int t = 0; t < kT; ++t) {
+          if (t < T) q[t] += we * y[t * Cy];
+        }
+      }
 #pragma unroll
       for (int t = 0; t < kT; ++t) {
         dy[t] = 0;
         if (t < T) {
-          const int row = (p * T + t) * C;
-          dy[t] = gs[row + c];
-          gs[row + c] = dy[t] * mm::gelu_grad(channel_pre(sm, l, c, as + row, C));
+          const int at = (p * T + t) * Cg + c;
+          dy[t] = gs[at];
+          gs[at] = dy[t] * mm::gelu_grad(q[t]);
         }
       }
     }
     __syncthreads();
-    accumulate(sm + l.slots_channel, C * C + C, P * T, [&](int entry, int begin, int end) {
-      acc sum = 0;
-      if (entry < C * C) {  // dW_c[i, e] = sum gQ[., i] Y[., e]
-        const int i = entry / C, e = entry - i * C;
-        for (int m = begin; m < end; ++m) sum += gs[m * C + i] * as[m * C + e];
-      } else {  // db_c[i] = sum gQ[., i]
-        for (int m = begin; m < end; ++m) sum += gs[m * C + entry - C * C];
-      }
-      return sum;
-    });
+    d_channel.add(sm, channel_sums);
     __syncthreads();  // Y read: as takes gP
-    // dY = G + gQ W_c, gP = dY GELU'(P), dL = dY + W_t^T gP.
+    // dY = G + gQ W_c (i outermost), gP = dY GELU'(P), dL = dY + W_t^T gP.
     if (active) {
+      for (int i = 0; i < C; ++i) {
+        const acc wi = channel[i * l.channel_stride + c];
+        const acc* gq = gs + p * T * Cg + i;
+#pragma unroll
+        for (int t = 0; t < kT; ++t) {
+          if (t < T) dy[t] += gq[t * Cg] * wi;
+        }
+      }
 #pragma unroll
       for (int t = 0; t < kT; ++t) {
         if (t < T) {
-          const acc* gq = gs + (p * T + t) * C;
-          for (int i = 0; i < C; ++i) dy[t] += gq[i] * channel[i * l.channel_stride + c];
           dp[t] *= dy[t];
           as[t * Kp + k] = dp[t];
         }
@@ -318,31 +434,17 @@ __global__ void __launch_bounds__(kBackwardThreads) mlca_backward(
     if (active) {
 #pragma unroll
       for (int t = 0; t < kT; ++t) {
-        if (t < T) gs[(p * T + t) * C + c] = dy[t];
+        if (t < T) gs[(p * T + t) * Cg + c] = dy[t];
       }
     }
     __syncthreads();
-    accumulate(sm + l.slots_token, T * T + T, K, [&](int entry, int begin, int end) {
-      acc sum = 0;
-      if (entry < T * T) {  // dW_t[t, s] = sum_(p, c) gP[t] L[s]
-        const int t = entry / T, s = entry - t * T;
-        for (int m = begin; m < end; ++m) sum += as[t * Kp + m] * bs[s * Kp + m];
-      } else {  // db_t[t] = sum_(p, c) gP[t]
-        for (int m = begin; m < end; ++m) sum += as[(entry - T * T) * Kp + m];
-      }
-      return sum;
-    });
-    accumulate(sm + l.slots_lift, C * D, P * T, [&](int entry, int begin, int end) {
-      const int i = entry / D, e = entry - i * D;  // dlift[i, e] = sum dL[., i] X[., e]
-      acc sum = 0;
-      for (int m = begin; m < end; ++m) sum += gs[m * C + i] * xs[m * D + e];
-      return sum;
-    });
+    d_token.add(sm, token);
+    d_lift.add(sm, lift_sums);
     if (grad_encoded != nullptr) {  // dX = dL lift, element j of the tile's contiguous rows
       for (int j = threadIdx.x; j < points * T * D; j += blockDim.x) {
         const int m = j / D, e = j - m * D;
         acc sum = 0;
-        for (int i = 0; i < C; ++i) sum += gs[m * C + i] * lift[i * l.lift_stride + e];
+        for (int i = 0; i < C; ++i) sum += gs[m * Cg + i] * lift[i * l.lift_stride + e];
         grad_encoded[first * T * D + j] = static_cast<scalar_t>(sum);
       }
     }
@@ -351,9 +453,10 @@ __global__ void __launch_bounds__(kBackwardThreads) mlca_backward(
 
   const Sizes s{T, C, D};
   acc* row = partials + static_cast<int64_t>(blockIdx.x) * s.params();
-  write_totals(sm + l.slots_token, T * T + T, row);
-  write_totals(sm + l.slots_channel, C * C + C, row + s.channel_weight());
-  write_totals(sm + l.slots_lift, C * D, row + s.lift());
+  d_token.write_totals(xs, token, row, [&](int a, int b) { return b < T ? a * T + b : T * T + a; });
+  d_channel.write_totals(xs, channel_sums, row + s.channel_weight(),
+                         [&](int a, int b) { return b < C ? a * C + b : C * C + a; });
+  d_lift.write_totals(xs, lift_sums, row + s.lift(), [&](int a, int b) { return a * D + b; });
 }
 
 // Calls f(std::integral_constant<int, kT>) with the smallest token bucket kT >= T (T <= 32): the
