@@ -37,7 +37,8 @@
 // float64 ulps of G. exp(-tau_j) comes from the expm1 that alpha needs, as 1 + expm1(-tau_j)
 // where that is >= 1/2 (within an ulp; no second transcendental on thin samples), else from exp
 // (the sum would keep only an absolute ulp of a tiny exp(-tau); tau = 1e18 still gives exactly
-// 0). The CUDA kernel (csrc/cuda/composite.cu) computes both passes in double the same way.
+// 0). The CUDA kernel (csrc/cuda/composite.cu) computes both passes in double too, with its own
+// exp/expm1 polynomial for non-double inputs (csrc/cuda/neg_exp.cuh).
 #include <torch/library.h>
 
 #include <ATen/ATen.h>

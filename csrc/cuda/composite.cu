@@ -15,8 +15,19 @@
 // Like the CPU kernel, both passes compute in double for every input dtype (ray_acc) and round
 // each output once: G starts at O(1) and is multiplied S times by exp(-tau_j), which rounds to 1
 // in float32 in fog, so a float32 G would hold ~S ulps that g_j - G_{j+1} keeps where it is small
-// (thin-media sigma gradients; docs/numerics.md, "Precision and accumulation"). In the backward
-// exp(-tau) is 1 + expm1(-tau) where that is >= 1/2 (accurate however thin the sample), else exp.
+// (thin-media sigma gradients; docs/numerics.md, "Precision and accumulation"). Float32 results
+// within half an ulp of the float64 truth (the error budget's rows) need every quantity to
+// ~2^-32 before that rounding: float32 math (tau rounded, expf's 1-2 ulps) gives 1-3 ulps, and
+// float-float would cost ~6-10 FP32 instructions an operation where a DFMA costs two (sm_90 has
+// half as many FP64 lanes as FP32), in the registers of a double. So the arithmetic stays double.
+// What changed is the transcendentals: libm's double exp/expm1 (special-case branches, integer
+// range reduction: the backward was instruction-bound on them) are, for non-double inputs, one
+// branch-free polynomial giving exp(-x) and -expm1(-x) together (neg_exp.cuh, ~2^-47 relative
+// error, 2^-23 below a float32 ulp); float64 inputs keep libm. Per sample one such evaluation
+// gives alpha_i and exp(-tau_i); T at the start of a lane's run is exp(-optical depth), never a
+// long product, and T past a sample is that times exp(-tau_i) (at most kForwardRun products,
+// each within an ulp of double; the same for float64 inputs). exp(-tau) is exact for thin
+// samples (1 - alpha to double precision) and exactly 0 for tau = 1e18.
 // The doubles cost FP64 math, not memory traffic (benchmarks/results/ops/).
 #include <torch/library.h>
 
@@ -27,9 +38,11 @@
 
 #include <optional>
 #include <tuple>
+#include <type_traits>
 
 #include "common.h"
 #include "composite.h"
+#include "neg_exp.cuh"
 #include "warp.cuh"
 
 namespace mixer_nerf {
@@ -46,6 +59,17 @@ constexpr int kForwardChunk = kWarpSize * kForwardRun;
 constexpr int kBackwardChunk = kWarpSize * kBackwardRun;
 
 using ray_acc = double;  // what both passes compute in (see the file comment)
+
+// exp(-x) and alpha = -expm1(-x) of an optical thickness or depth x: libm for float64 inputs
+// (gradcheck's), else neg_exp.cuh's polynomial, within ~2^-47 of them (see the file comment).
+template <typename scalar_t>
+__device__ __forceinline__ NegExp neg_exp(ray_acc x) {
+  if constexpr (std::is_same_v<scalar_t, double>) {
+    return {exp(-x), -expm1(-x)};
+  } else {
+    return neg_exp_poly(x);
+  }
+}
 
 // A lane's run of K consecutive samples of a chunk. Samples past the ray's end hold
 // an empty interval (tau = 0, g = 0), the identity of both scans.
@@ -106,12 +130,13 @@ __device__ int32_t composite_forward_ray(const CompositeInputs<scalar_t>& in, co
     for (int64_t base = 0; base < count; base += kForwardChunk) {
       const LaneSamples<scalar_t, kForwardRun> s(in, offset, count, base + lane * kForwardRun);
       if (c0 == 0) invalid |= s.invalid_bits();
-      ray_acc before = run_optical_depth(s.total, lane, optical_depth);
+      ray_acc transmittance = neg_exp<scalar_t>(run_optical_depth(s.total, lane, optical_depth)).exp;
 #pragma unroll
       for (int j = 0; j < kForwardRun; ++j) {
         if (j >= s.valid) break;
-        const ray_acc w = exp(-before) * -expm1(-s.tau[j]);
-        before += s.tau[j];
+        const NegExp sample = neg_exp<scalar_t>(s.tau[j]);
+        const ray_acc w = transmittance * sample.alpha;
+        transmittance *= sample.exp;  // one product within a run: see the file comment
         const int64_t i = s.first + j;
         if (c0 == 0) {
           out.weights[i] = static_cast<scalar_t>(w);
@@ -124,21 +149,21 @@ __device__ int32_t composite_forward_ray(const CompositeInputs<scalar_t>& in, co
         }
       }
     }
-    const ray_acc transmittance = exp(-optical_depth);
+    const NegExp ray_end = neg_exp<scalar_t>(optical_depth);
     const scalar_t* bg = in.background ? in.background + ray * in.background_stride : nullptr;
 #pragma unroll
     for (int c = 0; c < kChannelsPerPass; ++c) {
       const ray_acc total = warp_sum(color[c]);
       if (lane == 0 && c0 + c < C) {
         out.color[ray * C + c0 + c] =
-            static_cast<scalar_t>(total + (bg ? transmittance * ray_acc(bg[c0 + c]) : ray_acc(0)));
+            static_cast<scalar_t>(total + (bg ? ray_end.exp * ray_acc(bg[c0 + c]) : ray_acc(0)));
       }
     }
     if (c0 == 0) {
       depth = warp_sum(depth);
       if (lane == 0) {
         out.depth[ray] = static_cast<scalar_t>(depth);
-        out.opacity[ray] = static_cast<scalar_t>(-expm1(-optical_depth));
+        out.opacity[ray] = static_cast<scalar_t>(ray_end.alpha);
       }
     }
   }
@@ -178,19 +203,17 @@ __device__ void composite_backward_ray(const CompositeInputs<scalar_t>& in, cons
     const LaneSamples<scalar_t, kBackwardRun> s(in, offset, count, q * kBackwardChunk + lane * kBackwardRun);
     const bool last = q == chunks - 1;
     ray_acc carry = last ? optical_depth : chunk_start[q];
-    ray_acc before = run_optical_depth(s.total, lane, carry);
+    ray_acc transmittance = neg_exp<scalar_t>(run_optical_depth(s.total, lane, carry)).exp;
     if (last) total_optical_depth = carry;
-    ray_acc transmittance = exp(-before);
     ray_acc alpha[kBackwardRun], decay[kBackwardRun], g_in[kBackwardRun], t_after[kBackwardRun], w[kBackwardRun];
 #pragma unroll
     for (int j = 0; j < kBackwardRun; ++j) {
       alpha[j] = 0, decay[j] = 1, g_in[j] = 0, t_after[j] = 0, w[j] = 0;
       if (j >= s.valid) continue;
-      const ray_acc decay_m1 = expm1(-s.tau[j]);  // exp(-tau) - 1
-      alpha[j] = -decay_m1;
-      decay[j] = decay_m1 >= ray_acc(-0.5) ? ray_acc(1) + decay_m1 : exp(-s.tau[j]);
-      before += s.tau[j];
-      t_after[j] = exp(-before);
+      const NegExp sample = neg_exp<scalar_t>(s.tau[j]);
+      alpha[j] = sample.alpha;
+      decay[j] = sample.exp;
+      t_after[j] = transmittance * decay[j];  // a product, not exp(-(before + tau)): see the file comment
       w[j] = transmittance * alpha[j];
       transmittance = t_after[j];
       const int64_t i = s.first + j;
@@ -238,7 +261,7 @@ __device__ void composite_backward_ray(const CompositeInputs<scalar_t>& in, cons
     }
   }
   if (g.background_rows) {
-    const ray_acc transmittance_end = exp(-total_optical_depth);
+    const ray_acc transmittance_end = neg_exp<scalar_t>(total_optical_depth).exp;
     for (int64_t c = lane; c < C; c += kWarpSize) {
       g.background_rows[ray * C + c] = static_cast<acc>(grad_color ? ray_acc(grad_color[c]) * transmittance_end : ray_acc(0));
     }
