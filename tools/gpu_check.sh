@@ -10,6 +10,8 @@
 #                 (both in the background, side by side with later stages: name them last)
 #   error_budget  python -m benchmarks.error_budget --device cuda
 #   bench[:OPS]   python -m benchmarks.bench_ops --device cuda [--ops OPS]
+#   bench_base[:OPS] the same over the kernels of .baseline/csrc (see tools/gpu_build.sh), into
+#                 results/ops_baseline: an A/B of a kernel change on one card in one call
 #   long_run      python -m benchmarks.long_run_stability (--budget $LONG_RUN_BUDGET, default 400 s)
 #   ncu           Nsight Compute sections of the composite forward and backward kernels
 #   field         python -m benchmarks.bench_field $FIELD_ARGS (the MLP's cost per preset and precision)
@@ -34,8 +36,9 @@ step() {  # step NAME SECONDS CMD...: run with a time limit, keep the log, recor
   local rc=$?
   echo "$name rc=$rc $((SECONDS - t0))s: $(grep -E 'passed|failed|ERROR SUMMARY|error' "$LOGS/$name.log" | tail -1)" >>"$summary"
 }
-bash tools/gpu_build.sh >>"$summary"
-mv "$OUT/build.log" "$OUT/nerfacc_build.log" "$LOGS/" 2>/dev/null
+# $SKIP_BUILD: built already by this call (tools/gpu_build.sh), e.g. before two runs on two GPUs.
+[ -n "$SKIP_BUILD" ] || bash tools/gpu_build.sh >>"$summary"
+mv "$OUT/build.log" "$OUT/nerfacc_build.log" "$OUT/baseline_build.log" "$LOGS/" 2>/dev/null
 stages=("$@")
 [ ${#stages[@]} -eq 0 ] && stages=(crash pytest error_budget bench memcheck racecheck)
 for stage in "${stages[@]}"; do
@@ -69,6 +72,10 @@ for stage in "${stages[@]}"; do
       -k "not opcheck and not 65536 and not 32_bit and not training_sized" & ;;
     error_budget) step error_budget 150 python -m benchmarks.error_budget --device cuda \
       --out "$OUT/results/error_budget" ;;
+    # bench_base before bench: the pattern bench* would take it.
+    bench_base*) ops=${stage#bench_base}; [ -d "$BASELINE_TREE/csrc" ] || { echo "bench_base: no .baseline/csrc" >>"$summary"; continue; }
+      ( cd "$BASELINE_TREE" && export PYTHONPATH=$BASELINE_PYTHONPATH && step bench_base 420 python -m benchmarks.bench_ops \
+        --device cuda --repeats 30 --out "$OUT/results/ops_baseline" ${ops:+--ops ${ops#:}} ) ;;
     bench*) ops=${stage#bench}; step bench_ops 420 python -m benchmarks.bench_ops --device cuda --repeats 30 \
       --out "$OUT/results/ops" ${ops:+--ops ${ops#:}} ;;
     long_run) step long_run 560 python -m benchmarks.long_run_stability \
@@ -90,6 +97,7 @@ for stage in "${stages[@]}"; do
 done
 wait
 tail -n 40 "$LOGS/bench_ops.log" 2>/dev/null
+tail -n 40 "$LOGS/bench_base.log" 2>/dev/null
 tail -n 45 "$LOGS/field.log" 2>/dev/null
 tail -n 16 "$LOGS/long_run.log" 2>/dev/null
 cat "$LOGS/crash.log" 2>/dev/null

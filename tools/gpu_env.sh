@@ -21,3 +21,6 @@ nvidia-smi --query-gpu=name,memory.total,clocks.sm --format=csv,noheader
 export TORCH_EXTENSIONS_DIR=${TORCH_EXTENSIONS_DIR:-$MIXER_NERF_CACHE/torch_extensions}
 [ -d /tmp/site/nerfacc ] && find /tmp/site/nerfacc -exec touch -d 2000-01-01 {} +
 [ -d "$TORCH_EXTENSIONS_DIR" ] && find "$TORCH_EXTENSIONS_DIR" -exec touch {} +
+# The baseline kernels' tree (tools/gpu_build.sh) and its import path: ours replaced by it.
+export BASELINE_TREE=/tmp/baseline_tree
+export BASELINE_PYTHONPATH=$BASELINE_TREE:$PYTHONPATH
