@@ -8,12 +8,16 @@ after another: median GPU ms per step from CUDA events, then a torch.profiler pa
 lists the CUDA runtime calls per step (a cudaHostAlloc or a synchronising call is a host wait
 the events show as GPU idle), the host time to enqueue a step and, of it, the time spent in
 ``deferred_checks.watch``, and the GPU kernels per step (busy time against the event-timed step:
-the rest is the GPU waiting for the host).
+the rest is the GPU waiting for the host), and a cProfile of the host's Python per variant (the
+autograd engine's own thread, where backward nodes run, shows only as ``torch.autograd.grad``).
 """
 
 from __future__ import annotations
 
 import argparse
+import cProfile
+import io
+import pstats
 import statistics
 import time
 
@@ -82,6 +86,23 @@ def main() -> None:
         calls = [e for e in averages if e.key.startswith("cuda")]
         for e in sorted(calls, key=lambda e: -e.cpu_time_total):
             print(f"  {e.key:<32} {e.count / args.steps:6.1f} per step  {e.cpu_time_total / args.steps:8.1f} us per step")
+        print_host_profile(lambda: step(check_values), args.steps)
+
+
+def print_host_profile(step, steps: int, top: int = 15) -> None:
+    """The Python functions where the host spends its time enqueueing ``steps`` steps (cProfile,
+    a GPU sync after each step, outside the profile): what one variant adds to the other."""
+    profiler = cProfile.Profile()
+    for _ in range(steps):
+        profiler.enable()
+        step()
+        profiler.disable()
+        torch.cuda.synchronize()
+    check_pending()
+    text = io.StringIO()
+    pstats.Stats(profiler, stream=text).sort_stats("tottime").print_stats(top)
+    print(f"  host profile of {steps} steps (cProfile, by own time):")
+    print("\n".join("    " + line for line in text.getvalue().splitlines() if line.strip()))
 
 
 if __name__ == "__main__":
