@@ -116,6 +116,28 @@ def time_ms(fn: Callable[[], Any], device: torch.device, repeats: int, warmup: i
     return statistics.median(samples)
 
 
+def host_profile(step: Callable[[], Any], steps: int, top: int) -> str:
+    """Python functions by own host time over ``steps`` calls of ``step`` (cProfile, the ``top``
+    first), after each of which the host waits for the GPU: the host's cost of a step with nothing
+    to overlap it, also given in ms per step on the first line."""
+    import cProfile
+    import io
+    import pstats
+
+    profiler = cProfile.Profile()
+    start = time.perf_counter()
+    profiler.enable()
+    for _ in range(steps):
+        step()
+        torch.cuda.synchronize()
+    profiler.disable()
+    serial_ms = (time.perf_counter() - start) * 1e3 / steps
+    text = io.StringIO()
+    pstats.Stats(profiler, stream=text).sort_stats("tottime").print_stats(top)
+    header = f"host profile (cProfile, a GPU sync after each step): {serial_ms:.2f} ms per step\n"
+    return header + text.getvalue()
+
+
 def copy_bandwidth_gbps(device: torch.device, nbytes: int = 1 << 30) -> float:
     """Device-to-device copy bandwidth, counting bytes read plus bytes written."""
     src = torch.empty(nbytes // 4, dtype=torch.float32, device=device).uniform_()

@@ -15,9 +15,7 @@ autograd engine's own thread, where backward nodes run, shows only as ``torch.au
 from __future__ import annotations
 
 import argparse
-import cProfile
-import io
-import pstats
+import functools
 import statistics
 import time
 
@@ -25,6 +23,7 @@ import torch
 from torch.profiler import ProfilerActivity, profile
 
 from benchmarks.cases_composite import make_inputs
+from benchmarks.harness import host_profile
 from mixer_nerf.ops import check_pending, composite, deferred_checks
 
 
@@ -86,23 +85,9 @@ def main() -> None:
         calls = [e for e in averages if e.key.startswith("cuda")]
         for e in sorted(calls, key=lambda e: -e.cpu_time_total):
             print(f"  {e.key:<32} {e.count / args.steps:6.1f} per step  {e.cpu_time_total / args.steps:8.1f} us per step")
-        print_host_profile(lambda: step(check_values), args.steps)
-
-
-def print_host_profile(step, steps: int, top: int = 15) -> None:
-    """The Python functions where the host spends its time enqueueing ``steps`` steps (cProfile,
-    a GPU sync after each step, outside the profile): what one variant adds to the other."""
-    profiler = cProfile.Profile()
-    for _ in range(steps):
-        profiler.enable()
-        step()
-        profiler.disable()
-        torch.cuda.synchronize()
-    check_pending()
-    text = io.StringIO()
-    pstats.Stats(profiler, stream=text).sort_stats("tottime").print_stats(top)
-    print(f"  host profile of {steps} steps (cProfile, by own time):")
-    print("\n".join("    " + line for line in text.getvalue().splitlines() if line.strip()))
+        host_text = host_profile(functools.partial(step, check_values), args.steps, top=15)
+        check_pending()
+        print("\n".join("  " + line for line in host_text.splitlines() if line.strip()))
 
 
 if __name__ == "__main__":

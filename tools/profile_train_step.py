@@ -22,7 +22,7 @@ from pathlib import Path
 
 import torch
 
-from benchmarks.harness import RESULTS, device_tag
+from benchmarks.harness import RESULTS, device_tag, host_profile
 from mixer_nerf.train import TrainConfig, Trainer
 
 
@@ -93,7 +93,7 @@ def main() -> None:
     passes = "_bf16pass" * trainer.cfg.bf16_density_passes
     # named by the step profiled, before the host profile's steps
     name = f"{device_tag('cuda')}_{args.preset}_{args.precision}{passes}_step{trainer.step}.txt"
-    host = _host_profile(trainer, args.steps)
+    host = host_profile(trainer.train_step, args.steps, top=35)
     syncs = _sync_sites(trainer, args.steps)
     print(syncs)
     if args.out:
@@ -128,26 +128,6 @@ def _sync_sites(trainer: Trainer, steps: int) -> str:
         torch.cuda.set_sync_debug_mode("default")
     lines = [f"{count / steps:6.2f} per step  {site}" for site, count in sites.most_common()]
     return "host waits (torch.cuda.set_sync_debug_mode), per step:\n" + ("\n".join(lines) or "  none")
-
-
-def _host_profile(trainer: Trainer, steps: int) -> str:
-    """Python functions by own host time over ``steps`` steps (cProfile), after each of which the
-    host waits for the GPU: the host's cost of a step with nothing to overlap it."""
-    import cProfile
-    import io
-    import pstats
-
-    profiler = cProfile.Profile()
-    start = time.perf_counter()
-    profiler.enable()
-    for _ in range(steps):
-        trainer.train_step()
-        torch.cuda.synchronize()
-    profiler.disable()
-    serial_ms = (time.perf_counter() - start) * 1e3 / steps
-    text = io.StringIO()
-    pstats.Stats(profiler, stream=text).sort_stats("tottime").print_stats(35)
-    return f"host profile (cProfile, a GPU sync after each step): {serial_ms:.2f} ms per step\n" + text.getvalue()
 
 
 if __name__ == "__main__":
