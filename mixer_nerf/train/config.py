@@ -116,16 +116,18 @@ class TrainConfig:
     proposal_samples: int = 48
     proposal_width: int = 128  # hidden width of each proposal network (2 layers)
     proposal_loss_weight: float = 1.0
+    # The three proposal defaults below are nerfacc's recipe: a Fern screen found them 1.3 dB ahead
+    # of updating every step with per-sample jitter (benchmarks/results/time_to_quality/README.md).
     proposal_update_every: int = option(
-        1, "proposal sampler: train the proposal networks every N steps from step 1000 (the interval "
-        "grows from 1 over the first 1000 steps; nerfacc's PropNetEstimator recipe is about 6); the "
-        "other steps sample without their gradient (default 1: every step)")
+        6, "proposal sampler: train the proposal networks every N steps from step 1000 (the interval "
+        "grows from 1 over the first 1000 steps); the other steps sample without their gradient "
+        "(1: every step)")
     proposal_jitter: str = option(
-        "per_sample", "proposal sampler: stratified training positions jittered per sample or with "
-        "one offset per ray (nerfacc's)", choices=JITTERS)
+        "per_ray", "proposal sampler: stratified training positions jittered with one offset per ray "
+        "or per sample", choices=JITTERS)
     proposal_weight_padding: float = option(
-        1e-4, "proposal sampler: added to every proposal weight before resampling, so that no part of "
-        "a ray is given up (0: none, as nerfacc)")
+        0.0, "proposal sampler: added to every proposal weight before resampling, so that no part of "
+        "a ray is given up (default 0: none)")
     tensorboard: bool = option(
         False, "log losses, PSNR, learning rate, samples per ray, rays/s and validation renders to "
         "<out>/tensorboard (needs .[tensorboard])"

@@ -48,16 +48,16 @@ class ProposalOptions:
     num_samples: samples per ray of the main field.
     spacing: ``"linear"`` or ``"disparity"`` (see the module docstring).
     weight_padding: added to every proposal weight before resampling, so that no part of the
-        ray is ever given up entirely.
-    jitter: stratified positions ``u`` jittered each by itself (``"per_sample"``) or all of a
-        ray's by one offset (``"per_ray"``: equal steps in ``u``, as nerfacc's sampler).
+        ray is ever given up entirely (0: none, the trainer's default).
+    jitter: stratified positions ``u`` jittered all of a ray's by one offset (``"per_ray"``:
+        equal steps in ``u``, as nerfacc's sampler; the default) or each by itself (``"per_sample"``).
     """
 
     samples_per_round: tuple[int, ...] = (128, 64)
     num_samples: int = 48
     spacing: str = "linear"
-    weight_padding: float = 1e-4
-    jitter: str = "per_sample"
+    weight_padding: float = 0.0
+    jitter: str = "per_ray"
 
     def __post_init__(self) -> None:
         if not self.samples_per_round or any(n < 1 for n in self.samples_per_round):
