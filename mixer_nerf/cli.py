@@ -246,9 +246,8 @@ def run_prepare(args: argparse.Namespace) -> int:
 def run_ablate(args: argparse.Namespace) -> int:
     import dataclasses
 
-    from . import metrics
     from .ablation import AblationPlan, parse_model_overrides, parse_presets, parse_seeds, run_ablation
-    from .ablation.runner import run_each
+    from .ablation.runner import check_lpips, run_each
     from .ablation.workers import parse_gpus, parse_runs, train_on_gpus
 
     gpus = None if args.gpus is None else parse_gpus(args.gpus)
@@ -261,11 +260,9 @@ def run_ablate(args: argparse.Namespace) -> int:
     plan = AblationPlan(
         base=dataclasses.replace(base, model_overrides=overrides), presets=parse_presets(args.presets),
         seeds=parse_seeds(args.seeds), out=Path(args.out), target_psnr=args.target_psnr, split=args.split,
-        max_images=args.max_images,
+        max_images=args.max_images, lpips=not args.no_lpips,
     )
-    lpips_reason = metrics.lpips_unavailable_reason()
-    if lpips_reason is not None and args.runs is None:  # said before the training, not only in the table
-        print(f"note: {lpips_reason}; runs scored now keep no LPIPS", file=sys.stderr)
+    check_lpips(plan)  # every mode (plain, --gpus, a worker's --runs), before a folder is claimed
     if args.runs is not None:  # a worker of --gpus: its share of the runs; the caller writes the table
         plan.claim_folder(resume=True)
         run_each(plan, parse_runs(args.runs, plan), print)
@@ -491,6 +488,9 @@ def _add_ablate_parser(commands: Any) -> None:
     ablate.add_argument("--resume", action="store_true",
                         help="continue the ablation in --out: skip finished runs, resume unfinished ones")
     ablate.add_argument("--no-progress", action="store_true", help="no progress bar")
+    ablate.add_argument("--no-lpips", action="store_true",
+                        help="score the runs without LPIPS (without it, ablate refuses to start where "
+                        "LPIPS's weights are not installed)")
     ablate.add_argument("--gpus", metavar="LIST",
                         help="train the runs in one process per GPU, e.g. 0,1 (each sees only its GPU; "
                         "logs in --out/worker_gpu<N>.log), then write the table")

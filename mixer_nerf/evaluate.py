@@ -33,6 +33,7 @@ def evaluate(
     backend: str | None = None,
     max_images: int | None = None,
     render_samples: int | None = None,
+    lpips: bool = True,
     log: Callable[[str], None] = print,
 ) -> dict[str, Any]:
     """Render every view of a split with a checkpoint and score it against the ground truth.
@@ -46,6 +47,7 @@ def evaluate(
             ``images/NNN.png``, ``depth/NNN.png``, ``metrics.csv`` and ``metrics.json``.
         max_images: score only the first this many views.
         render_samples: most samples shaded at once (default: the run's setting).
+        lpips: False: no LPIPS (None, with a note saying why), even where its weights are installed.
 
     Returns:
         The content of ``metrics.json``: {"summary": {...}, "images": [...], "notes": [...]}.
@@ -63,7 +65,7 @@ def evaluate(
         ensure_writable_folder(out / sub)
 
     n = len(scene) if max_images is None else min(max_images, len(scene))
-    lpips_reason = metrics.lpips_unavailable_reason()
+    lpips_reason = metrics.lpips_unavailable_reason() or (None if lpips else "LPIPS skipped: not asked for")
     lpips_min = metrics.LPIPS_MIN_SIZE
     if lpips_reason is None and min(scene.H, scene.W) < lpips_min:
         lpips_reason = f"LPIPS skipped: images are smaller than {lpips_min}x{lpips_min}"

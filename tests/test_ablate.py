@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 from test_cli import TINY_DEMO
 
-from mixer_nerf import cli
+from mixer_nerf import cli, lpips_alex, metrics
 from mixer_nerf.ablation import AblationError, AblationPlan, parse_model_overrides, parse_presets, parse_seeds
 from mixer_nerf.train import TrainConfig, Trainer
 from mixer_nerf.train import trainer as trainer_module
@@ -25,6 +25,9 @@ from mixer_nerf.train import trainer as trainer_module
 TINY_SCENE = {**{k: v for k, v in TINY_DEMO.items() if k != "steps"}, "procedural_resolution": 32,
               "sampler": "hierarchical"}
 FLAGS = ["--backend", "torch", "--device", "cpu", "--no-progress", "--max-images", "1"]
+# CI installs LPIPS's weights (.ci/run) and these tests then score LPIPS; a machine without them runs
+# them with --no-lpips, as ablate refuses to start there otherwise.
+LPIPS_FLAGS = [] if metrics.lpips_available() else ["--no-lpips"]
 
 
 def shrink(mp: pytest.MonkeyPatch, basetemp) -> None:
@@ -39,7 +42,7 @@ def tiny_scene(tmp_path_factory, monkeypatch):
 
 
 def ablate(out, *extra: str) -> int:
-    return cli.main(["ablate", "--out", str(out), "--steps", "4", *FLAGS, *extra])
+    return cli.main(["ablate", "--out", str(out), "--steps", "4", *FLAGS, *LPIPS_FLAGS, *extra])
 
 
 @pytest.fixture(scope="module")
@@ -116,7 +119,7 @@ def test_gpus_trains_each_share_in_its_own_process_then_one_table(blender_scene,
             "--num-fine", "6", "--val-every", "2", "--ckpt-every", "2",
             *(f"--model-override={k}={json.dumps(v)}" for k, v in TINY_DEMO["model_overrides"].items())]
     assert cli.main(["ablate", "--out", str(out), "--steps", "3", "--seeds", "0,1", "--presets", "AD",
-                     "--gpus", "0,1", *FLAGS, *tiny]) == 0
+                     "--gpus", "0,1", *FLAGS, *LPIPS_FLAGS, *tiny]) == 0
     table = json.loads((out / "table.json").read_text())
     assert [(r["preset"], r["seed"], r["steps"]) for r in table["runs"]] == [
         ("A", 0, 3), ("A", 1, 3), ("D", 0, 3), ("D", 1, 3)]
@@ -159,14 +162,65 @@ def test_a_failed_gpu_worker_is_one_line_naming_its_log(tmp_path, capsys, monkey
     assert f"the worker on GPU 3 failed (exit 1); see {tmp_path / 'failed' / 'worker_gpu3.log'}" in capsys.readouterr().err
 
 
-def test_missing_lpips_weights_are_said_before_training(tmp_path, capsys, monkeypatch):
-    """A GPU call without the AlexNet weights learns it at the start, not from the table minutes later."""
-    from mixer_nerf import metrics
+@pytest.mark.parametrize("mode", [[], ["--gpus", "0"], ["--runs", "A:0"]], ids=["plain", "gpus", "worker"])
+def test_missing_lpips_weights_refuse_the_ablation_before_anything(tmp_path, capsys, monkeypatch, mode):
+    """Without the AlexNet weights every mode stops at once, naming the install and --no-lpips:
+    runs scored without LPIPS cannot be scored again once their checkpoints are gone."""
+    from mixer_nerf.ablation import workers
 
-    monkeypatch.setattr(metrics, "lpips_unavailable_reason", lambda net="alex": "LPIPS unavailable: no weights")
-    assert ablate(tmp_path / "no_lpips", "--presets", "A", "--seeds", "0") == 0
+    monkeypatch.setattr(lpips_alex, "weights_path", lambda: None)
+    monkeypatch.setattr(workers.subprocess, "Popen", lambda *_, **__: pytest.fail("a worker was started"))
+    out = tmp_path / "no_weights"
+    assert cli.main(["ablate", "--out", str(out), "--steps", "4", *FLAGS, "--presets", "A", "--seeds", "0",
+                     *mode]) == 1
     err = capsys.readouterr().err
-    assert err.startswith("note: LPIPS unavailable: no weights; runs scored now keep no LPIPS")
+    assert err.count("\n") == 1 and err.startswith("mixer-nerf: error: LPIPS unavailable: ")
+    assert lpips_alex.INSTALL_COMMAND in err and "pass --no-lpips" in err
+    assert not out.exists()
+
+
+def test_no_lpips_trains_and_scores_without_it(tmp_path, capsys, monkeypatch):
+    """--no-lpips: a worker without the weights trains and scores PSNR/SSIM; the table notes why
+    LPIPS is missing; the setting is the ablation's own, so a resume cannot add LPIPS runs to it."""
+    out = tmp_path / "no_lpips"
+    monkeypatch.setattr(lpips_alex, "weights_path", lambda: None)
+    run = ["ablate", "--out", str(out), "--steps", "4", *FLAGS, "--presets", "A", "--no-lpips"]
+    assert cli.main([*run, "--seeds", "0", "--runs", "A:0"]) == 0  # as a --gpus worker
+    record = json.loads((out / "A_seed0" / "ablation_run.json").read_text())
+    assert record["lpips"] is None and math.isfinite(record["psnr"]) and record["status"] == "finished"
+    assert record["notes"] == [lpips_alex.unavailable_reason()]
+    assert json.loads((out / "ablation.json").read_text())["settings"]["lpips"] is False
+
+    # With the weights installed, --no-lpips still scores without LPIPS.
+    monkeypatch.setattr(metrics, "lpips_unavailable_reason", lambda net="alex": None)
+    assert cli.main([*run, "--seeds", "0,1", "--resume"]) == 0
+    table = json.loads((out / "table.json").read_text())
+    assert [r["lpips"] for r in table["runs"]] == [None, None]
+    assert table["notes"] == ["LPIPS skipped: not asked for", lpips_alex.unavailable_reason()]
+    assert "Note: LPIPS unavailable" in (out / "ablation.md").read_text()
+    capsys.readouterr()
+    assert cli.main([*run[:-1], "--seeds", "0,1", "--resume"]) == 1
+    assert "other settings (lpips)" in capsys.readouterr().err
+
+
+def test_gpu_workers_get_no_lpips(tmp_path, monkeypatch):
+    from mixer_nerf.ablation import workers
+
+    commands = []
+
+    class Worker:
+        def __init__(self, command, **_):
+            commands.append(command)
+
+        def wait(self):
+            return 1
+
+        poll = wait
+
+    monkeypatch.setattr(workers.subprocess, "Popen", Worker)
+    assert cli.main(["ablate", "--out", str(tmp_path / "gpus"), "--steps", "4", *FLAGS, "--presets", "A",
+                     "--seeds", "0", "--gpus", "0", "--no-lpips"]) == 1
+    assert len(commands) == 1 and "--no-lpips" in commands[0] and "--gpus" not in commands[0]
 
 
 def test_model_overrides_are_recorded(tmp_path):

@@ -26,7 +26,8 @@ class AblationPlan:
     """``base``: the settings every run shares (its preset, seed and out are replaced per run).
     ``target_psnr``: the validation PSNR whose time-to-reach is tabulated (None: the lowest best
     validation PSNR among the runs, so that every run reaches it). ``split`` and ``max_images``: the
-    held-out views scored (see :func:`mixer_nerf.evaluate.evaluate`)."""
+    held-out views scored (see :func:`mixer_nerf.evaluate.evaluate`). ``lpips``: score LPIPS too
+    (False: PSNR and SSIM only, the table's LPIPS columns empty)."""
 
     base: TrainConfig
     presets: tuple[str, ...]
@@ -35,6 +36,7 @@ class AblationPlan:
     target_psnr: float | None = None
     split: str | None = None
     max_images: int | None = None
+    lpips: bool = True
 
     def __post_init__(self) -> None:
         if not self.presets:
@@ -61,6 +63,10 @@ class AblationPlan:
         """What a resumed ablation must share with the one that started: every run setting but
         the per-run ones, as JSON values."""
         shared = {k: v for k, v in self.base.to_dict().items() if k not in PER_RUN_SETTINGS}
+        # Shared, or a resume could mix runs with and without LPIPS in one table; kept only when off, so
+        # that the plans written before this setting existed (all with LPIPS) still match on resume.
+        if not self.lpips:
+            shared["lpips"] = False
         return json.loads(json.dumps(shared))
 
     def claim_folder(self, resume: bool) -> None:

@@ -27,13 +27,31 @@ def run_ablation(plan: AblationPlan, resume: bool = False, log: Callable[[str], 
 
     Returns the table (the content of ``table.json``).
     Raises:
-        AblationError: ``plan.out`` holds another ablation, or ``resume`` is False and it holds one.
+        AblationError: LPIPS is unavailable while ``plan.lpips`` asks for it (see :func:`check_lpips`);
+            ``plan.out`` holds another ablation, or ``resume`` is False and it holds one.
     """
+    check_lpips(plan)
     plan.claim_folder(resume)
     table = build_table(plan, run_each(plan, plan.runs(), log))
     paths = write_table(table, plan.out)
     log(f"ablation table: {', '.join(str(p) for p in paths)}")
     return table
+
+
+def check_lpips(plan: AblationPlan) -> None:
+    """Refuse, before anything is trained or written, an ablation that asks for LPIPS (``plan.lpips``)
+    where its weights are not installed: its runs would be scored without it, for good once their
+    checkpoints are gone. A table without LPIPS is made on purpose only (``--no-lpips``).
+
+    Raises:
+        AblationError: one line: what is missing, how to install it, and ``--no-lpips``.
+    """
+    from .. import metrics
+
+    reason = metrics.lpips_unavailable_reason()
+    if plan.lpips and reason is not None:
+        raise AblationError(f"{reason}; nothing trained: install them, or pass --no-lpips to train and "
+                            "score the runs without LPIPS")
 
 
 def run_each(plan: AblationPlan, runs: list[tuple[str, int]], log: Callable[[str], None]) -> list[dict[str, Any]]:
@@ -106,7 +124,7 @@ def _scores(plan: AblationPlan, cfg: TrainConfig, files: RunFiles, complete: boo
     from ..evaluate import evaluate
 
     record = evaluate(files.checkpoint, split=plan.split, out=files.root / "eval", device=cfg.device,
-                      backend=cfg.backend, max_images=plan.max_images, log=lambda _: None)
+                      backend=cfg.backend, max_images=plan.max_images, lpips=plan.lpips, log=lambda _: None)
     s = record["summary"]
     return {"psnr": s["mean_psnr"], "ssim": s["mean_ssim"], "lpips": s["mean_lpips"], "eval_split": s["split"],
             "eval_views": s["images"], "notes": record["notes"]}
