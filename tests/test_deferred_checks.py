@@ -78,7 +78,7 @@ def test_watched_bits_raise_at_the_next_check_naming_the_argument():
     sigmas, rgbs, t_starts, t_ends = _rays("cpu")
     deferred_checks.watch(torch.tensor([0], dtype=torch.int32), "composite", INVALID_INPUT)
     check_pending()  # nothing found: nothing raised, nothing left
-    assert not deferred_checks._pending
+    assert not deferred_checks.pending_count()
     invalid = torch.ops.mixer_nerf.composite_fwd(-sigmas, rgbs, t_ends, t_starts, None)[-1]
     deferred_checks.watch(invalid, "composite", INVALID_INPUT)
     with pytest.raises(ValueError, match="composite: sigmas must be non-negative; t_ends must be >= t_starts"):
@@ -95,7 +95,7 @@ def test_the_cpu_still_checks_before_the_kernel():
         composite_packed(sigmas, rgbs, t_starts, t_ends, offsets + 1, backend="kernel")
     with pytest.raises(ValueError, match="no ray"):
         composite_packed(sigmas, rgbs, t_starts, t_ends, offsets[:1], backend="kernel")
-    assert not deferred_checks._pending
+    assert not deferred_checks.pending_count()
 
 
 @pytest.mark.parametrize("device", devices)
@@ -174,9 +174,9 @@ def test_more_checks_than_slots_in_flight_wait_for_the_oldest_and_reuse_its_slot
     sigmas, rgbs, t_starts, t_ends = _rays("cuda")
     for _ in range(3 * deferred_checks.MAX_PENDING):
         composite(sigmas, rgbs, t_starts, t_ends)
-        assert len(deferred_checks._pending) <= deferred_checks.MAX_PENDING
+        assert deferred_checks.pending_count() <= deferred_checks.MAX_PENDING
     check_pending()
-    assert not deferred_checks._pending
+    assert not deferred_checks.pending_count()
     assert len(deferred_checks._SLOTS.free) == deferred_checks.MAX_PENDING
 
 
@@ -192,4 +192,5 @@ def test_a_captured_graph_is_not_watched():
         out = composite(sigmas, rgbs, t_starts, t_ends)
     graph.replay()
     torch.cuda.synchronize()
-    assert not deferred_checks._pending and out.color.isfinite().all()
+    assert not deferred_checks.pending_count() and out.color.isfinite().all()
+
