@@ -78,7 +78,7 @@ def test_watched_bits_raise_at_the_next_check_naming_the_argument():
     sigmas, rgbs, t_starts, t_ends = _rays("cpu")
     deferred_checks.watch(torch.tensor([0], dtype=torch.int32), "composite", INVALID_INPUT)
     check_pending()  # nothing found: nothing raised, nothing left
-    assert not deferred_checks._pending
+    assert not deferred_checks.pending_count()
     invalid = torch.ops.mixer_nerf.composite_fwd(-sigmas, rgbs, t_ends, t_starts, None)[-1]
     deferred_checks.watch(invalid, "composite", INVALID_INPUT)
     with pytest.raises(ValueError, match="composite: sigmas must be non-negative; t_ends must be >= t_starts"):
@@ -95,7 +95,7 @@ def test_the_cpu_still_checks_before_the_kernel():
         composite_packed(sigmas, rgbs, t_starts, t_ends, offsets + 1, backend="kernel")
     with pytest.raises(ValueError, match="no ray"):
         composite_packed(sigmas, rgbs, t_starts, t_ends, offsets[:1], backend="kernel")
-    assert not deferred_checks._pending
+    assert not deferred_checks.pending_count()
 
 
 @pytest.mark.parametrize("device", devices)
@@ -174,9 +174,9 @@ def test_more_checks_than_slots_in_flight_wait_for_the_oldest_and_reuse_its_slot
     sigmas, rgbs, t_starts, t_ends = _rays("cuda")
     for _ in range(3 * deferred_checks.MAX_PENDING):
         composite(sigmas, rgbs, t_starts, t_ends)
-        assert len(deferred_checks._pending) <= deferred_checks.MAX_PENDING
+        assert deferred_checks.pending_count() <= deferred_checks.MAX_PENDING
     check_pending()
-    assert not deferred_checks._pending
+    assert not deferred_checks.pending_count()
     assert len(deferred_checks._SLOTS.free) == deferred_checks.MAX_PENDING
 
 
@@ -192,4 +192,76 @@ def test_a_captured_graph_is_not_watched():
         out = composite(sigmas, rgbs, t_starts, t_ends)
     graph.replay()
     torch.cuda.synchronize()
-    assert not deferred_checks._pending and out.color.isfinite().all()
+    assert not deferred_checks.pending_count() and out.color.isfinite().all()
+
+
+class _FakeEvent:
+    """Stands for a torch.cuda.Event: counts its queries; ready once ``ready`` is set or waited for."""
+
+    def __init__(self, ready=False):
+        self.ready, self.queries, self.waits = ready, 0, 0
+
+    def query(self):
+        self.queries += 1
+        return self.ready
+
+    def synchronize(self):
+        self.waits += 1
+        self.ready = True
+
+
+def _fake_check(stream, op, found=0, ready=False):
+    """Queue a check on a fake stream key, as watch does for a CUDA flag; returns its event."""
+    done = _FakeEvent(ready)
+    messages = {1: f"{op} is bad"}
+    deferred_checks._enqueue(stream, deferred_checks._Pending(torch.tensor([found], dtype=torch.int32),
+                                                              done, op, messages))
+    return done
+
+
+def test_raise_ready_queries_one_event_per_stream_however_many_are_pending():
+    events = [_fake_check((0, 1), "a") for _ in range(100)] + [_fake_check((0, 2), "b") for _ in range(50)]
+    for calls in (1, 2, 3):
+        deferred_checks.raise_ready()
+        assert sum(event.queries for event in events) == 2 * calls  # the heads of the two streams
+    assert events[0].queries == events[100].queries == 3
+    events[0].ready = events[1].ready = True  # the GPU has passed two checks of the first stream
+    deferred_checks.raise_ready()
+    assert deferred_checks.pending_count() == 148
+    assert [events[i].queries for i in (0, 1, 2, 100)] == [4, 1, 1, 4]  # two ready, then a new head
+
+
+def test_a_ready_bad_check_on_another_stream_is_raised_and_one_stream_keeps_its_order():
+    slow = _fake_check((0, 1), "slow")
+    _fake_check((0, 2), "other_stream", found=1, ready=True)
+    with pytest.raises(ValueError, match="other_stream is bad"):
+        deferred_checks.raise_ready()
+    _fake_check((0, 1), "same_stream", found=1, ready=True)  # behind ``slow``, which is not ready
+    deferred_checks.raise_ready()
+    assert deferred_checks.pending_count() == 2
+    slow.ready = True
+    with pytest.raises(ValueError, match="same_stream is bad"):
+        deferred_checks.raise_ready()
+    assert not deferred_checks.pending_count()
+
+
+def test_ready_bad_checks_are_raised_in_the_order_they_were_made_across_streams():
+    events = [_fake_check((0, 1), "first", found=1), _fake_check((0, 2), "second", found=1),
+              _fake_check((0, 1), "third", found=1), _fake_check((1, 1), "fourth", found=1, ready=True)]
+    with pytest.raises(ValueError, match="fourth is bad"):  # the only one ready
+        deferred_checks.raise_ready()
+    with pytest.raises(ValueError, match="first is bad"):  # waits for all, raises the oldest bad one
+        deferred_checks.check_pending()
+    assert [event.waits for event in events[:3]] == [1, 1, 1]
+    for name in ("second", "third"):  # read by check_pending, raised one a call
+        with pytest.raises(ValueError, match=f"{name} is bad"):
+            deferred_checks.raise_ready()
+    assert not deferred_checks.pending_count()
+
+
+def test_a_full_queue_waits_for_the_oldest_check_of_any_stream():
+    oldest = _fake_check((0, 2), "oldest")
+    others = [_fake_check((0, 1 + i % 2), "other") for i in range(deferred_checks.MAX_PENDING - 1)]
+    deferred_checks.watch(torch.tensor([0], dtype=torch.int32), "composite", INVALID_INPUT)
+    assert oldest.waits == 1 and not any(event.waits for event in others)
+    assert deferred_checks.pending_count() == deferred_checks.MAX_PENDING
