@@ -7,7 +7,9 @@
 # skipped. At the deadline running jobs get SIGTERM. A job that exits 0 is written to $DONE (default
 # runs/gpu_jobs.done, kept on a warm machine), and a later call skips it: so a queue cut by a call's
 # limit goes on in the next call, when its jobs resume (`ablate --resume`, `time_to_quality --run-dir`).
-# Every job's log is $OUT/jobs/<line>.log; a line per job as it ends.
+# A line per job as it ends. What comes back (a call returns at most 8 files): the .tgz files the jobs
+# wrote, moved up into $OUT; every job's log and folder in $OUT/job_logs.tgz; and the paths of $PACK
+# (e.g. PACK="runs/ablate_x runs/ttq_out") in $OUT/records.tgz, without checkpoints and images.
 source tools/gpu_env.sh >/dev/null
 OUT=${OUT:-/tmp/gpu_jobs}; mkdir -p "$OUT/jobs"
 DONE=${DONE:-runs/gpu_jobs.done}; mkdir -p "$(dirname "$DONE")"; touch "$DONE"
@@ -40,3 +42,9 @@ for k in "${!lines[@]}"; do
   echo "[$(( SECONDS ))s] line $((k + 1)) on GPU $gpu: $job"
 done
 while [ ${#gpu_of[@]} -gt 0 ]; do reap; done
+
+for f in "$OUT"/jobs/*/*.tgz; do [ -f "$f" ] && mv "$f" "$OUT/$(basename "$(dirname "$f")")_$(basename "$f")"; done
+tar czf "$OUT/job_logs.tgz" -C "$OUT" jobs && rm -rf "$OUT/jobs"
+# shellcheck disable=SC2086
+[ -z "$PACK" ] || tar czf "$OUT/records.tgz" --exclude='*.pt' --exclude='images' --exclude='depth' \
+  --exclude='*.partial' $PACK "$DONE"
