@@ -114,7 +114,8 @@ class ProposalSampler(nn.Module):
         if not near < far < float("inf"):
             raise ValueError(f"need near < far < inf, got near={near}, far={far}")
         num_rays = rays_o.shape[0]
-        edges = torch.tensor([[0.0, 1.0]], device=rays_o.device, dtype=rays_o.dtype).expand(num_rays, 2)
+        # made on the device: a tensor from a Python list is a host-to-device copy the host waits on
+        edges = torch.linspace(0.0, 1.0, 2, device=rays_o.device, dtype=rays_o.dtype).expand(num_rays, 2)
         weights = torch.ones(num_rays, 1, device=rays_o.device, dtype=rays_o.dtype)
         norm = torch.linalg.vector_norm(rays_d, dim=-1, keepdim=True)
         rounds = []
