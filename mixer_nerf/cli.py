@@ -246,9 +246,9 @@ def run_prepare(args: argparse.Namespace) -> int:
 def run_ablate(args: argparse.Namespace) -> int:
     import dataclasses
 
-    from .ablation import AblationPlan, parse_model_overrides, parse_presets, parse_seeds, run_ablation
-    from .ablation.runner import check_lpips, run_each
-    from .ablation.workers import parse_gpus, parse_runs, train_on_gpus
+    from .ablation import AblationPlan, parse_model_overrides, parse_presets, parse_seeds
+    from .ablation.runner import report
+    from .ablation.workers import parse_gpus
 
     gpus = None if args.gpus is None else parse_gpus(args.gpus)
     if args.steps is None and args.time_budget is None:
@@ -262,20 +262,37 @@ def run_ablate(args: argparse.Namespace) -> int:
         seeds=parse_seeds(args.seeds), out=Path(args.out), target_psnr=args.target_psnr, split=args.split,
         max_images=args.max_images, lpips=not args.no_lpips,
     )
-    check_lpips(plan)  # every mode (plain, --gpus, a worker's --runs), before a folder is claimed
-    if args.runs is not None:  # a worker of --gpus: its share of the runs; the caller writes the table
-        plan.claim_folder(resume=True)
-        run_each(plan, parse_runs(args.runs, plan), print)
-        return 0
-    if gpus is not None:
-        plan.claim_folder(args.resume)
-        train_on_gpus(plan, _without_option(args.argv, "--gpus"), gpus)
-    table = run_ablation(plan, resume=args.resume or gpus is not None)
+    if args.report:
+        if gpus is not None or args.runs is not None:
+            raise UserError("--report trains nothing: drop --gpus")
+        table = report(plan)
+    else:
+        table = _train_ablation(args, plan, gpus)
+        if table is None:
+            return 0
     print(f"table: {Path(args.out) / 'ablation.md'}")
     for row in table["presets"]:
         psnr = "-" if row["psnr_mean"] is None else f"{row['psnr_mean']:.2f} dB"
         print(f"  preset {row['preset']} ({row['model']}): held-out PSNR {psnr} over {row['seeds']} seed(s)")
     return 0
+
+
+def _train_ablation(args: argparse.Namespace, plan: Any, gpus: list[int] | None) -> dict[str, Any] | None:
+    """Train and score ``plan``'s runs (a ``--runs`` worker: its share only, returning None) and
+    return the table."""
+    from .ablation import run_ablation
+    from .ablation.runner import check_lpips, run_each
+    from .ablation.workers import parse_runs, train_on_gpus
+
+    check_lpips(plan)  # every mode (plain, --gpus, a worker's --runs), before a folder is claimed
+    if args.runs is not None:  # a worker of --gpus: its share of the runs; the caller writes the table
+        plan.claim_folder(resume=True)
+        run_each(plan, parse_runs(args.runs, plan), print)
+        return None
+    if gpus is not None:
+        plan.claim_folder(args.resume)
+        train_on_gpus(plan, _without_option(args.argv, "--gpus"), gpus)
+    return run_ablation(plan, resume=args.resume or gpus is not None)
 
 
 def _without_option(argv: Sequence[str], flag: str) -> list[str]:
@@ -494,6 +511,9 @@ def _add_ablate_parser(commands: Any) -> None:
     ablate.add_argument("--gpus", metavar="LIST",
                         help="train the runs in one process per GPU, e.g. 0,1 (each sees only its GPU; "
                         "logs in --out/worker_gpu<N>.log), then write the table")
+    ablate.add_argument("--report", action="store_true",
+                        help="train and score nothing: write the table from the runs in --out as they are "
+                        "(unfinished runs as rows without scores, runs not started left out)")
     ablate.add_argument("--runs", help=argparse.SUPPRESS)  # a --gpus worker's share: PRESET:SEED,...
 
 

@@ -7,6 +7,7 @@ import csv
 import json
 import math
 import os
+import shutil
 import signal
 import sys
 import threading
@@ -324,3 +325,49 @@ def test_eq7_with_the_occupancy_sampler_is_refused(tmp_path, capsys):
     # Nothing was trained, so the corrected command needs no --resume.
     assert ablate(tmp_path / "eq7", "--presets", "D", "--seeds", "0", "--sampler", "hierarchical",
                   "--model-override", "mlca_concat_direction=true") == 0
+
+
+def report(out, *extra: str) -> int:
+    return cli.main(["ablate", "--out", str(out), "--steps", "4", *FLAGS, *LPIPS_FLAGS, "--presets", "AD",
+                     "--seeds", "0,1", "--report", *extra])
+
+
+def test_report_tabulates_finished_and_unfinished_runs_without_training(finished, tmp_path, capsys):
+    out = tmp_path / "copy"
+    shutil.copytree(finished, out)
+    (out / "D_seed1" / "ablation_run.json").unlink()  # as a run cut by a GPU call's limit
+    before = (out / "D_seed1" / "checkpoint.pt").stat().st_mtime_ns
+    assert report(out) == 0
+    assert "training" not in capsys.readouterr().out
+    assert (out / "D_seed1" / "checkpoint.pt").stat().st_mtime_ns == before
+    assert not (out / "D_seed1" / "ablation_run.json").exists()
+    table = json.loads((out / "table.json").read_text())
+    runs = {(r["preset"], r["seed"]): r for r in table["runs"]}
+    unfinished = runs[("D", 1)]
+    assert unfinished["status"].startswith("unfinished") and unfinished["psnr"] is None
+    assert unfinished["steps"] == 4 and unfinished["params"] == runs[("D", 0)]["params"]
+    d = next(row for row in table["presets"] if row["preset"] == "D")
+    assert d["psnr_mean"] == pytest.approx(runs[("D", 0)]["psnr"]) and d["psnr_spread"] is None
+    assert all(Path(r["run"]).parent == out for r in table["runs"])  # curves read from the copy
+    assert "| D | 1 | unfinished" in (out / "ablation.md").read_text()
+
+
+def test_report_leaves_out_runs_not_started(finished, tmp_path, capsys):
+    out = tmp_path / "copy"
+    shutil.copytree(finished, out)
+    shutil.rmtree(out / "A_seed0")
+    shutil.rmtree(out / "A_seed1")
+    assert report(out) == 0
+    assert "preset A, seed 0: not started, left out" in capsys.readouterr().out
+    table = json.loads((out / "table.json").read_text())
+    assert [row["preset"] for row in table["presets"]] == ["D"]
+    assert "preset A is not in this ablation" in " ".join(table["notes"])
+
+
+def test_report_refuses_other_settings_and_an_empty_folder(finished, tmp_path, capsys):
+    assert report(finished, "--lr", "1e-2") == 1
+    assert "other settings (lr)" in capsys.readouterr().err
+    assert report(tmp_path / "empty") == 1
+    assert "no run of this ablation has started" in capsys.readouterr().err
+    assert report(finished, "--gpus", "0") == 1
+    assert "--report trains nothing" in capsys.readouterr().err

@@ -78,14 +78,22 @@ class AblationPlan:
             if not resume:
                 raise AblationError(f"{self.out}: already holds an ablation; pass --resume to continue it "
                                     "or choose another --out")
-            saved, settings = json.loads(path.read_text())["settings"], self.settings()
-            differs = sorted(k for k in set(saved) | set(settings) if saved.get(k) != settings.get(k))
-            if differs:
-                raise AblationError(f"{path}: the ablation there was started with other settings ({', '.join(differs)})")
+            self.check_settings()
         self.out.mkdir(parents=True, exist_ok=True)
         # Atomic: processes sharing the folder (one per GPU) read it while another writes it.
         write_text_atomic(path, json.dumps({"presets": list(self.presets), "seeds": list(self.seeds),
                                     "settings": self.settings()}, indent=1))
+
+
+    def check_settings(self) -> None:
+        """Refuse a folder whose plan was written with other shared settings (a missing plan passes)."""
+        path = self.out / PLAN_FILE
+        if not path.is_file():
+            return
+        saved, settings = json.loads(path.read_text())["settings"], self.settings()
+        differs = sorted(k for k in set(saved) | set(settings) if saved.get(k) != settings.get(k))
+        if differs:
+            raise AblationError(f"{path}: the ablation there was started with other settings ({', '.join(differs)})")
 
 
 def parse_presets(text: str) -> tuple[str, ...]:

@@ -11,6 +11,7 @@ from typing import Any
 from ..train.checkpoint import load_checkpoint
 from ..train.config import TrainConfig
 from ..train.fields import model_config_from_dict
+from ..train.logbook import CsvLog
 from ..train.output import RunFiles, write_text_atomic
 from ..train.sampling import make_fields
 from .plan import AblationError, AblationPlan
@@ -36,6 +37,50 @@ def run_ablation(plan: AblationPlan, resume: bool = False, log: Callable[[str], 
     paths = write_table(table, plan.out)
     log(f"ablation table: {', '.join(str(p) for p in paths)}")
     return table
+
+
+def report(plan: AblationPlan, log: Callable[[str], None] = print) -> dict[str, Any]:
+    """Write the table of ``plan.out`` from its runs as they are, training and scoring nothing: the
+    finished runs with their records, an unfinished one (logs but no record, e.g. a GPU call ran
+    out) as a row without scores at its last logged step, a run not started left out.
+
+    Returns the table. Raises AblationError where ``plan.out`` holds an ablation of other settings
+    or no run at all.
+    """
+    plan.check_settings()
+    records = []
+    for preset, seed in plan.runs():
+        files = RunFiles(plan.run_folder(preset, seed))
+        if (files.root / RUN_RECORD).is_file():
+            # the folder as found now: a record names the path it was trained at
+            records.append({**json.loads((files.root / RUN_RECORD).read_text()), "run": str(files.root)})
+        elif (files.root / "train_log.csv").is_file():
+            records.append(_unfinished_record(preset, seed, files))
+        else:
+            log(f"preset {preset}, seed {seed}: not started, left out")
+    if not records:
+        raise AblationError(f"{plan.out}: no run of this ablation has started")
+    table = build_table(plan, records)
+    paths = write_table(table, plan.out)
+    log(f"ablation table: {', '.join(str(p) for p in paths)}")
+    return table
+
+
+def _unfinished_record(preset: str, seed: int, files: RunFiles) -> dict[str, Any]:
+    last = (CsvLog(files.root / "train_log.csv").rows() or [{"step": 0, "seconds": 0.0}])[-1]
+    steps, seconds = int(last["step"]), float(last["seconds"])
+    summary = _read_summary(files)
+    return {
+        "preset": preset,
+        "seed": seed,
+        "run": str(files.root),
+        "status": f"unfinished ({summary['status']})" if summary else "unfinished",
+        "steps": steps,
+        "train_seconds": seconds,
+        "steps_per_s": steps / seconds if seconds > 0 else None,
+        "params": count_parameters(files.checkpoint) if files.checkpoint.is_file() else None,
+        **_no_scores(),
+    }
 
 
 def check_lpips(plan: AblationPlan) -> None:
@@ -120,7 +165,7 @@ def _train(cfg: TrainConfig, files: RunFiles, log: Callable[[str], None]) -> dic
 def _scores(plan: AblationPlan, cfg: TrainConfig, files: RunFiles, complete: bool) -> dict[str, Any]:
     """Held-out means of a complete run (None for a failed one) and the notes of its evaluation."""
     if not complete:
-        return {"psnr": None, "ssim": None, "lpips": None, "eval_split": None, "eval_views": 0, "notes": []}
+        return _no_scores()
     from ..evaluate import evaluate
 
     record = evaluate(files.checkpoint, split=plan.split, out=files.root / "eval", device=cfg.device,
@@ -128,6 +173,10 @@ def _scores(plan: AblationPlan, cfg: TrainConfig, files: RunFiles, complete: boo
     s = record["summary"]
     return {"psnr": s["mean_psnr"], "ssim": s["mean_ssim"], "lpips": s["mean_lpips"], "eval_split": s["split"],
             "eval_views": s["images"], "notes": record["notes"]}
+
+
+def _no_scores() -> dict[str, Any]:
+    return {"psnr": None, "ssim": None, "lpips": None, "eval_split": None, "eval_views": 0, "notes": []}
 
 
 def _read_summary(files: RunFiles) -> dict[str, Any] | None:

@@ -34,7 +34,8 @@ def build_table(plan: AblationPlan, records: list[dict[str, Any]]) -> dict[str, 
     curves = {(r["preset"], r["seed"]): val_curve(CsvLog(Path(r["run"]) / "val_log.csv")) for r in records}
     target = plan.target_psnr if plan.target_psnr is not None else _reachable_target(curves.values())
     runs = [{**r, "seconds_to_target": _seconds_to(curves[(r["preset"], r["seed"])], target)} for r in records]
-    presets = [_preset_row(p, [r for r in runs if r["preset"] == p]) for p in plan.presets]
+    presets = [_preset_row(p, [r for r in runs if r["preset"] == p]) for p in plan.presets
+               if any(r["preset"] == p for r in runs)]  # a report may hold presets not started yet
     reference = next((row for row in presets if row["preset"] == "A"), None)
     for row in presets:
         for m in METRICS:
@@ -109,7 +110,7 @@ def _preset_row(preset: str, runs: list[dict[str, Any]]) -> dict[str, Any]:
     row: dict[str, Any] = {"preset": preset, "model": PRESET_NAMES[preset], "seeds": len(runs)}
     for m in METRICS:
         row[f"{m}_mean"], row[f"{m}_spread"] = _mean_spread([r[m] for r in runs])
-    row["params"] = runs[0]["params"]
+    row["params"] = next((r["params"] for r in runs if r["params"] is not None), None)
     row["steps_per_s"] = _mean_spread([r["steps_per_s"] for r in runs])[0]
     times = [r["seconds_to_target"] for r in runs]
     row["seconds_to_target"] = None if None in times else statistics.fmean(times)
