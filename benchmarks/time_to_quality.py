@@ -249,7 +249,8 @@ def nerfacc_proposal_method(args, train, val, device) -> Method:
 TRAINER_OPTIONS = (
     "target_samples", "batch_rays", "precision", "lr", "lr_final", "lr_warmup", "lr_hold", "bf16_density_passes",
     "adam_eps", "early_stop_eps", "empty_space_weight", "grid_warmup", "grid_every", "grid_threshold", "step_size",
-    "proposal_width", "proposal_samples", "proposal_update_every", "proposal_jitter", "proposal_weight_padding")
+    "proposal_width", "proposal_samples", "proposal_update_every", "proposal_jitter", "proposal_weight_padding",
+    "val_holdout")
 """Options of ours passed to TrainConfig only when given: unset, they keep the trainer's defaults."""
 
 
@@ -337,6 +338,9 @@ def main() -> None:
     parser.add_argument("--proposal-weight-padding", type=float,
                         help="ours, proposal sampler: added to each proposal weight before resampling")
     parser.add_argument("--adam-eps", type=float, help="ours: Adam's epsilon (default: the trainer's)")
+    parser.add_argument("--val-holdout", type=int, metavar="K",
+                        help="captures: validate on every K-th non-test view, left out of training (tuning "
+                        "without the test views; default: validate on the test views)")
     parser.add_argument("--early-stop-eps", type=float,
                         help="ours, occupancy sampler: early ray termination (0: off; default: the trainer's)")
     parser.add_argument("--empty-space-weight", type=float,
@@ -375,8 +379,9 @@ def main() -> None:
     torch.backends.cuda.matmul.allow_tf32 = True
     torch.backends.cudnn.allow_tf32 = True
     device = torch.device(args.device)
-    train = load_scene(args.data, split="train").to(device)
-    val = load_scene(args.data, split="val").to(device)
+    splits = {"val_holdout": args.val_holdout} if args.val_holdout else {}  # Blender's loader has no such split
+    train = load_scene(args.data, split="train", **splits).to(device)
+    val = load_scene(args.data, split="val", **splits).to(device)
     checkpoints = [float(c) for c in args.checkpoints.split(",")]
     label = args.label or args.method
 

@@ -57,9 +57,9 @@ def evaluate(
     run = load_trained(ckpt, device=device, backend=backend, render_samples=render_samples)
     folder, fmt = locate_scene(run.cfg, run.scene, data, run.path)
     if split is None:
-        scene, split = held_out_split(folder, fmt, "test", run.cfg.downscale)
-    else:
-        scene = load_split(folder, fmt, split, run.cfg.downscale)
+        scene, split = held_out_split(folder, fmt, "test", run.cfg.downscale, run.cfg.val_holdout)
+    else:  # the run's own splits: its val views where it carved them out of train
+        scene = load_split(folder, fmt, split, run.cfg.downscale, run.cfg.val_holdout)
     out = Path(out) if out is not None else run.path.parent / f"eval_{split}"
     for sub in ("images", "depth"):
         ensure_writable_folder(out / sub)

@@ -22,11 +22,12 @@ from mixer_nerf.data import (
     load_blender,
     load_llff,
     load_scene,
+    load_split,
     ndc_rays,
 )
 from mixer_nerf.data.images import check_downscale, downscaled_size
 from mixer_nerf.data.images import downscale as downscale_image
-from mixer_nerf.data.llff import BD_FACTOR, average_pose, llff_to_opengl, recenter_poses
+from mixer_nerf.data.llff import BD_FACTOR, average_pose, llff_to_opengl, recenter_poses, split_indices
 from mixer_nerf.data.procedural import render
 from mixer_nerf.train.sampler import RaySampler
 
@@ -480,3 +481,25 @@ def test_real_fern(shared_data):
     assert torch.isfinite(o).all() and torch.isfinite(d).all()
     torch.testing.assert_close(o[:, 2], torch.full((378 * 504,), -1.0))  # all start on the near plane
     assert (d[:, 2] > 0).all() and ((o + d)[:, 2] - 1).abs().max() < 1e-5  # and end at infinity
+
+
+@pytest.mark.parametrize("n, holdout, val_holdout", [(20, 8, 8), (10, 8, 3), (12, 4, 2), (9, 3, 5)])
+def test_val_holdout_carves_a_val_split_out_of_train(n, holdout, val_holdout):
+    splits = {s: split_indices(n, s, holdout, Path("x"), val_holdout) for s in ("train", "val", "test")}
+    assert np.array_equal(splits["test"], split_indices(n, "test", holdout, Path("x")))  # test never moves
+    assert not set(splits["val"]) & set(splits["test"]) and not set(splits["val"]) & set(splits["train"])
+    assert sorted([*splits["train"], *splits["val"], *splits["test"]]) == list(range(n))
+    assert np.array_equal(split_indices(n, "val", holdout, Path("x")), splits["test"])  # the default
+
+
+def test_val_holdout_reaches_the_llff_loader_and_refuses_blender(llff_scene, blender_scene):
+    val = load_llff(llff_scene, factor=LLFF_FACTOR, split="val", val_holdout=4)
+    train = load_llff(llff_scene, factor=LLFF_FACTOR, val_holdout=4)
+    assert [p.name for p in val.image_paths] == ["img_001.png", "img_005.png"]  # every 4th of 1-7 and 9
+    assert len(train) == 6 and not {p.name for p in val.image_paths} & {p.name for p in train.image_paths}
+    with pytest.raises(DatasetError, match="Blender scenes ship a val split"):
+        load_split(blender_scene, "blender", "val", val_holdout=4)
+    with pytest.raises(ValueError, match="val_holdout must be >= 0"):
+        split_indices(10, "val", 8, Path("x"), -1)
+    with pytest.raises(DatasetError, match="split 'train' is empty"):  # every non-test view to val
+        split_indices(10, "train", 8, Path("x"), 1)

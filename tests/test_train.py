@@ -575,3 +575,23 @@ def test_proposal_sampler_trains_its_networks_and_renders_from_the_checkpoint(tm
     run = load_trained(tmp_path / "checkpoint.pt")
     rays_o, rays_d = trainer.val_scene.rays_for_image(0)
     torch.testing.assert_close(run.render(rays_o, rays_d).color, trainer.render_rgb(rays_o, rays_d))
+
+
+def test_val_holdout_trains_without_the_val_views_and_evaluates_on_them(llff_scene, tmp_path):
+    from mixer_nerf.evaluate import evaluate
+
+    rows = np.load(llff_scene / "poses_bounds.npy")
+    rows[:, [4, 9, 14]] *= 2  # full-resolution H, W, focal doubled: images_4/ reads as the default images_8/
+    np.save(llff_scene / "poses_bounds.npy", rows)
+    (llff_scene / "images_4").rename(llff_scene / "images_8")
+    trainer = Trainer(tiny_config(tmp_path, data=str(llff_scene), val_holdout=4, steps=3), log=quiet)
+    names = lambda scene: [p.name for p in scene.image_paths]  # noqa: E731
+    assert len(trainer.train_scene) == 6 and trainer.val_split == "val"
+    assert not set(names(trainer.train_scene)) & {"img_001.png", "img_005.png", "img_000.png", "img_008.png"}
+    trainer.fit()
+    record = evaluate(tmp_path / "checkpoint.pt", split="val", out=tmp_path / "eval_val", lpips=False, log=quiet)
+    assert [image["name"] for image in record["images"]] == ["img_001.png", "img_005.png"]
+    record = evaluate(tmp_path / "checkpoint.pt", out=tmp_path / "eval_test", lpips=False, log=quiet)
+    assert [image["name"] for image in record["images"]] == ["img_000.png", "img_008.png"]
+    with pytest.raises(ValueError, match="val_holdout must be an integer >= 0"):
+        tiny_config(tmp_path, val_holdout=-1)

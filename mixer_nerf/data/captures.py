@@ -2,8 +2,8 @@
 
 What the loaders of such captures share:
 
-- Views are ordered by file name; the test (= val) split is every ``holdout``-th view from view 0,
-  as for LLFF.
+- Views are ordered by file name; the test split is every ``holdout``-th view from view 0, as for
+  LLFF, and val is the same views unless ``val_holdout`` carves a val split of its own out of train.
 - Every photo is resampled into one pinhole camera (:func:`.camera.shared_pinhole`): lens
   distortion is removed from the images, not the rays. Images are stored as uint8.
 - Forward-facing or 360: a capture is forward-facing when every camera looks within
@@ -62,6 +62,7 @@ def load_capture(
     split: str,
     holdout: int,
     downscale: float,
+    val_holdout: int = 0,
     ndc: bool | None,
     background: str,
 ) -> Scene:
@@ -75,6 +76,8 @@ def load_capture(
         name: the scene's name.
         split: "train", "test", "val" or "all".
         holdout: test stride (0: no test views).
+        val_holdout: 0 (val is the test views) or a val stride among the other views (see
+            :func:`.llff.split_indices`).
         downscale: image shrink factor, any number >= 1.
         ndc: None decides from the cameras (NDC exactly for forward-facing captures); True frames
             the capture as forward-facing with NDC rays; False uses world rays (forward-facing
@@ -102,7 +105,7 @@ def load_capture(
         c2w, use_ndc = _frame_360(c2w), False
         near, far, bbox = NEAR_360, 2.0 * math.sqrt(3.0), torch.tensor([[-1.0] * 3, [1.0] * 3])
 
-    idx = split_indices(len(views), split, holdout, where)
+    idx = split_indices(len(views), split, holdout, where, val_holdout)
     bg = np.array(BACKGROUNDS[background], dtype=np.float32)
     images = np.empty((len(idx), target.height, target.width, 3), dtype=np.uint8)
     for row, i in enumerate(idx):

@@ -37,6 +37,7 @@ def load_colmap(
     split: str = "train",
     holdout: int = 8,
     downscale: float = 1.0,
+    val_holdout: int = 0,
     ndc: bool | None = None,
     background: str = "black",
 ) -> Scene:
@@ -44,9 +45,10 @@ def load_colmap(
 
     Args:
         root: scene folder holding ``images/`` and the model (see the module docstring).
-        split: "train", "test" (every ``holdout``-th image by name, from the first; "val" is the
-            same set) or "all".
+        split: "train", "test" (every ``holdout``-th image by name, from the first), "val" (the
+            test images, or see ``val_holdout``) or "all".
         holdout: test stride; 0 holds out nothing.
+        val_holdout: 0, or a val split of its own: every K-th of the other images (train leaves them out).
         downscale: image shrink factor, any number >= 1.
         ndc: None: NDC exactly for forward-facing captures (see :mod:`.captures`); True/False force it.
         background: "black" or "white", for photos with an alpha channel.
@@ -79,7 +81,7 @@ def load_colmap(
         )
     return load_capture(
         views, model.points, where=folder, name=root.resolve().name, split=split, holdout=holdout,
-        downscale=downscale, ndc=ndc, background=background,
+        downscale=downscale, val_holdout=val_holdout, ndc=ndc, background=background,
     )  # fmt: skip
 
 

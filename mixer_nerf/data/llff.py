@@ -31,6 +31,7 @@ def load_llff(
     split: str = "train",
     holdout: int = 8,
     ndc: bool = True,
+    val_holdout: int = 0,
     downscale: float = 1.0,
 ) -> Scene:
     """Load an LLFF scene.
@@ -43,8 +44,10 @@ def load_llff(
         factor: image downscale; images come from ``images_{factor}/`` and H, W, focal are divided
             by it (checked against the actual image size).
         split: "train" (every view not held out), "test" (every ``holdout``-th view, starting with
-            view 0; "val" is the same set), or "all".
+            view 0), "val" (the test views, or see ``val_holdout``), or "all".
         holdout: test stride; 0 holds out nothing.
+        val_holdout: 0, or a val stride K: every K-th of the views left after the test views is
+            the val split, and train loses them (see :func:`split_indices`).
         ndc: use NDC rays (near 0, far 1, bbox [-1, 1]^3); otherwise world rays with near/far from
             the bounds (0.9 x nearest, farthest) and no bbox.
         downscale: a further shrink of the ``images_{factor}/`` images, any number >= 1
@@ -74,7 +77,7 @@ def load_llff(
     bounds = bounds * scale
     c2w = recenter_poses(c2w)
 
-    idx = split_indices(len(paths), split, holdout, root)
+    idx = split_indices(len(paths), split, holdout, root, val_holdout)
     chosen = [paths[i] for i in idx]
     images = stack_same_size([to_uint8(read_image(p)[..., :3]) for p in chosen], chosen)
     _, H, W, _ = images.shape
@@ -171,15 +174,24 @@ def recenter_poses(c2w: np.ndarray) -> np.ndarray:
     return np.linalg.inv(average_pose(c2w)) @ c2w
 
 
-def split_indices(n: int, split: str, holdout: int, root: Path) -> np.ndarray:
-    """Indices of ``split`` among n views: test is every ``holdout``-th view from view 0."""
+def split_indices(n: int, split: str, holdout: int, root: Path, val_holdout: int = 0) -> np.ndarray:
+    """Indices of ``split`` among n views: test is every ``holdout``-th view from view 0. val is
+    the test views, unless ``val_holdout`` K > 0: then every K-th of the other views, from their
+    first, is a val split of its own that train leaves out, so a recipe can be tuned on val without
+    looking at test."""
+    if val_holdout < 0:
+        raise ValueError(f"val_holdout must be >= 0, got {val_holdout}")
     test = np.arange(n)[::holdout] if holdout > 0 else np.arange(0)
+    rest = np.setdiff1d(np.arange(n), test)
+    val = rest[::val_holdout] if val_holdout > 0 else test
     if split == "all":
         idx = np.arange(n)
-    elif split in ("test", "val"):
+    elif split == "test":
         idx = test
+    elif split == "val":
+        idx = val
     else:
-        idx = np.setdiff1d(np.arange(n), test)
+        idx = np.setdiff1d(rest, val) if val_holdout > 0 else rest
     if idx.size == 0:
         raise DatasetError(f"{root}: split {split!r} is empty ({n} views, holdout {holdout})")
     return idx

@@ -43,6 +43,7 @@ def load_nerfstudio(
     split: str = "train",
     holdout: int = 8,
     downscale: float = 1.0,
+    val_holdout: int = 0,
     ndc: bool | None = None,
     background: str = "black",
 ) -> Scene:
@@ -65,7 +66,7 @@ def load_nerfstudio(
         points = read_ply_points(root / meta["ply_file_path"])
     return load_capture(
         views, points, where=path, name=root.resolve().name, split=split, holdout=holdout,
-        downscale=downscale, ndc=ndc, background=background,
+        downscale=downscale, val_holdout=val_holdout, ndc=ndc, background=background,
     )  # fmt: skip
 
 

@@ -41,6 +41,10 @@ class TrainConfig:
     data: str | None = None  # scene folder; None = the built-in procedural scene
     format: str = option("auto", "scene format (default: detected)", choices=FORMATS)
     downscale: float = option(1.0, "image downscale, any factor >= 1")
+    val_holdout: int = option(
+        0, "captures (LLFF, COLMAP, nerfstudio): validate on every K-th of the views not held out for test, "
+        "which training then leaves out, to tune without looking at test (default 0: validate on the test views)",
+        metavar="K")
     procedural_resolution: int = 100  # image size of the built-in scene
     procedural_views: int = 100  # its number of training views
     preset: str = option("D", "A NeRF, B +SE, C +MLCA, D Mixer-NeRF (default D)", choices=PRESETS)
@@ -164,6 +168,8 @@ class TrainConfig:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
         if not self.downscale >= 1:
             raise ValueError(f"downscale must be >= 1, got {self.downscale}")
+        if not (isinstance(self.val_holdout, int) and self.val_holdout >= 0):
+            raise ValueError(f"val_holdout must be an integer >= 0, got {self.val_holdout!r}")
         if self.lr_hold is not None and not 0 <= self.lr_hold < 1:
             raise ValueError(f"lr_hold must be in [0, 1), got {self.lr_hold}")
         if self.lr_warmup is not None and self.lr_warmup < 0:

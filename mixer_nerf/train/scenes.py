@@ -70,14 +70,15 @@ def camera_file(folder: Path, format: str) -> Path:
     return folder / {"blender": "transforms_train.json", "llff": "poses_bounds.npy", "nerfstudio": TRANSFORMS}[format]
 
 
-def held_out_split(folder: Path, format: str, preferred: str, downscale: float = 1) -> tuple[Scene, str]:
+def held_out_split(folder: Path, format: str, preferred: str, downscale: float = 1,
+                   val_holdout: int = 0) -> tuple[Scene, str]:
     """``preferred`` split ("test" or "val"), else the other one when that one does not exist
     (e.g. a scene shipped without its test views). Returns the scene and the split used."""
     other = {"test": "val", "val": "test"}[preferred]
     try:
-        return load_split(folder, format, preferred, downscale), preferred
+        return load_split(folder, format, preferred, downscale, val_holdout), preferred
     except MissingFileError:
-        return load_split(folder, format, other, downscale), other
+        return load_split(folder, format, other, downscale, val_holdout), other
 
 
 def scene_info(scene: Scene, folder: Path, format: str, cfg: TrainConfig) -> dict[str, Any]:

@@ -171,8 +171,8 @@ class Trainer:
         self.tensorboard = TensorBoardLog(self.files.root / "tensorboard") if tensorboard else None
         set_matmul_precision(cfg.precision)
 
-        self.train_scene = load_split(folder, fmt, "train", cfg.downscale).to(self.device)
-        val_scene, self.val_split = held_out_split(folder, fmt, "val", cfg.downscale)
+        self.train_scene = load_split(folder, fmt, "train", cfg.downscale, cfg.val_holdout).to(self.device)
+        val_scene, self.val_split = held_out_split(folder, fmt, "val", cfg.downscale, cfg.val_holdout)
         self.val_scene = val_scene.to(self.device)
         self.cfg = cfg = resolve_sampler(cfg, self.train_scene.bbox, self.train_scene.ndc)
         self.scene = scene_info(self.train_scene, folder, fmt, cfg)
