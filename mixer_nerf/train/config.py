@@ -61,6 +61,8 @@ class TrainConfig:
     lr_hold: float | None = option(None, "fraction of the run at --lr before the decay to --lr-final starts "
                                    "(default: occupancy sampler 0.5, hierarchical 0)", metavar="FRACTION")
     adam_eps: float = 1e-15  # nerfacc's value; it beat PyTorch's 1e-8 (docs/training.md)
+    # Off by default: a remedy for loss spikes in long runs, not yet measured (docs/training.md).
+    grad_clip: float | None = None  # most global gradient norm before each optimizer step; None: no clipping
     seed: int = option(0, "random seed")
     precision: str | None = option(
         None, "MLP precision (default: tf32 on CUDA, fp32 on CPU)", choices=PRECISIONS
@@ -184,8 +186,10 @@ class TrainConfig:
         _one_of("proposal_jitter", self.proposal_jitter, JITTERS)
         if not self.proposal_weight_padding >= 0:
             raise ValueError(f"proposal_weight_padding must be >= 0, got {self.proposal_weight_padding}")
-        if not self.adam_eps > 0:
-            raise ValueError(f"adam_eps must be positive, got {self.adam_eps}")
+        if not 0 < self.adam_eps < math.inf:
+            raise ValueError(f"adam_eps must be positive and finite, got {self.adam_eps}")
+        if self.grad_clip is not None and not 0 < self.grad_clip < math.inf:
+            raise ValueError(f"grad_clip must be a positive, finite norm or None, got {self.grad_clip}")
         if self.time_budget is not None and not 0 < self.time_budget < math.inf:
             raise ValueError(f"time_budget must be a positive, finite number of seconds, got {self.time_budget}")
         for name in ("val_images", "render_samples", "target_samples"):  # None: chosen per machine
