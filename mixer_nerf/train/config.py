@@ -60,9 +60,15 @@ class TrainConfig:
     )
     lr_hold: float | None = option(None, "fraction of the run at --lr before the decay to --lr-final starts "
                                    "(default: occupancy sampler 0.5, hierarchical 0)", metavar="FRACTION")
-    adam_eps: float = 1e-15  # nerfacc's value; it beat PyTorch's 1e-8 (docs/training.md)
+    # nerfacc's value; it beat PyTorch's 1e-8 (docs/training.md)
+    adam_eps: float = option(
+        1e-15, "Adam's epsilon, added to the gradients' running RMS in each update's denominator: a larger "
+        "value damps the steps of parameters whose gradients are small (default 1e-15)", metavar="EPS")
     # Off by default: a remedy for loss spikes in long runs, not yet measured (docs/training.md).
-    grad_clip: float | None = None  # most global gradient norm before each optimizer step; None: no clipping
+    grad_clip: float | None = option(
+        None, "scale the gradients of the trained networks (field and proposal networks) down so that "
+        "their global norm is at most NORM before each optimizer step, against loss spikes in long runs "
+        "(default: no clipping)", metavar="NORM")
     seed: int = option(0, "random seed")
     precision: str | None = option(
         None, "MLP precision (default: tf32 on CUDA, fp32 on CPU)", choices=PRECISIONS
