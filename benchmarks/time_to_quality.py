@@ -250,7 +250,7 @@ TRAINER_OPTIONS = (
     "target_samples", "batch_rays", "precision", "lr", "lr_final", "lr_warmup", "lr_hold", "bf16_density_passes",
     "adam_eps", "early_stop_eps", "empty_space_weight", "grid_warmup", "grid_every", "grid_threshold", "step_size",
     "proposal_width", "proposal_samples", "proposal_update_every", "proposal_jitter", "proposal_weight_padding",
-    "val_holdout")
+    "val_holdout", "grad_clip")
 """Options of ours passed to TrainConfig only when given: unset, they keep the trainer's defaults."""
 
 
@@ -341,6 +341,9 @@ def main() -> None:
     parser.add_argument("--val-holdout", type=int, metavar="K",
                         help="captures: validate on every K-th non-test view, left out of training (tuning "
                         "without the test views; default: validate on the test views)")
+    parser.add_argument("--grad-clip", type=float, metavar="NORM",
+                        help="ours: clip the global gradient norm to NORM before each optimizer step, "
+                             "against loss spikes in long runs (default: the trainer's, no clipping)")
     parser.add_argument("--early-stop-eps", type=float,
                         help="ours, occupancy sampler: early ray termination (0: off; default: the trainer's)")
     parser.add_argument("--empty-space-weight", type=float,
@@ -372,6 +375,8 @@ def main() -> None:
         parser.error("--skip-report needs --method ours --sampler occupancy")
     if args.run_dir is not None and args.method == "nerfacc":
         parser.error("--run-dir needs --method ours or nerfacc-proposal")
+    if args.grad_clip is not None and args.method != "ours":
+        parser.error("--grad-clip needs --method ours (nerfacc's estimator steps its own optimizer)")
     if args.stop_after != math.inf and args.run_dir is None:
         parser.error("--stop-after needs --run-dir (a stopped run is resumed from there)")
 

@@ -84,6 +84,16 @@ def test_no_data_uses_the_demo_settings_and_typed_flags_win():
     assert parse_train("--lr-hold", "0.6").lr_hold == 0.6
 
 
+def test_grad_clip_and_adam_eps_reach_the_config_of_train_and_ablate_and_default_to_off():
+    cfg = parse_train("--grad-clip", "0.5", "--adam-eps", "1e-8")
+    assert (cfg.grad_clip, cfg.adam_eps) == (0.5, 1e-8)
+    assert (parse_train().grad_clip, parse_train().adam_eps) == (None, 1e-15)
+    args = cli.build_parser().parse_args(["ablate", "--out", "x", "--grad-clip", "2", "--adam-eps", "1e-10"])
+    assert (args.grad_clip, args.adam_eps) == (2.0, 1e-10)
+    with pytest.raises(ValueError, match="grad_clip must be a positive, finite norm"):
+        parse_train("--grad-clip", "0")
+
+
 def test_data_uses_the_full_defaults():
     cfg = parse_train("--data", "scenes/lego", "--preset", "A", "--time-budget", "30", "--ckpt-every", "7")
     assert cfg.data == "scenes/lego" and cfg.steps == 50_000 and cfg.batch_rays == 4096

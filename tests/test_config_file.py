@@ -64,6 +64,20 @@ def test_a_runs_config_json_is_read_back_and_flags_override_it(tmp_path):
     assert (cfg.steps, cfg.out, cfg.data, cfg.lr) == (5, "runs/new", "scenes/ship", 3e-3)
 
 
+def test_a_config_json_from_before_grad_clip_reads_as_unclipped(tmp_path):
+    train = TrainConfig(data="scenes/fern", steps=30_000).to_dict()
+    del train["grad_clip"]
+    path = tmp_path / "config.json"
+    path.write_text(json.dumps({"train": train, "model": {}}))
+    assert read_config_file(path)["steps"] == 30_000
+    cfg = parse_train("--config", str(path))
+    assert cfg.grad_clip is None and cfg.steps == 30_000
+    assert parse_train("--config", str(path), "--grad-clip", "1").grad_clip == 1.0
+    null = tmp_path / "null.json"
+    null.write_text('{"grad_clip": null, "adam_eps": 1e-8}')
+    assert read_config_file(null) == {"grad_clip": None, "adam_eps": 1e-8}
+
+
 def test_a_toml_table_of_some_settings_starts_from_the_defaults(tmp_path):
     path = tmp_path / "lego.toml"
     path.write_text('data = "scenes/lego"\npreset = "A"\nlr_hold = 0\nproposal_rounds = [32, 16]\n')

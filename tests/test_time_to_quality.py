@@ -6,6 +6,8 @@ from __future__ import annotations
 import json
 import sys
 
+import pytest
+
 from test_cli import TINY_DEMO
 
 from benchmarks import time_to_quality
@@ -37,6 +39,28 @@ def test_a_stopped_curve_resumes_from_its_run_dir(tmp_path, monkeypatch, capsys)
     assert len(points) == 2 and points[0] == first["curve"][0]
     assert 0.5 <= points[0]["seconds"] < points[1]["seconds"] and points[1]["seconds"] >= 1.5
     assert points[1]["step"] > state["step"] >= points[0]["step"]
+
+
+def test_grad_clip_and_adam_eps_reach_our_trainers_config_and_clip_only_ours(tmp_path, monkeypatch, capsys):
+    import mixer_nerf.train
+
+    class Built(Exception):
+        pass
+
+    def trainer(cfg, **kwargs):
+        raise Built(cfg)
+
+    scene = ensure_procedural_scene(resolution=16, n_train=4, n_val=2, n_test=2)
+    monkeypatch.setattr(mixer_nerf.train, "Trainer", trainer)
+    argv = ["--device", "cpu", "--data", str(scene), "--out", str(tmp_path), "--grad-clip", "0.5",
+            "--adam-eps", "1e-8"]
+    with pytest.raises(Built) as built:
+        run(monkeypatch, "--method", "ours", *argv)
+    (cfg,) = built.value.args
+    assert (cfg.grad_clip, cfg.adam_eps) == (0.5, 1e-8)
+    with pytest.raises(SystemExit):
+        run(monkeypatch, "--method", "nerfacc-proposal", *argv)
+    assert "--grad-clip needs --method ours" in capsys.readouterr().err
 
 
 def test_plot_adds_runs_from_side_by_side_files_in_place_of_their_labels(tmp_path, monkeypatch):

@@ -102,6 +102,11 @@ def params_of(trainer: Trainer) -> dict[str, torch.Tensor]:
         ("backend", "cuda"),
         ("lr", 0.0),
         ("adam_eps", 0.0),
+        ("adam_eps", math.inf),
+        ("grad_clip", 0.0),
+        ("grad_clip", -1.0),
+        ("grad_clip", math.inf),
+        ("grad_clip", math.nan),
         ("time_budget", -1.0),
         ("lr_warmup", -1),
         ("lr_hold", 1.0),
@@ -431,6 +436,49 @@ def test_unwritable_output_is_reported(tmp_path):
     blocker.write_text("not a folder")
     with pytest.raises(OutputError, match="not writable"):
         Trainer(tiny_config(blocker / "run"), log=quiet)
+
+
+def grad_norm(trainer: Trainer) -> float:
+    """The global norm of the gradients the last step gave Adam (a step leaves them in place)."""
+    grads = [p.grad for p in trainer.params if p.grad is not None]
+    return float(torch.linalg.vector_norm(torch.stack(torch._foreach_norm(grads))))
+
+
+def test_grad_clip_bounds_the_global_gradient_norm_without_host_reads(tmp_path):
+    """The field's and the proposal networks' gradients together; clipping adds no ``.item()``."""
+    runs = {}
+    for clip in (None, 1e-3):
+        trainer = Trainer(tiny_config(tmp_path / str(clip), sampler="proposal", proposal_rounds=(12, 8),
+                                      proposal_samples=6, proposal_update_every=1, grad_clip=clip), log=quiet)
+        with dispatched_ops() as ops:
+            trainer.train_step()
+        assert all(p.grad is not None for p in trainer.fields.proposal.parameters())
+        runs[clip] = (grad_norm(trainer), ops["aten._local_scalar_dense"])
+    assert runs[None][0] > 1e-2  # so 1e-3 clips
+    assert 0 < runs[1e-3][0] <= 1e-3 * (1 + 1e-5)
+    assert runs[1e-3][1] == runs[None][1]
+
+
+def test_a_clipped_run_trains_and_keeps_its_clip_in_config_json_and_on_resume(tmp_path):
+    import json
+
+    proposal = dict(sampler="proposal", proposal_rounds=(12, 8), proposal_samples=6)
+    summary = Trainer(tiny_config(tmp_path, grad_clip=0.5, **proposal), log=quiet).fit()
+    assert summary["status"] == "finished" and summary["step"] == 6
+    saved = json.loads((tmp_path / "config.json").read_text())["train"]
+    assert saved["grad_clip"] == 0.5 and TrainConfig.from_dict(saved).grad_clip == 0.5
+    resumed = Trainer(tiny_config(tmp_path, steps=8, **proposal), resume=True, log=quiet)
+    assert resumed.cfg.grad_clip == 0.5  # not retyped: the run continues clipped
+
+
+def test_a_checkpoint_from_before_grad_clip_resumes_unclipped(tmp_path):
+    Trainer(tiny_config(tmp_path), log=quiet).save()
+    path = tmp_path / "checkpoint.pt"
+    state = load_checkpoint(path)
+    del state["train_config"]["grad_clip"]
+    save_checkpoint(path, state)
+    resumed = Trainer(tiny_config(tmp_path), resume=True, log=quiet)
+    assert resumed.cfg.grad_clip is None and resumed.step == 0
 
 
 # -- non-finite guard -------------------------------------------------------------------------------

@@ -250,6 +250,9 @@ class Trainer:
             mean.finish()
         if cfg.check_grads:
             self.guard.observe_grads(step, [p.grad for p in self.params])
+        if cfg.grad_clip is not None:
+            # After the ranks' mean and the guard (it names the bad parameter); scaled on the device, no sync
+            torch.nn.utils.clip_grad_norm_(self.params, cfg.grad_clip, foreach=True)
         self.optimizer.step()
         self.step = step
         return {"loss": loss.detach(), "mse": losses.get("loss_fine", losses["loss_coarse"]).detach()}
