@@ -64,6 +64,15 @@ def test_a_runs_config_json_is_read_back_and_flags_override_it(tmp_path):
     assert (cfg.steps, cfg.out, cfg.data, cfg.lr) == (5, "runs/new", "scenes/ship", 3e-3)
 
 
+def test_a_config_from_before_a_setting_existed_reads_with_its_default(tmp_path):
+    older = TrainConfig(data="scenes/fern", sampler="proposal").to_dict()
+    del older["distortion_weight"]
+    path = tmp_path / "config.json"
+    path.write_text(json.dumps({"train": older, "model": {}}))
+    assert parse_train("--config", str(path)).distortion_weight == 0.0
+    assert TrainConfig.from_dict(older).distortion_weight == 0.0  # a checkpoint's train_config
+
+
 def test_a_toml_table_of_some_settings_starts_from_the_defaults(tmp_path):
     path = tmp_path / "lego.toml"
     path.write_text('data = "scenes/lego"\npreset = "A"\nlr_hold = 0\nproposal_rounds = [32, 16]\n')

@@ -5,6 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
+from dispatch_count import dispatched_ops
 from mixer_nerf.render.skipping import distortion_loss
 
 
@@ -72,3 +73,11 @@ def test_spreading_weight_apart_costs_more_than_keeping_it_together():
 def test_rejects_mismatched_shapes(shapes):
     with pytest.raises(ValueError, match="weights"):
         distortion_loss(torch.rand(*shapes[0]), torch.rand(*shapes[1]))
+
+
+def test_forward_and_backward_never_read_a_value_back_to_the_host():
+    weights, edges = random_rays(8, 5, torch.float32)
+    weights.requires_grad_(True)
+    with dispatched_ops() as ops:
+        distortion_loss(weights, edges).backward()
+    assert "aten._local_scalar_dense" not in ops and "aten.item" not in ops, ops  # a GPU sync each
