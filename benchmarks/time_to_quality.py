@@ -249,7 +249,8 @@ def nerfacc_proposal_method(args, train, val, device) -> Method:
 TRAINER_OPTIONS = (
     "target_samples", "batch_rays", "precision", "lr", "lr_final", "lr_warmup", "lr_hold", "bf16_density_passes",
     "adam_eps", "early_stop_eps", "empty_space_weight", "grid_warmup", "grid_every", "grid_threshold", "step_size",
-    "proposal_width", "proposal_samples", "proposal_update_every", "proposal_jitter", "proposal_weight_padding")
+    "proposal_width", "proposal_samples", "proposal_update_every", "proposal_jitter", "proposal_weight_padding",
+    "distortion_weight")
 """Options of ours passed to TrainConfig only when given: unset, they keep the trainer's defaults."""
 
 
@@ -336,6 +337,9 @@ def main() -> None:
                         help="ours, proposal sampler: stratified jitter per sample or one offset per ray")
     parser.add_argument("--proposal-weight-padding", type=float,
                         help="ours, proposal sampler: added to each proposal weight before resampling")
+    parser.add_argument("--distortion-weight", type=float,
+                        help="ours, proposal sampler: weight of mip-NeRF 360's distortion loss (0: off; "
+                             "default: the trainer's, 0)")
     parser.add_argument("--adam-eps", type=float, help="ours: Adam's epsilon (default: the trainer's)")
     parser.add_argument("--early-stop-eps", type=float,
                         help="ours, occupancy sampler: early ray termination (0: off; default: the trainer's)")
