@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 import torch
-
 from dispatch_count import dispatched_ops
+
 from mixer_nerf.render.skipping import distortion_loss
 
 

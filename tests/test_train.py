@@ -323,7 +323,7 @@ def test_auto_sampler_marches_bounded_scenes_and_proposes_for_forward_facing_and
 def test_distortion_weight_is_refused_for_samplers_other_than_proposal():
     box = torch.tensor([[-1.0] * 3, [1.0] * 3])
     for sampler in ("occupancy", "hierarchical"):
-        with pytest.raises(ValueError, match=f"distortion_weight applies to the proposal sampler only.*{sampler}"):
+        with pytest.raises(ValueError, match=f"applies to the proposal sampler only.*{sampler}"):
             TrainConfig(sampler=sampler, distortion_weight=0.01)
     auto = TrainConfig(sampler="auto", distortion_weight=0.01)
     assert resolve_sampler(auto, box, ndc=True).distortion_weight == 0.01  # "auto" picks proposal in NDC
