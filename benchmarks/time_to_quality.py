@@ -250,7 +250,7 @@ TRAINER_OPTIONS = (
     "target_samples", "batch_rays", "precision", "lr", "lr_final", "lr_warmup", "lr_hold", "bf16_density_passes",
     "adam_eps", "early_stop_eps", "empty_space_weight", "grid_warmup", "grid_every", "grid_threshold", "step_size",
     "proposal_width", "proposal_samples", "proposal_update_every", "proposal_jitter", "proposal_weight_padding",
-    "val_holdout", "grad_clip")
+    "val_holdout", "grad_clip", "distortion_weight")
 """Options of ours passed to TrainConfig only when given: unset, they keep the trainer's defaults."""
 
 
@@ -337,6 +337,9 @@ def main() -> None:
                         help="ours, proposal sampler: stratified jitter per sample or one offset per ray")
     parser.add_argument("--proposal-weight-padding", type=float,
                         help="ours, proposal sampler: added to each proposal weight before resampling")
+    parser.add_argument("--distortion-weight", type=float,
+                        help="ours, proposal sampler: weight of mip-NeRF 360's distortion loss (0: off; "
+                             "default: the trainer's, 0)")
     parser.add_argument("--adam-eps", type=float, help="ours: Adam's epsilon (default: the trainer's)")
     parser.add_argument("--val-holdout", type=int, metavar="K",
                         help="captures: validate on every K-th non-test view, left out of training (tuning "

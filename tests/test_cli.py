@@ -130,6 +130,19 @@ def test_usage_errors_exit_2(argv, capsys):
     assert info.value.code == 2
 
 
+def test_distortion_weight_flag_reaches_the_config_and_is_refused_off_the_proposal_sampler(capsys, tmp_path):
+    assert parse_train("--data", "scenes/fern", "--distortion-weight", "0.002").distortion_weight == 0.002
+    assert parse_train("--data", "scenes/fern").distortion_weight == 0.0
+    with pytest.raises(SystemExit):
+        cli.main(["train", "--help"])
+    usage = " ".join(capsys.readouterr().out.split())
+    assert "--distortion-weight W proposal sampler:" in usage and "(default 0: off;" in usage
+    # no --data: the demo's hierarchical sampler
+    assert cli.main(["train", "--distortion-weight", "0.01", "--out", str(tmp_path), *TINY_FLAGS]) == 1
+    err = capsys.readouterr().err
+    assert "distortion_weight applies to the proposal sampler only" in err and "Traceback" not in err
+
+
 def test_invalid_setting_is_one_line(capsys, tmp_path):
     assert cli.main(["train", "--steps", "0", "--out", str(tmp_path), *TINY_FLAGS]) == 1
     err = capsys.readouterr().err

@@ -64,14 +64,21 @@ def test_a_runs_config_json_is_read_back_and_flags_override_it(tmp_path):
     assert (cfg.steps, cfg.out, cfg.data, cfg.lr) == (5, "runs/new", "scenes/ship", 3e-3)
 
 
-def test_a_config_json_from_before_grad_clip_reads_as_unclipped(tmp_path):
-    train = TrainConfig(data="scenes/fern", steps=30_000).to_dict()
-    del train["grad_clip"]
+@pytest.mark.parametrize("setting, default", [("grad_clip", None), ("distortion_weight", 0.0), ("val_holdout", 0)])
+def test_a_config_from_before_a_setting_existed_reads_with_its_default(tmp_path, setting, default):
+    older = TrainConfig(data="scenes/fern", sampler="proposal", steps=30_000).to_dict()
+    del older[setting]
     path = tmp_path / "config.json"
-    path.write_text(json.dumps({"train": train, "model": {}}))
+    path.write_text(json.dumps({"train": older, "model": {}}))
     assert read_config_file(path)["steps"] == 30_000
     cfg = parse_train("--config", str(path))
-    assert cfg.grad_clip is None and cfg.steps == 30_000
+    assert getattr(cfg, setting) == default and cfg.steps == 30_000
+    assert getattr(TrainConfig.from_dict(older), setting) == default  # a checkpoint's train_config
+
+
+def test_grad_clip_and_adam_eps_in_a_config_file_and_on_the_command_line(tmp_path):
+    path = tmp_path / "config.json"
+    path.write_text(json.dumps({"train": TrainConfig(data="scenes/fern").to_dict(), "model": {}}))
     assert parse_train("--config", str(path), "--grad-clip", "1").grad_clip == 1.0
     null = tmp_path / "null.json"
     null.write_text('{"grad_clip": null, "adam_eps": 1e-8}')

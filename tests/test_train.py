@@ -7,6 +7,7 @@ kernels building, on a 16x16 procedural scene rendered into a per-session cache.
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 import os
 
@@ -24,6 +25,7 @@ from mixer_nerf.train import (
     load_trained,
     save_checkpoint,
 )
+from mixer_nerf.render.skipping import render_rays_proposal
 from mixer_nerf.train.checkpoint import capture_rng_state, restore_rng_state
 from mixer_nerf.train.sampling import resolve_sampler
 from mixer_nerf.train.guard import NonFiniteGuard
@@ -117,6 +119,9 @@ def params_of(trainer: Trainer) -> dict[str, torch.Tensor]:
         ("proposal_update_every", 0),
         ("proposal_jitter", "per_bin"),
         ("proposal_weight_padding", -1e-4),
+        ("distortion_weight", -1e-3),
+        ("distortion_weight", math.nan),
+        ("distortion_weight", math.inf),
     ],
 )
 def test_config_rejects_bad_values_naming_them(field, value):
@@ -318,6 +323,18 @@ def test_auto_sampler_marches_bounded_scenes_and_proposes_for_forward_facing_and
     assert resolve_sampler(TrainConfig(sampler="occupancy"), box, ndc=True).sampler == "occupancy"
     with pytest.raises(ValueError, match="needs a scene box"):
         resolve_sampler(TrainConfig(sampler="occupancy"), None, ndc=False)
+
+
+def test_distortion_weight_is_refused_for_samplers_other_than_proposal():
+    box = torch.tensor([[-1.0] * 3, [1.0] * 3])
+    for sampler in ("occupancy", "hierarchical"):
+        with pytest.raises(ValueError, match=f"applies to the proposal sampler only.*{sampler}"):
+            TrainConfig(sampler=sampler, distortion_weight=0.01)
+    auto = TrainConfig(sampler="auto", distortion_weight=0.01)
+    assert resolve_sampler(auto, box, ndc=True).distortion_weight == 0.01  # "auto" picks proposal in NDC
+    with pytest.raises(ValueError, match="'auto' chose 'occupancy'"):  # only the scene decides "auto"
+        resolve_sampler(auto, box, ndc=False)
+    assert resolve_sampler(TrainConfig(sampler="occupancy"), box, ndc=False).distortion_weight == 0.0
 
 
 def test_lr_warms_up_linearly_then_decays_exponentially(tmp_path):
@@ -605,6 +622,36 @@ def test_proposal_networks_learn_only_at_their_update_steps(tmp_path):
         changed = {k for k in before if not torch.equal(before[k], after[k])}
         assert any(k.startswith("proposal.") for k in changed) == due, step
         assert any(not k.startswith("proposal.") for k in changed), step
+
+
+def test_distortion_loss_trains_the_main_field_with_the_proposal_sampler(tmp_path):
+    trainer = Trainer(tiny_config(tmp_path, sampler="proposal", proposal_rounds=(12, 8), proposal_samples=6,
+                                  distortion_weight=0.01, steps=3), log=quiet)
+    seen = []
+    observe = trainer.guard.observe_losses
+
+    def record(step, **losses):
+        seen.append({k: (v.detach().clone(), v.requires_grad) for k, v in losses.items()})
+        observe(step, **losses)
+
+    trainer.guard.observe_losses = record
+    trainer.fit()
+    assert len(seen) == 3
+    for losses in seen:
+        value, with_grad = losses["loss_distortion"]
+        assert torch.isfinite(value) and value > 0 and with_grad
+    fields = trainer.fields
+    out, samples = render_rays_proposal(trainer.coarse_field, fields.proposal, *trainer.sampler.sample()[:2],
+                                        trainer.train_scene.near, trainer.train_scene.far, backend="torch")
+    assert out.weights.shape == (32, 6) and samples.edges.shape == (32, 7)  # matching (R, N), (R, N + 1)
+    assert samples.edges.min() >= 0 and samples.edges.max() <= 1  # s, not t in [near, far] = [2, 6]
+    assert json.loads((tmp_path / "config.json").read_text())["train"]["distortion_weight"] == 0.01
+
+
+def test_proposal_runs_without_a_distortion_weight_have_no_distortion_loss(tmp_path):
+    trainer = Trainer(tiny_config(tmp_path, sampler="proposal", proposal_rounds=(12, 8), proposal_samples=6),
+                      log=quiet)
+    assert "loss_distortion" not in trainer._proposal_losses(*trainer.sampler.sample())
 
 
 def test_proposal_sampler_trains_its_networks_and_renders_from_the_checkpoint(tmp_path):

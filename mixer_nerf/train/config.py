@@ -140,6 +140,11 @@ class TrainConfig:
     proposal_weight_padding: float = option(
         0.0, "proposal sampler: added to every proposal weight before resampling, so that no part of "
         "a ray is given up (default 0: none)")
+    # Against floaters (a 600 s Fern run overfits); off until a screen measures it.
+    distortion_weight: float = option(
+        0.0, "proposal sampler: weight of mip-NeRF 360's distortion loss on the main field's weights, "
+        "which gathers each ray's weight into few short intervals (default 0: off; nerfacto uses 0.002)",
+        metavar="W")
     tensorboard: bool = option(
         False, "log losses, PSNR, learning rate, samples per ray, rays/s and validation renders to "
         "<out>/tensorboard (needs .[tensorboard])"
@@ -198,6 +203,11 @@ class TrainConfig:
         _one_of("proposal_jitter", self.proposal_jitter, JITTERS)
         if not self.proposal_weight_padding >= 0:
             raise ValueError(f"proposal_weight_padding must be >= 0, got {self.proposal_weight_padding}")
+        if not (math.isfinite(self.distortion_weight) and self.distortion_weight >= 0):
+            raise ValueError(f"distortion_weight must be finite and >= 0, got {self.distortion_weight}")
+        if self.distortion_weight > 0 and self.sampler not in ("auto", "proposal"):
+            raise ValueError(f"distortion_weight applies to the proposal sampler only, not to sampler "
+                             f"{self.sampler!r}")
         if not 0 < self.adam_eps < math.inf:
             raise ValueError(f"adam_eps must be positive and finite, got {self.adam_eps}")
         if self.grad_clip is not None and not 0 < self.grad_clip < math.inf:

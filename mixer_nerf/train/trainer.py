@@ -18,7 +18,13 @@ import torch.nn.functional as F
 from ..data import load_split
 from ..metrics import psnr
 from ..render import render_rays
-from ..render.skipping import proposal_loss, proposal_update_due, render_rays_proposal, shade_samples
+from ..render.skipping import (
+    distortion_loss,
+    proposal_loss,
+    proposal_update_due,
+    render_rays_proposal,
+    shade_samples,
+)
 from .checkpoint import capture_rng_state, load_checkpoint, restore_rng_state, save_checkpoint
 from .config import TrainConfig
 from .distributed import join, rank_seed, restore_rank_sampler
@@ -291,7 +297,11 @@ class Trainer:
             train_proposal=update)
         self.samples_seen += samples.t_starts.numel()
         loss = proposal_loss(samples.rounds, samples.edges, out.weights) if update else out.color.new_zeros(())
-        return {"loss_coarse": F.mse_loss(out.color, target), "loss_proposal": cfg.proposal_loss_weight * loss}
+        losses = {"loss_coarse": F.mse_loss(out.color, target),
+                  "loss_proposal": cfg.proposal_loss_weight * loss}
+        if cfg.distortion_weight > 0:  # the edges are in s (no gradient): only the main field's weights learn
+            losses["loss_distortion"] = cfg.distortion_weight * distortion_loss(out.weights, samples.edges)
+        return losses
 
     def _marched_losses(self, batch: MarchedBatch) -> dict[str, torch.Tensor]:
         cfg = self.cfg

@@ -9,8 +9,10 @@ samples (early ray termination) and rays that miss the scene (box clipping), on 
   the trainer uses them.
 - :class:`ProposalSampler`, :func:`render_rays_proposal`, :func:`proposal_loss`,
   :func:`proposal_update_due`: proposal networks for scenes a grid cannot prune (forward-facing, unbounded).
+- :func:`distortion_loss`: mip-NeRF 360's regulariser of the proposal sampler's main field.
 """
 
+from .distortion import distortion_loss
 from .marching import (
     MarchedResult,
     MarchedSamples,
@@ -43,6 +45,7 @@ __all__ = [
     "ProposalOptions",
     "ProposalSampler",
     "SampleBudget",
+    "distortion_loss",
     "march_samples",
     "proposal_loss",
     "proposal_update_due",
