@@ -269,6 +269,7 @@ def test_run_writes_logs_plot_summary_and_a_loadable_checkpoint(tmp_path):
     rows = trainer.train_log.rows()
     assert [int(r["step"]) for r in rows] == list(range(1, 7))
     assert all(math.isfinite(float(r["loss"])) and float(r["rays_per_s"]) > 0 for r in rows)
+    assert all(float(r["grad_norm"]) > 0 for r in rows)
     assert [int(r["step"]) for r in trainer.val_log.rows()] == [3, 6]
     run = load_trained(tmp_path / "checkpoint.pt")
     assert run.step == 6
@@ -690,3 +691,16 @@ def test_val_holdout_trains_without_the_val_views_and_evaluates_on_them(llff_sce
     assert [image["name"] for image in record["images"]] == ["img_000.png", "img_008.png"]
     with pytest.raises(ValueError, match="val_holdout must be an integer >= 0"):
         tiny_config(tmp_path, val_holdout=-1)
+
+
+def test_the_logged_gradient_norm_is_the_clipped_one(tmp_path):
+    trainer = Trainer(tiny_config(tmp_path, grad_clip=1e-4, steps=3), log=quiet)
+    trainer.fit()
+    assert all(0 < float(r["grad_norm"]) <= 1e-4 * (1 + 1e-5) for r in trainer.train_log.rows())
+
+
+def test_a_log_from_an_earlier_version_keeps_its_columns(tmp_path):
+    log = CsvLog(tmp_path / "train_log.csv")
+    log.append({"step": 1, "loss": 0.5})
+    log.append({"step": 2, "loss": 0.25, "grad_norm": 3.0})  # a column a later version added
+    assert log.rows() == [{"step": "1", "loss": "0.5"}, {"step": "2", "loss": "0.25"}]

@@ -10,7 +10,8 @@ from .output import atomic_path
 
 
 class CsvLog:
-    """An append-only CSV table whose columns are fixed by the first row written.
+    """An append-only CSV table whose columns are fixed by the first row written (a resumed run
+    keeps its table's columns: keys added by a later version are left out of it).
 
     On resume, :meth:`truncate_after` drops the rows a killed run logged after its last
     checkpoint, so the table matches the state training continues from.
@@ -22,7 +23,7 @@ class CsvLog:
     def append(self, row: dict[str, Any]) -> None:
         new = not self.path.exists() or self.path.stat().st_size == 0
         with self.path.open("a", newline="") as f:
-            writer = csv.DictWriter(f, fieldnames=list(self.fieldnames() or row))
+            writer = csv.DictWriter(f, fieldnames=list(self.fieldnames() or row), extrasaction="ignore")
             if new:
                 writer.writeheader()
             writer.writerow(row)

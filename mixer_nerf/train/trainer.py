@@ -501,12 +501,20 @@ class Trainer:
             "psnr": -10.0 * math.log10(max(mse, 1e-30)),
             "rays_per_s": round(rays_per_s, 1),
             "samples_per_ray": round(self.samples_seen / max(self.rays_seen, 1), 2),
+            "grad_norm": self._grad_norm(),
         }
         self.train_log.append(row)
         if self.tensorboard is not None:
             scalars = {f"train/{k}": v for k, v in row.items() if k not in ("step", "seconds")}
             self.tensorboard.scalars(self.step, scalars)
         bar.set_postfix(loss=f"{loss:.4f}", psnr=f"{row['psnr']:.2f}", rays_s=f"{rays_per_s:,.0f}")
+
+    @torch.no_grad()
+    def _grad_norm(self) -> float:
+        """Global norm of the last step's gradients (after ``grad_clip``): what a clip bound is chosen
+        against. Read only at log steps, which synchronise anyway."""
+        grads = [p.grad for p in self.params if p.grad is not None]
+        return float(torch.linalg.vector_norm(torch.stack(torch._foreach_norm(grads)))) if grads else 0.0
 
     def _log_validation(self) -> None:
         if self.rank:
