@@ -191,7 +191,7 @@ def split_indices(n: int, split: str, holdout: int, root: Path, val_holdout: int
     elif split == "val":
         idx = val
     else:
-        idx = np.setdiff1d(rest, val) if val_holdout > 0 else rest
+        idx = np.setdiff1d(rest, val)  # val is among the test views unless carved out of the rest
     if idx.size == 0:
         raise DatasetError(f"{root}: split {split!r} is empty ({n} views, holdout {holdout})")
     return idx
