@@ -249,8 +249,8 @@ def nerfacc_proposal_method(args, train, val, device) -> Method:
 TRAINER_OPTIONS = (
     "target_samples", "batch_rays", "precision", "lr", "lr_final", "lr_warmup", "lr_hold", "bf16_density_passes",
     "adam_eps", "early_stop_eps", "empty_space_weight", "grid_warmup", "grid_every", "grid_threshold", "step_size",
-    "proposal_width", "proposal_samples", "proposal_update_every", "proposal_jitter", "proposal_weight_padding",
-    "val_holdout", "grad_clip", "distortion_weight")
+    "proposal_width", "proposal_samples", "proposal_update_every", "proposal_jitter",
+    "proposal_weight_padding", "val_holdout", "grad_clip", "distortion_weight")
 """Options of ours passed to TrainConfig only when given: unset, they keep the trainer's defaults."""
 
 
@@ -387,7 +387,8 @@ def main() -> None:
     torch.backends.cuda.matmul.allow_tf32 = True
     torch.backends.cudnn.allow_tf32 = True
     device = torch.device(args.device)
-    splits = {"val_holdout": args.val_holdout} if args.val_holdout else {}  # Blender's loader has no such split
+    # only when asked: Blender's loader has no such split
+    splits = {"val_holdout": args.val_holdout} if args.val_holdout else {}
     train = load_scene(args.data, split="train", **splits).to(device)
     val = load_scene(args.data, split="val", **splits).to(device)
     checkpoints = [float(c) for c in args.checkpoints.split(",")]

@@ -273,7 +273,9 @@ def run_ablate(args: argparse.Namespace) -> int:
     print(f"table: {Path(args.out) / 'ablation.md'}")
     for row in table["presets"]:
         psnr = "-" if row["psnr_mean"] is None else f"{row['psnr_mean']:.2f} dB"
-        print(f"  preset {row['preset']} ({row['model']}): held-out PSNR {psnr} over {row['seeds']} seed(s)")
+        scored = sum(r["preset"] == row["preset"] and r["psnr"] is not None for r in table["runs"])
+        print(f"  preset {row['preset']} ({row['model']}): held-out PSNR {psnr} "
+              f"over {scored} of {row['seeds']} run(s)")
     return 0
 
 

@@ -98,7 +98,8 @@ def test_data_uses_the_full_defaults():
     cfg = parse_train("--data", "scenes/lego", "--preset", "A", "--time-budget", "30", "--ckpt-every", "7")
     assert cfg.data == "scenes/lego" and cfg.steps == 50_000 and cfg.batch_rays == 4096
     assert (cfg.preset, cfg.time_budget, cfg.ckpt_every, cfg.out) == ("A", 30.0, 7, "runs/lego")
-    assert cfg.val_holdout == 0 and parse_train("--data", "scenes/fern", "--val-holdout", "8").val_holdout == 8
+    assert cfg.val_holdout == 0
+    assert parse_train("--data", "scenes/fern", "--val-holdout", "8").val_holdout == 8
 
 
 @pytest.mark.parametrize(

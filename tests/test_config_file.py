@@ -64,7 +64,9 @@ def test_a_runs_config_json_is_read_back_and_flags_override_it(tmp_path):
     assert (cfg.steps, cfg.out, cfg.data, cfg.lr) == (5, "runs/new", "scenes/ship", 3e-3)
 
 
-@pytest.mark.parametrize("setting, default", [("grad_clip", None), ("distortion_weight", 0.0), ("val_holdout", 0)])
+@pytest.mark.parametrize(
+    "setting, default", [("grad_clip", None), ("distortion_weight", 0.0), ("val_holdout", 0)]
+)
 def test_a_config_from_before_a_setting_existed_reads_with_its_default(tmp_path, setting, default):
     older = TrainConfig(data="scenes/fern", sampler="proposal", steps=30_000).to_dict()
     del older[setting]

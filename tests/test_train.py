@@ -685,9 +685,10 @@ def test_val_holdout_trains_without_the_val_views_and_evaluates_on_them(llff_sce
     assert len(trainer.train_scene) == 6 and trainer.val_split == "val"
     assert not set(names(trainer.train_scene)) & {"img_001.png", "img_005.png", "img_000.png", "img_008.png"}
     trainer.fit()
-    record = evaluate(tmp_path / "checkpoint.pt", split="val", out=tmp_path / "eval_val", lpips=False, log=quiet)
+    checkpoint = tmp_path / "checkpoint.pt"
+    record = evaluate(checkpoint, split="val", out=tmp_path / "eval_val", lpips=False, log=quiet)
     assert [image["name"] for image in record["images"]] == ["img_001.png", "img_005.png"]
-    record = evaluate(tmp_path / "checkpoint.pt", out=tmp_path / "eval_test", lpips=False, log=quiet)
+    record = evaluate(checkpoint, out=tmp_path / "eval_test", lpips=False, log=quiet)
     assert [image["name"] for image in record["images"]] == ["img_000.png", "img_008.png"]
     with pytest.raises(ValueError, match="val_holdout must be an integer >= 0"):
         tiny_config(tmp_path, val_holdout=-1)

@@ -93,7 +93,8 @@ class AblationPlan:
         saved, settings = json.loads(path.read_text())["settings"], self.settings()
         differs = sorted(k for k in set(saved) | set(settings) if saved.get(k) != settings.get(k))
         if differs:
-            raise AblationError(f"{path}: the ablation there was started with other settings ({', '.join(differs)})")
+            raise AblationError(f"{path}: the ablation there was started with other settings "
+                                f"({', '.join(differs)})")
 
 
 def parse_presets(text: str) -> tuple[str, ...]:

@@ -76,7 +76,9 @@ def load_scene(path: str | Path | None = None, format: str = "auto", split: str 
     return LOADERS[format](path, split=split, **kwargs)
 
 
-def load_split(folder: str | Path, format: str, split: str, downscale: float = 1, val_holdout: int = 0) -> Scene:
+def load_split(
+    folder: str | Path, format: str, split: str, downscale: float = 1, val_holdout: int = 0
+) -> Scene:
     """One split, refusing an empty one (a loader may return zero views for a short capture).
     ``val_holdout`` > 0: a capture's val split of its own (:func:`.llff.split_indices`)."""
     kwargs = {}
@@ -85,7 +87,8 @@ def load_split(folder: str | Path, format: str, split: str, downscale: float = 1
             raise DatasetError(f"{folder}: val_holdout carves a val split out of a capture's training views; "
                                "Blender scenes ship a val split of their own")
         kwargs["val_holdout"] = val_holdout
-    scene = load_scene(folder, format=format, split=split, downscale=downscale, **kwargs)  # every loader takes it
+    # every loader takes downscale
+    scene = load_scene(folder, format=format, split=split, downscale=downscale, **kwargs)
     if len(scene) == 0:
         raise DatasetError(f"{folder}: the {split!r} split has no images")
     return scene
