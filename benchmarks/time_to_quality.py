@@ -40,6 +40,7 @@ from benchmarks.harness import RESULTS, device_tag
 from benchmarks.skip_report import skip_report
 from benchmarks.validation import validate
 from mixer_nerf.ablation import parse_model_overrides
+from mixer_nerf.cli_options import add_options
 from mixer_nerf.data import load_scene
 from mixer_nerf.render.skipping import JITTERS
 from mixer_nerf.train.output import write_text_atomic
@@ -337,16 +338,8 @@ def main() -> None:
                         help="ours, proposal sampler: stratified jitter per sample or one offset per ray")
     parser.add_argument("--proposal-weight-padding", type=float,
                         help="ours, proposal sampler: added to each proposal weight before resampling")
-    parser.add_argument("--distortion-weight", type=float,
-                        help="ours, proposal sampler: weight of mip-NeRF 360's distortion loss (0: off; "
-                             "default: the trainer's, 0)")
-    parser.add_argument("--adam-eps", type=float, help="ours: Adam's epsilon (default: the trainer's)")
-    parser.add_argument("--val-holdout", type=int, metavar="K",
-                        help="captures: validate on every K-th non-test view, left out of training (tuning "
-                        "without the test views; default: validate on the test views)")
-    parser.add_argument("--grad-clip", type=float, metavar="NORM",
-                        help="ours: clip the global gradient norm to NORM before each optimizer step, "
-                             "against loss spikes in long runs (default: the trainer's, no clipping)")
+    # as `mixer-nerf train` has them (help and types from TrainConfig); unset, the trainer's defaults
+    add_options(parser, ("--distortion-weight", "--adam-eps", "--val-holdout", "--grad-clip"))
     parser.add_argument("--early-stop-eps", type=float,
                         help="ours, occupancy sampler: early ray termination (0: off; default: the trainer's)")
     parser.add_argument("--empty-space-weight", type=float,
