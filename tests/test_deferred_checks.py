@@ -3,6 +3,8 @@ without a host synchronisation on a GPU (mixer_nerf.ops.deferred_checks)."""
 
 from __future__ import annotations
 
+import types
+
 import pytest
 import torch
 
@@ -159,25 +161,28 @@ def test_on_a_gpu_the_checks_never_synchronise_and_a_bad_value_is_reported():
 
 
 def test_host_slots_are_taken_and_given_back():
-    slots = deferred_checks.HostSlots(3, pin=False)
+    slots = deferred_checks.HostSlots(3, 2, pin=False)
     taken = [slots.take() for _ in range(3)]
     assert [slot for slot, _ in taken] == [0, 1, 2]
     taken[1][1].fill_(5)
-    assert slots.buffer.tolist() == [0, 5, 0]
+    assert slots.buffer.tolist() == [[0, 0], [5, 5], [0, 0]]
     slots.give(1)
     assert slots.take()[0] == 1
 
 
 @pytest.mark.cuda
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU")
-def test_more_checks_than_slots_in_flight_wait_for_the_oldest_and_reuse_its_slot():
+def test_more_batches_than_buffers_in_flight_wait_for_the_oldest_and_reuse_its_buffer():
     sigmas, rgbs, t_starts, t_ends = _rays("cuda")
-    for _ in range(3 * deferred_checks.MAX_PENDING):
+    composite(sigmas, rgbs, t_starts, t_ends)
+    check_pending()
+    torch.cuda._sleep(1_000_000_000)  # the GPU lags behind: the buffers run out and flushes wait
+    for _ in range(3 * deferred_checks.MAX_IN_FLIGHT * deferred_checks.BATCH):
         composite(sigmas, rgbs, t_starts, t_ends)
-        assert deferred_checks.pending_count() <= deferred_checks.MAX_PENDING
+        assert deferred_checks.pending_count() <= (deferred_checks.MAX_IN_FLIGHT + 1) * deferred_checks.BATCH
     check_pending()
     assert not deferred_checks.pending_count()
-    assert len(deferred_checks._SLOTS.free) == deferred_checks.MAX_PENDING
+    assert len(deferred_checks._BUFFERS.free) == deferred_checks.MAX_IN_FLIGHT
 
 
 @pytest.mark.cuda
@@ -198,8 +203,8 @@ def test_a_captured_graph_is_not_watched():
 class _FakeEvent:
     """Stands for a torch.cuda.Event: counts its queries; ready once ``ready`` is set or waited for."""
 
-    def __init__(self, ready=False):
-        self.ready, self.queries, self.waits = ready, 0, 0
+    def __init__(self):
+        self.ready, self.queries, self.waits = False, 0, 0
 
     def query(self):
         self.queries += 1
@@ -210,33 +215,154 @@ class _FakeEvent:
         self.ready = True
 
 
-def _fake_check(stream, op, found=0, ready=False):
-    """Queue a check on a fake stream key, as watch does for a CUDA flag; returns its event."""
-    done = _FakeEvent(ready)
-    messages = {1: f"{op} is bad"}
-    deferred_checks._enqueue(stream, deferred_checks._Pending(torch.tensor([found], dtype=torch.int32),
-                                                              done, op, messages))
-    return done
+class _FakeCudaFlag(torch.Tensor):
+    """A host flag that deferred_checks.watch takes for a device one."""
+
+    is_cuda = True
 
 
-def test_raise_ready_queries_one_event_per_stream_however_many_are_pending():
-    events = [_fake_check((0, 1), "a") for _ in range(100)] + [_fake_check((0, 2), "b") for _ in range(50)]
+class _FakeGpu:
+    """Stands for the CUDA pieces of deferred_checks: the current stream (``stream``), the copy of a
+    batch's flags with its event (each one counted), the capture test and the clock (``now``)."""
+
+    def __init__(self, monkeypatch):
+        self.monkeypatch, self.stream, self.now, self.capturing = monkeypatch, (1, 0, 1), 0.0, False
+        self.copies, self.events, self.capture_tests = [], [], 0
+        monkeypatch.setattr(deferred_checks, "_current_stream", lambda device_index: self.stream)
+        monkeypatch.setattr(deferred_checks, "_copy_to_host", self._copy_to_host)
+        monkeypatch.setattr(deferred_checks, "time", types.SimpleNamespace(perf_counter=lambda: self.now))
+        monkeypatch.setattr(torch.cuda, "is_current_stream_capturing", self._is_capturing)
+        self.configure(deferred_checks.BATCH, deferred_checks.MAX_IN_FLIGHT)
+
+    def configure(self, batch, in_flight):
+        self.monkeypatch.setattr(deferred_checks, "BATCH", batch)
+        self.monkeypatch.setattr(deferred_checks, "MAX_IN_FLIGHT", in_flight)
+        buffers = deferred_checks.HostSlots(in_flight, batch, pin=False)
+        self.monkeypatch.setattr(deferred_checks, "_BUFFERS", buffers)
+
+    def watch(self, op, found=0, stream=None, messages=None):
+        """A checking op's call on ``stream`` (the current one if None) whose kernel found ``found``."""
+        self.stream = stream or self.stream
+        flag = torch.tensor([found], dtype=torch.int32).as_subclass(_FakeCudaFlag)
+        deferred_checks.watch(flag, op, messages or {1: f"{op} is bad"})
+
+    def _copy_to_host(self, flags, stream, host):
+        host[: len(flags)] = torch.tensor([int(flag) for flag in flags])
+        self.copies.append((stream, len(flags)))
+        self.events.append(_FakeEvent())
+        return self.events[-1]
+
+    def _is_capturing(self):
+        self.capture_tests += 1
+        return self.capturing
+
+
+@pytest.fixture
+def gpu(monkeypatch):
+    fake = _FakeGpu(monkeypatch)
+    yield fake
+    deferred_checks._discard_pending()  # while the fake buffers are still there
+
+
+A, B = (1, 0, 1), (2, 0, 1)  # two streams of device 0
+
+
+def test_a_watch_that_does_not_flush_copies_nothing_and_a_full_batch_flushes(gpu):
+    batch = deferred_checks.BATCH
+    for _ in range(batch - 1):
+        gpu.watch("composite")
+    assert not gpu.copies and not gpu.events  # no copy, no event, no event query
+    assert gpu.capture_tests == batch - 1 and deferred_checks.pending_count() == batch - 1
+    gpu.watch("composite")
+    assert gpu.copies == [(A, batch)] and gpu.events[0].queries == 1  # one copy, one poll
+    assert deferred_checks.pending_count() == batch and not deferred_checks._open
+    gpu.events[0].ready = True
+    deferred_checks.raise_ready()
+    assert not deferred_checks.pending_count()
+    assert len(deferred_checks._BUFFERS.free) == deferred_checks.MAX_IN_FLIGHT
+
+
+def test_a_batch_flushes_once_its_first_check_is_older_than_flush_seconds(gpu):
+    late = deferred_checks.FLUSH_SECONDS
+    gpu.watch("b", stream=B)
+    gpu.now = 0.4 * late
+    gpu.watch("a", stream=A)
+    gpu.now = 1.2 * late  # B's batch is old, but a call on A flushes only A's
+    gpu.watch("a", stream=A)
+    assert not gpu.copies
+    gpu.now = 1.5 * late
+    gpu.watch("a", stream=A)
+    assert gpu.copies == [(A, 3)]
+    gpu.watch("a", stream=A)  # a new batch
+    gpu.watch("b", stream=B)
+    assert gpu.copies == [(A, 3), (B, 2)] and deferred_checks.pending_count() == 6
+
+
+def test_errors_come_in_the_order_of_the_calls_within_a_batch_and_across_streams(gpu):
+    gpu.watch("composite", stream=A, messages=INVALID_INPUT)
+    gpu.watch("composite", found=NEGATIVE_SIGMA, stream=A, messages=INVALID_INPUT)
+    gpu.watch("composite_packed", found=BAD_OFFSETS, stream=B, messages=INVALID_INPUT)
+    gpu.watch("composite", stream=A, messages=INVALID_INPUT)
+    gpu.watch("composite", found=REVERSED_INTERVAL, stream=A, messages=INVALID_INPUT)
+    with pytest.raises(ValueError, match="^composite: sigmas must be non-negative"):
+        deferred_checks.check_pending()
+    assert deferred_checks.pending_count() == 3  # read, raised by the next calls
+    with pytest.raises(ValueError, match="^composite_packed: offsets must"):
+        gpu.watch("composite", stream=A)
+    with pytest.raises(ValueError, match="^composite: t_ends must be >= t_starts"):
+        deferred_checks.raise_ready()
+    deferred_checks.raise_ready()
+    assert not deferred_checks.pending_count()  # the call that raised watched nothing: it raised first
+
+
+def test_check_pending_flushes_the_open_batches_and_waits_for_them(gpu):
+    gpu.watch("a", stream=A)
+    gpu.watch("b", found=1, stream=B)
+    assert not gpu.copies and deferred_checks.pending_count() == 2
+    with pytest.raises(ValueError, match="b is bad"):
+        deferred_checks.check_pending()
+    assert sorted(gpu.copies) == [(A, 1), (B, 1)] and [event.waits for event in gpu.events] == [1, 1]
+    assert not deferred_checks.pending_count()
+
+
+def test_a_captured_graph_is_not_watched_nor_raised_into(gpu):
+    deferred_checks.watch(torch.tensor([1], dtype=torch.int32), "a", {1: "a is bad"})  # read at once
+    gpu.capturing = True
+    gpu.watch("b", found=1)
+    assert gpu.capture_tests == 1 and deferred_checks.pending_count() == 1 and not deferred_checks._open
+    gpu.capturing = False
+    with pytest.raises(ValueError, match="a is bad"):
+        gpu.watch("c")
+
+
+def test_raise_ready_queries_one_event_per_stream_however_many_batches_are_in_flight(gpu):
+    gpu.configure(batch=2, in_flight=64)
+    for _ in range(40):
+        gpu.watch("a", stream=A)
+    for _ in range(20):
+        gpu.watch("b", stream=B)
+    a, b = gpu.events[:20], gpu.events[20:]
+    for event in gpu.events:
+        event.queries = 0
     for calls in (1, 2, 3):
         deferred_checks.raise_ready()
-        assert sum(event.queries for event in events) == 2 * calls  # the heads of the two streams
-    assert events[0].queries == events[100].queries == 3
-    events[0].ready = events[1].ready = True  # the GPU has passed two checks of the first stream
+        assert sum(event.queries for event in gpu.events) == 2 * calls  # the heads of the two streams
+    a[0].ready = a[1].ready = True  # the GPU has passed two batches of the first stream
     deferred_checks.raise_ready()
-    assert deferred_checks.pending_count() == 148
-    assert [events[i].queries for i in (0, 1, 2, 100)] == [4, 1, 1, 4]  # two ready, then a new head
+    assert deferred_checks.pending_count() == 56
+    assert [a[0].queries, a[1].queries, a[2].queries, b[0].queries] == [4, 1, 1, 4]  # two landed, a new head
 
 
-def test_a_ready_bad_check_on_another_stream_is_raised_and_one_stream_keeps_its_order():
-    slow = _fake_check((0, 1), "slow")
-    _fake_check((0, 2), "other_stream", found=1, ready=True)
+def test_a_landed_bad_batch_on_another_stream_is_raised_and_one_stream_keeps_its_order(gpu):
+    gpu.configure(batch=1, in_flight=8)  # every call flushes
+    gpu.watch("slow", stream=A)
+    gpu.watch("other_stream", found=1, stream=B)
+    slow, other = gpu.events
+    other.ready = True
     with pytest.raises(ValueError, match="other_stream is bad"):
         deferred_checks.raise_ready()
-    _fake_check((0, 1), "same_stream", found=1, ready=True)  # behind ``slow``, which is not ready
+    gpu.watch("same_stream", found=1, stream=A)  # behind ``slow``, which has not landed
+    gpu.events[-1].ready = True
     deferred_checks.raise_ready()
     assert deferred_checks.pending_count() == 2
     slow.ready = True
@@ -245,23 +371,13 @@ def test_a_ready_bad_check_on_another_stream_is_raised_and_one_stream_keeps_its_
     assert not deferred_checks.pending_count()
 
 
-def test_ready_bad_checks_are_raised_in_the_order_they_were_made_across_streams():
-    events = [_fake_check((0, 1), "first", found=1), _fake_check((0, 2), "second", found=1),
-              _fake_check((0, 1), "third", found=1), _fake_check((1, 1), "fourth", found=1, ready=True)]
-    with pytest.raises(ValueError, match="fourth is bad"):  # the only one ready
-        deferred_checks.raise_ready()
-    with pytest.raises(ValueError, match="first is bad"):  # waits for all, raises the oldest bad one
-        deferred_checks.check_pending()
-    assert [event.waits for event in events[:3]] == [1, 1, 1]
-    for name in ("second", "third"):  # read by check_pending, raised one a call
-        with pytest.raises(ValueError, match=f"{name} is bad"):
-            deferred_checks.raise_ready()
-    assert not deferred_checks.pending_count()
-
-
-def test_a_full_queue_waits_for_the_oldest_check_of_any_stream():
-    oldest = _fake_check((0, 2), "oldest")
-    others = [_fake_check((0, 1 + i % 2), "other") for i in range(deferred_checks.MAX_PENDING - 1)]
-    deferred_checks.watch(torch.tensor([0], dtype=torch.int32), "composite", INVALID_INPUT)
-    assert oldest.waits == 1 and not any(event.waits for event in others)
-    assert deferred_checks.pending_count() == deferred_checks.MAX_PENDING
+def test_a_flush_without_a_free_buffer_waits_for_the_oldest_batch_of_any_stream(gpu):
+    gpu.configure(batch=2, in_flight=3)
+    for stream in (B, A, A):
+        gpu.watch("x", stream=stream)
+        gpu.watch("x", stream=stream)
+    assert not deferred_checks._BUFFERS.free
+    gpu.watch("x", stream=A)
+    gpu.watch("x", stream=A)
+    assert [event.waits for event in gpu.events] == [1, 0, 0, 0]  # B's, the oldest
+    assert deferred_checks.pending_count() == 6 and not deferred_checks._BUFFERS.free

@@ -1,87 +1,95 @@
-"""Value checks that cost a GPU no host synchronisation.
+"""Value checks that cost a GPU no host synchronisation, and next to no host time.
 
 On the CPU an op checks its input values before its kernel runs. On a GPU that would wait for the
 device at every call, so a kernel that reads the values anyway ORs what it finds wrong into a
-one-element int32 ``invalid`` output, and :func:`watch` copies it to pinned host memory behind a
-CUDA event. The error is raised where the copy has landed without waiting: at the next call of a
-checking op (:func:`raise_ready`), or at :func:`check_pending`, which waits (renderers call it once
-an image is done; call it yourself before trusting results). A CUDA graph being captured is not
-watched: its replays have no host to report to.
+one-element int32 ``invalid`` output, and :func:`watch` reports it later. A CUDA graph being
+captured is not watched: its replays have no host to report to.
 
-The checks in flight are queued per CUDA stream: events recorded on one stream complete in order,
-so :func:`raise_ready` queries only the oldest check of each stream. The host usually runs ahead of
-the GPU with many checks in flight, and an event query per check at every call would cost it
-O(checks in flight) queries per op instead of O(streams).
+A copy to the host and a CUDA event per call cost every checked call host time, so :func:`watch`
+only appends the flag (kept alive by reference, no copy) to the open batch of the current CUDA
+stream. The next checking call on that stream flushes the batch once it holds :data:`BATCH`
+checks or its first check is older than :data:`FLUSH_SECONDS`: on the stream, one ``torch.cat``
+of its flags, one copy into a pinned host buffer (a pool of :data:`MAX_IN_FLIGHT`, allocated
+once) and one CUDA event. Each flush then polls the events (:func:`raise_ready`) and raises a
+ValueError naming the op and the argument for the first bad check, in the order the checks were
+made, whose batch has landed; later bad checks already read are raised by the next checking
+calls. So an error comes at the first flush after its batch has landed (within :data:`BATCH`
+checking calls on a stream, or at the first one :data:`FLUSH_SECONDS` after that stream's batch
+opened), or at :func:`check_pending`, which flushes every open batch and waits (renderers call it
+once an image is done; call it yourself before trusting results). A stream that gets no more
+checks keeps its open batch until :func:`check_pending`.
+
+The flushed batches are queued per CUDA stream: events recorded on one stream complete in order,
+so :func:`raise_ready` queries only the oldest batch of each stream, O(streams) queries a poll
+however many batches are in flight.
 """
 
 from __future__ import annotations
 
 import heapq
 import itertools
+import time
 from collections import deque
 from dataclasses import dataclass, field
 
 import torch
 
-MAX_PENDING = 256
-"""Checks in flight before :func:`watch` waits for the oldest (bounds pinned memory and events)."""
+BATCH = 64
+"""Checks of one stream read back together (one copy and one event per batch)."""
+FLUSH_SECONDS = 0.05
+"""Age of a batch's first check past which the next checking call flushes it."""
+MAX_IN_FLIGHT = 8
+"""Flushed batches (pinned buffers) in flight before a flush waits for the oldest."""
+
+StreamKey = tuple  # (stream id, device index, device type), as torch._C._cuda_getCurrentStream gives it
 
 
 @dataclass
-class _Pending:
-    bits: torch.Tensor  # (1,) int32 on the host: a slot of _SLOTS, filled by an asynchronous copy
-    done: torch.cuda.Event | None  # None: ``bits`` is ready (a CPU flag)
-    op: str
-    messages: dict[int, str]  # bit -> what is wrong, naming the argument
-    slot: int | None = None  # the slot of _SLOTS that ``bits`` views, given back once read
-    order: int = field(default_factory=lambda: next(_made))  # when it was made: errors come in this order
+class _Batch:
+    stream: StreamKey
+    started: float  # time.perf_counter() at its first check
+    flags: list[torch.Tensor] = field(default_factory=list)  # (1,) int32 on the device, until flushed
+    checks: list[tuple[int, str, dict[int, str]]] = field(default_factory=list)  # (order, op, messages)
+    done: torch.cuda.Event | None = None  # recorded behind the copy of its flags, once flushed
+    slot: int | None = None  # its buffer of _BUFFERS, once flushed; given back once read
 
 
 class HostSlots:
-    """``capacity`` int32 flags in one host buffer (pinned where CUDA is), allocated once: a
-    pinned allocation per call would go through the host allocator, which may call cudaHostAlloc
-    while the previous flag's buffer still waits for its event."""
+    """``capacity`` buffers of ``width`` int32 in one host tensor (pinned where CUDA is), allocated
+    once: a pinned allocation per flush would go through the host allocator, which may call
+    cudaHostAlloc while an earlier buffer still waits for its event."""
 
-    def __init__(self, capacity: int, pin: bool):
-        self.buffer = torch.zeros(capacity, dtype=torch.int32, pin_memory=pin)
+    def __init__(self, capacity: int, width: int, pin: bool):
+        self.buffer = torch.zeros(capacity, width, dtype=torch.int32, pin_memory=pin)
         self.free = list(range(capacity - 1, -1, -1))
 
     def take(self) -> tuple[int, torch.Tensor]:
         slot = self.free.pop()
-        return slot, self.buffer[slot : slot + 1]
+        return slot, self.buffer[slot]
 
     def give(self, slot: int) -> None:
         self.free.append(slot)
 
 
 _made = itertools.count()
-_queues: dict[tuple[int, int], deque[_Pending]] = {}  # (device, stream id) -> not ready yet, oldest first
-_ready: list[tuple[int, _Pending]] = []  # a heap by order: flags on the host, not yet read
-_SLOTS: HostSlots | None = None  # made at the first GPU check
+_open: dict[StreamKey, _Batch] = {}  # stream -> its batch not yet flushed
+_queues: dict[StreamKey, deque[_Batch]] = {}  # stream -> flushed batches not landed yet, oldest first
+_ready: list[tuple[int, int, str, dict[int, str]]] = []  # heap of (order, found, op, messages), unraised
+_BUFFERS: HostSlots | None = None  # made at the first flush
 
 
 def watch(invalid: torch.Tensor, op: str, messages: dict[int, str]) -> None:
     """Report ``invalid``'s bits (each a key of ``messages``) as a ValueError once they reach the
-    host. Raises first what earlier calls found (:func:`raise_ready`)."""
-    if invalid.device.type == "cuda" and torch.cuda.is_current_stream_capturing():
+    host. Raises first what earlier calls found and was read."""
+    on_device = invalid.is_cuda
+    if on_device and torch.cuda.is_current_stream_capturing():
         return  # a capture forbids event queries, and its replays would not report anyway
-    raise_ready()  # empties _ready (or raises)
-    if pending_count() >= MAX_PENDING:
-        _wait(min((queue[0] for queue in _queues.values()), key=lambda p: p.order))  # the oldest
-        raise_ready()
-    if invalid.device.type == "cuda":
-        global _SLOTS
-        if _SLOTS is None:
-            _SLOTS = HostSlots(MAX_PENDING, pin=True)
-        slot, bits = _SLOTS.take()
-        bits.copy_(invalid.reshape(1), non_blocking=True)  # on the current stream of invalid's device
-        stream = torch.cuda.current_stream(invalid.device)
-        done = torch.cuda.Event()
-        done.record(stream)
-        _enqueue((stream.device_index, stream.stream_id), _Pending(bits, done, op, messages, slot))
+    _raise_read()  # empties _ready (or raises)
+    if on_device:
+        _watch_on_device(invalid, op, messages)
     else:
-        pending = _Pending(invalid, None, op, messages)
-        heapq.heappush(_ready, (pending.order, pending))  # a CPU flag is ready at once
+        found = int(invalid.max()) if invalid.numel() else 0
+        heapq.heappush(_ready, (next(_made), found, op, messages))  # a CPU flag is read at once
 
 
 def in_kernel(kernel: bool, like: torch.Tensor) -> bool:
@@ -91,61 +99,102 @@ def in_kernel(kernel: bool, like: torch.Tensor) -> bool:
 
 
 def raise_ready() -> None:
-    """Raise ValueError for the first bad check (in the order they were made) whose result is on the
-    host; never waits. The checks behind it stay pending (the ready ones are raised by later calls).
-    Queries one event per stream with checks in flight, plus one per check found ready."""
-    for key, queue in list(_queues.items()):
-        while queue and _is_ready(queue[0]):  # in order on a stream: the rest is not ready either
-            pending = queue.popleft()
-            heapq.heappush(_ready, (pending.order, pending))
-        if not queue:
-            del _queues[key]
-    while _ready:
-        _raise_if_bad(heapq.heappop(_ready)[1])
+    """Raise ValueError for the first bad check (in the order they were made) whose batch has
+    landed on the host; never waits. The checks behind it stay pending (later calls raise them).
+    Queries one event per stream with batches in flight, plus one per batch found landed."""
+    _read_landed()
+    _raise_read()
 
 
 def check_pending() -> None:
-    """Wait for every check in flight and raise ValueError for the first bad one."""
+    """Flush every open batch, wait for every batch in flight and raise ValueError for the first bad
+    check."""
+    for batch in list(_open.values()):
+        _flush(batch)
     for queue in _queues.values():
-        for pending in queue:
-            _wait(pending)
+        for batch in queue:
+            batch.done.synchronize()
     raise_ready()
 
 
 def pending_count() -> int:
-    """How many checks are in flight or not yet read."""
-    return len(_ready) + sum(len(queue) for queue in _queues.values())
+    """How many checks are open, in flight or not yet read."""
+    batches = list(_open.values()) + [batch for queue in _queues.values() for batch in queue]
+    return len(_ready) + sum(len(batch.checks) for batch in batches)
 
 
-def _enqueue(stream: tuple[int, int], pending: _Pending) -> None:
-    """Queue a check behind the earlier ones of its stream ((device index, stream id))."""
-    _queues.setdefault(stream, deque()).append(pending)
+def _current_stream(device_index: int) -> StreamKey:
+    """The current stream of a device as a tuple: cheaper than torch.cuda.current_stream's object."""
+    return torch._C._cuda_getCurrentStream(device_index)
+
+
+def _copy_to_host(flags: list[torch.Tensor], stream: StreamKey, host: torch.Tensor) -> torch.cuda.Event:
+    """Copy ``flags`` into ``host`` on ``stream`` without waiting; returns an event recorded behind."""
+    cuda_stream = torch.cuda.Stream(stream_id=stream[0], device_index=stream[1], device_type=stream[2])
+    with torch.cuda.stream(cuda_stream):  # the flags were made on it: no other stream's wait needed
+        host[: len(flags)].copy_(torch.cat([flag.reshape(1) for flag in flags]), non_blocking=True)
+        done = torch.cuda.Event()
+        done.record(cuda_stream)
+    return done
+
+
+def _watch_on_device(invalid: torch.Tensor, op: str, messages: dict[int, str]) -> None:
+    """Append a device flag to its stream's open batch; flush it once full or old, then poll."""
+    stream = _current_stream(invalid.get_device())  # the stream the op's kernel wrote ``invalid`` on
+    batch = _open.get(stream)
+    if batch is None:
+        batch = _open[stream] = _Batch(stream, time.perf_counter())
+    batch.flags.append(invalid)
+    batch.checks.append((next(_made), op, messages))
+    if len(batch.checks) >= BATCH or time.perf_counter() - batch.started > FLUSH_SECONDS:
+        _flush(batch)  # only the current stream's: another may be capturing a graph now
+        raise_ready()
+
+
+def _flush(batch: _Batch) -> None:
+    """Start the copy of an open batch's flags to a host buffer and queue it behind its stream's."""
+    global _BUFFERS
+    if _BUFFERS is None:
+        _BUFFERS = HostSlots(MAX_IN_FLIGHT, BATCH, pin=True)
+    if not _BUFFERS.free:  # wait for the oldest batch in flight, which gives its buffer back
+        min((queue[0] for queue in _queues.values()), key=lambda b: b.checks[0][0]).done.synchronize()
+        _read_landed()
+    batch.slot, host = _BUFFERS.take()
+    batch.done = _copy_to_host(batch.flags, batch.stream, host)
+    batch.flags = []  # the copy is queued on their stream: the allocator may reuse them behind it
+    del _open[batch.stream]
+    _queues.setdefault(batch.stream, deque()).append(batch)
+
+
+def _read_landed() -> None:
+    """Move the checks of every landed batch to _ready, giving its buffer back; never waits."""
+    for stream, queue in list(_queues.items()):
+        while queue and queue[0].done.query():  # in order on a stream: the rest has not landed either
+            batch = queue.popleft()
+            found = _BUFFERS.buffer[batch.slot, : len(batch.checks)].tolist()
+            _BUFFERS.give(batch.slot)
+            for (order, op, messages), bits in zip(batch.checks, found, strict=True):
+                heapq.heappush(_ready, (order, bits, op, messages))
+        if not queue:
+            del _queues[stream]
+
+
+def _raise_read() -> None:
+    """Raise ValueError for the first bad check read (in the order made); the rest stay in _ready."""
+    while _ready:
+        _, found, op, messages = heapq.heappop(_ready)
+        if found:
+            what = "; ".join(message for bit, message in messages.items() if found & bit)
+            raise ValueError(f"{op}: {what} (found on the device by an earlier call: on a GPU the values "
+                             f"are checked without waiting for it; mixer_nerf.ops.check_pending() waits)")
 
 
 def _discard_pending() -> None:
-    """Forget every check in flight, unread (tests start from an empty queue)."""
-    for pending in [p for _, p in _ready] + [p for queue in _queues.values() for p in queue]:
-        if pending.slot is not None:
-            _wait(pending)
-            _SLOTS.give(pending.slot)
-    _ready.clear()
+    """Forget every check open, in flight or unread (tests start from an empty queue)."""
+    for queue in _queues.values():
+        for batch in queue:
+            batch.done.synchronize()  # its buffer is written until then
+            _BUFFERS.give(batch.slot)
+    _open.clear()
     _queues.clear()
-
-
-def _is_ready(pending: _Pending) -> bool:
-    return pending.done is None or pending.done.query()
-
-
-def _wait(pending: _Pending) -> None:
-    if pending.done is not None:
-        pending.done.synchronize()
-
-
-def _raise_if_bad(pending: _Pending) -> None:
-    found = int(pending.bits.max()) if pending.bits.numel() else 0
-    if pending.slot is not None:
-        _SLOTS.give(pending.slot)
-    if found:
-        what = "; ".join(message for bit, message in pending.messages.items() if found & bit)
-        raise ValueError(f"{pending.op}: {what} (found on the device by an earlier call: on a GPU the values "
-                         f"are checked without waiting for it; mixer_nerf.ops.check_pending() waits)")
+    _ready.clear()
