@@ -84,10 +84,10 @@ def test_no_data_uses_the_demo_settings_and_typed_flags_win():
     assert parse_train("--lr-hold", "0.6").lr_hold == 0.6
 
 
-def test_grad_clip_and_adam_eps_reach_the_config_of_train_and_ablate_and_default_to_off():
+def test_grad_clip_and_adam_eps_reach_the_config_of_train_and_ablate_and_default_to_the_recipe():
     cfg = parse_train("--grad-clip", "0.5", "--adam-eps", "1e-8")
     assert (cfg.grad_clip, cfg.adam_eps) == (0.5, 1e-8)
-    assert (parse_train().grad_clip, parse_train().adam_eps) == (None, 1e-15)
+    assert (parse_train().grad_clip, parse_train().adam_eps) == (None, None)  # None: the sampler's recipe
     args = cli.build_parser().parse_args(["ablate", "--out", "x", "--grad-clip", "2", "--adam-eps", "1e-10"])
     assert (args.grad_clip, args.adam_eps) == (2.0, 1e-10)
     with pytest.raises(ValueError, match="grad_clip must be a positive, finite norm"):

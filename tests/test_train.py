@@ -309,6 +309,14 @@ def test_learning_rate_comes_from_the_samplers_recipe_unless_given():
     assert (proposal.lr, proposal.lr_final, proposal.lr_warmup) == (2e-3, pytest.approx(2e-4), 200)
 
 
+def test_adam_eps_comes_from_the_samplers_recipe_unless_given():
+    assert TrainConfig().adam_eps is None
+    eps = {sampler: TrainConfig().with_recipe(sampler).adam_eps for sampler in ("occupancy", "proposal", "hierarchical")}
+    assert eps == {"occupancy": 1e-15, "proposal": 1e-8, "hierarchical": 1e-15}
+    assert TrainConfig(adam_eps=1e-15).with_recipe("proposal").adam_eps == 1e-15
+    assert TrainConfig(adam_eps=1e-6).with_recipe("occupancy").adam_eps == 1e-6
+
+
 def test_auto_sampler_marches_bounded_scenes_and_proposes_for_forward_facing_and_unbounded_ones():
     box = torch.tensor([[-1.0] * 3, [1.0] * 3])
     auto = TrainConfig(sampler="auto")
