@@ -259,11 +259,14 @@ def test_budget_is_required(tmp_path, capsys):
     assert "--steps N" in capsys.readouterr().err
 
 
-def test_existing_ablation_needs_resume_and_the_same_settings(finished, capsys):
+def test_existing_ablation_needs_resume_and_the_same_settings(finished, capsys, tmp_path):
     assert ablate(finished, "--presets", "A") == 1
     assert "pass --resume" in capsys.readouterr().err
     assert ablate(finished, "--presets", "A", "--resume", "--lr", "1e-2") == 1
     assert "other settings (lr)" in capsys.readouterr().err
+    # how often runs save and log changes no result: a report (or resume) may give other values
+    copy = shutil.copytree(finished, tmp_path / "copy")  # a report rewrites the shared table
+    assert ablate(copy, "--presets", "A", "--report", "--ckpt-every", "7", "--log-every", "3") == 0
 
 
 def test_sigterm_stops_the_gpu_workers(tmp_path, monkeypatch):

@@ -256,7 +256,7 @@ def test_a_gpu_checkpoint_is_evaluated_and_resumed_on_a_cpu(reference, tmp_path,
     if not torch.cuda.is_available():
         assert cli.main(["train", "--out", str(out), "--resume", "--backend", "torch", "--no-progress"]) == 1
         assert "pass --device cpu" in one_line_error(capsys)
-    assert cli.main(train_argv(out, "--resume", "--steps", str(STEPS + 2))) == 0
+    assert cli.main(train_argv(out, "--resume", "--steps", str(STEPS + 2), "--ckpt-every", "1", "--log-every", "1")) == 0
     printed = capsys.readouterr().out
     assert "moved from cuda to cpu" in printed and f"training {STEPS + 2} steps on cpu (fp32" in printed
     assert load_checkpoint(out / "checkpoint.pt")["step"] == STEPS + 2
@@ -299,7 +299,7 @@ def test_resume_extends_steps_and_refuses_other_changes_by_name(reference, tmp_p
     assert "lr (checkpoint 0.004, given 0.5)" in err and "num_fine (checkpoint 6, given 3)" in err
     assert cli.main(train_argv(out, "--resume", "--steps", "2")) == 1
     assert "--steps 2 is short of the checkpoint's step 6" in one_line_error(capsys)
-    assert cli.main(train_argv(out, "--resume", "--steps", str(STEPS + 2))) == 0
+    assert cli.main(train_argv(out, "--resume", "--steps", str(STEPS + 2), "--ckpt-every", "1", "--log-every", "1")) == 0
     assert f"training {STEPS + 2} steps" in capsys.readouterr().out
     assert load_checkpoint(out / "checkpoint.pt")["step"] == STEPS + 2
 

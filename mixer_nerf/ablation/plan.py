@@ -13,7 +13,7 @@ from ..train.config import TrainConfig
 from ..train.output import write_text_atomic
 
 PLAN_FILE = "ablation.json"
-PER_RUN_SETTINGS = ("preset", "seed", "out", "progress")
+PER_RUN_SETTINGS = ("preset", "seed", "out", "progress", "ckpt_every", "log_every")
 """TrainConfig fields that differ between the runs of one ablation (or do not change results)."""
 
 
@@ -91,7 +91,9 @@ class AblationPlan:
         if not path.is_file():
             return
         saved, settings = json.loads(path.read_text())["settings"], self.settings()
-        differs = sorted(k for k in set(saved) | set(settings) if saved.get(k) != settings.get(k))
+        # plans written before a setting joined PER_RUN_SETTINGS still hold it
+        differs = sorted(k for k in (set(saved) | set(settings)) - set(PER_RUN_SETTINGS)
+                         if saved.get(k) != settings.get(k))
         if differs:
             raise AblationError(f"{path}: the ablation there was started with other settings "
                                 f"({', '.join(differs)})")

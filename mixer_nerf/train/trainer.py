@@ -40,10 +40,11 @@ from .sampler import RaySampler
 from .sampling import image_renderer, make_fields, occupancy_sampler, resolve_sampler
 from .scenes import held_out_split, locate_scene, scene_info, scene_source
 
-RESUMABLE_OVERRIDES = ("steps", "time_budget", "device", "backend", "data", "render_samples", "progress")
+RESUMABLE_OVERRIDES = ("steps", "time_budget", "device", "backend", "data", "render_samples", "ckpt_every",
+                       "log_every", "progress")
 """Settings a resumed run may change: how long it trains (a longer ``steps`` stretches the
-learning-rate schedule to the new end), where it runs, where its scene now is and how much a
-render may hold at once. Any other
+learning-rate schedule to the new end), where it runs, where its scene now is, how much a
+render may hold at once and how often it saves and logs. Any other
 setting that differs from the checkpoint is refused by name: the run continues as it began."""
 DEVICE_SETTINGS = ("precision", "bf16_density_passes", "val_images")
 """Picked anew for the machine when a resumed run moves to another device type (unless typed)."""
