@@ -251,21 +251,25 @@ def run_ablate(args: argparse.Namespace) -> int:
     from .ablation.workers import parse_gpus
 
     gpus = None if args.gpus is None else parse_gpus(args.gpus)
-    if args.steps is None and args.time_budget is None:
-        raise UserError("give --steps N (equal steps) or --time-budget SECONDS (equal training time)")
     if args.max_images is not None and args.max_images < 1:
         raise UserError(f"--max-images must be positive, got {args.max_images}")
-    base = train_config_from_args(args)
-    overrides = {**base.model_overrides, **parse_model_overrides(args.model_override)}
-    plan = AblationPlan(
-        base=dataclasses.replace(base, model_overrides=overrides), presets=parse_presets(args.presets),
-        seeds=parse_seeds(args.seeds), out=Path(args.out), target_psnr=args.target_psnr, split=args.split,
-        max_images=args.max_images, lpips=not args.no_lpips,
-    )
     if args.report:
         if gpus is not None or args.runs is not None:
             raise UserError("--report trains nothing: drop --gpus")
-        table = report(plan)
+        base, presets, seeds, lpips = _saved_ablation(args)
+    else:
+        if args.steps is None and args.time_budget is None:
+            raise UserError("give --steps N (equal steps) or --time-budget SECONDS (equal training time)")
+        presets = "ABCD" if args.presets is None else args.presets
+        base, seeds, lpips = train_config_from_args(args), "0,1" if args.seeds is None else args.seeds, True
+    overrides = {**base.model_overrides, **parse_model_overrides(args.model_override)}
+    plan = AblationPlan(
+        base=dataclasses.replace(base, model_overrides=overrides), presets=parse_presets(presets),
+        seeds=parse_seeds(seeds), out=Path(args.out), target_psnr=args.target_psnr, split=args.split,
+        max_images=args.max_images, lpips=lpips and not args.no_lpips,
+    )
+    if args.report:
+        table = report(plan)  # refuses a typed setting that differs from the saved plan's
     else:
         table = _train_ablation(args, plan, gpus)
         if table is None:
@@ -277,6 +281,27 @@ def run_ablate(args: argparse.Namespace) -> int:
         print(f"  preset {row['preset']} ({row['model']}): held-out PSNR {psnr} "
               f"over {scored} of {row['seeds']} run(s)")
     return 0
+
+
+def _saved_ablation(args: argparse.Namespace) -> tuple[TrainConfig, str, str, bool]:
+    """--report's settings, presets, seeds and LPIPS: those of the plan saved in --out, with what
+    was typed on top."""
+    import json
+
+    from .ablation.plan import PLAN_FILE
+
+    path = Path(args.out) / PLAN_FILE
+    if not path.is_file():
+        raise UserError(f"{args.out}: no ablation to report ({PLAN_FILE} missing)")
+    saved = json.loads(path.read_text())
+    settings = dict(saved["settings"])
+    lpips = settings.pop("lpips", True)
+    values = {**settings, **typed_settings(args), "out": args.out, "progress": False}
+    if args.data:
+        values["data"] = args.data
+    presets = ",".join(saved["presets"]) if args.presets is None else args.presets
+    seeds = ",".join(str(seed) for seed in saved["seeds"]) if args.seeds is None else args.seeds
+    return TrainConfig.from_dict(values), presets, seeds, lpips
 
 
 def _train_ablation(args: argparse.Namespace, plan: Any, gpus: list[int] | None) -> dict[str, Any] | None:
@@ -491,8 +516,8 @@ def _add_ablate_parser(commands: Any) -> None:
         "ablate", help="train presets x seeds for equal steps or equal time and tabulate held-out scores"
     )
     ablate.add_argument("--data", help="scene folder (default: the built-in procedural scene)")
-    ablate.add_argument("--presets", default="ABCD", help="presets to train, e.g. ABCD or A,D (default ABCD)")
-    ablate.add_argument("--seeds", default="0,1", help="seeds, comma-separated (default 0,1)")
+    ablate.add_argument("--presets", help="presets to train, e.g. ABCD or A,D (default ABCD; --report: the ablation's)")
+    ablate.add_argument("--seeds", help="seeds, comma-separated (default 0,1; --report: the ablation's)")
     ablate.add_argument(
         "--model-override", action="append", default=[], metavar="NAME=VALUE",
         help="a ModelConfig setting for every run, e.g. se_per_point=true (repeatable)",
@@ -515,7 +540,8 @@ def _add_ablate_parser(commands: Any) -> None:
                         "logs in --out/worker_gpu<N>.log), then write the table")
     ablate.add_argument("--report", action="store_true",
                         help="train and score nothing: write the table from the runs in --out as they are "
-                        "(unfinished runs as rows without scores, runs not started left out)")
+                        "(unfinished runs as rows without scores, runs not started left out), with the "
+                        "settings the ablation was started with (no other flag needed)")
     ablate.add_argument("--runs", help=argparse.SUPPRESS)  # a --gpus worker's share: PRESET:SEED,...
 
 

@@ -356,6 +356,20 @@ def test_report_tabulates_finished_and_unfinished_runs_without_training(finished
     assert "| D | 1 | unfinished" in (out / "ablation.md").read_text()
 
 
+def test_report_needs_only_the_folder(finished, tmp_path, capsys):
+    """The settings, presets and seeds are the saved plan's; typed ones narrow or are checked."""
+    out = shutil.copytree(finished, tmp_path / "copy")
+    before = json.loads((out / "table.json").read_text())
+    assert cli.main(["ablate", "--out", str(out), "--report"]) == 0
+    after = json.loads((out / "table.json").read_text())
+    assert [r["psnr"] for r in after["runs"]] == [r["psnr"] for r in before["runs"]]
+    assert [row["preset"] for row in after["presets"]] == ["A", "D"] and "over 2 of 2 run(s)" in capsys.readouterr().out
+    assert cli.main(["ablate", "--out", str(out), "--report", "--presets", "D", "--seeds", "1"]) == 0
+    assert [(r["preset"], r["seed"]) for r in json.loads((out / "table.json").read_text())["runs"]] == [("D", 1)]
+    assert cli.main(["ablate", "--out", str(out), "--report", "--lr", "0.5"]) == 1
+    assert "other settings (lr)" in capsys.readouterr().err
+
+
 def test_report_leaves_out_runs_not_started(finished, tmp_path, capsys):
     out = tmp_path / "copy"
     shutil.copytree(finished, out)
@@ -372,6 +386,6 @@ def test_report_refuses_other_settings_and_an_empty_folder(finished, tmp_path, c
     assert report(finished, "--lr", "1e-2") == 1
     assert "other settings (lr)" in capsys.readouterr().err
     assert report(tmp_path / "empty") == 1
-    assert "no run of this ablation has started" in capsys.readouterr().err
+    assert "no ablation to report (ablation.json missing)" in capsys.readouterr().err
     assert report(finished, "--gpus", "0") == 1
     assert "--report trains nothing" in capsys.readouterr().err
