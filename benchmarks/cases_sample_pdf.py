@@ -17,8 +17,11 @@ Cases:
   * sample_pdf_packed fwd and fwd+bwd: the same PDFs cut to ragged bin counts floor(63 x^2),
     x ~ U[0, 1) (0..62 bins, mean ~21, some rays without bins), deterministic positions. No
     nerfacc variant: its packed importance sampling takes another layout (per-edge flags).
-Our kernel runs with check_values=False (the inputs are valid by construction); the reference
-variants take the same u tensor the kernel sees.
+  * sample_pdf and sample_pdf_packed fwd and fwd+bwd, stratified positions drawn by each variant
+    (the default call, values checked): no error column, as every variant draws other positions.
+Our "kernel" variants run with check_values=False (the inputs are valid by construction), "ours,
+values checked" with the default checks at the same positions; the reference variants take the
+same u tensor the kernel sees.
 """
 
 from __future__ import annotations
@@ -200,16 +203,52 @@ def pdf_cases(op: str, size: str, bins, weights, impls: dict, reference, device,
     ]
 
 
+def pdf_default_cases(op: str, size: str, bins, weights, ours, reference, device) -> list[Case]:
+    """fwd and fwd+bwd of what a user calls, ``ours(bins, weights)`` (stratified positions drawn by
+    the op, values checked), beside ``reference(bins, weights, u)`` with positions drawn as a caller
+    without the op would; no error column (each variant draws other positions)."""
+    R = weights.shape[0] if weights.dim() == 2 else bins.shape[0] - weights.shape[0]
+    item = bins.element_size()
+    gen = torch.Generator(device=device).manual_seed(1)
+    upstream = torch.randn(R, FINE, generator=gen, device=device)
+    fns = {"ours, defaults": ours, "torch": lambda b, w: reference(b, w, stratified_u(R, device))}
+    if device.type == "cuda":
+        fns["torch.compile"] = torch.compile(fns["torch"])
+
+    def forward(fn):
+        with torch.no_grad():
+            return fn(bins, weights)
+
+    def step(fn):
+        leaves = [x.detach().requires_grad_() for x in (bins, weights)]
+        out = fn(*leaves)
+        return (out.detach(), *torch.autograd.grad(out, leaves, upstream))
+
+    fwd_bytes = (bins.numel() + weights.numel() + R * FINE) * item  # the drawn positions not counted
+    bwd_bytes = (R * FINE + 2 * (bins.numel() + weights.numel())) * item
+    size = f"{size} stratified, drawn (default)"
+    return [
+        Case(op, "fwd", size, [Variant(n, lambda fn=fn: forward(fn)) for n, fn in fns.items()], None, fwd_bytes),
+        Case(op, "fwd+bwd", size, [Variant(n, lambda fn=fn: step(fn)) for n, fn in fns.items()], None,
+             fwd_bytes + bwd_bytes),
+    ]
+
+
 def sample_pdf_cases(size: str, inputs: dict, device: torch.device) -> list[Case]:
     bins, weights = pdf_of(inputs)
     impls = {
         "kernel": lambda b, w, uu: sample_pdf(b, w, FINE, u=uu, backend="kernel", check_values=False),
+        "ours, values checked": lambda b, w, uu: sample_pdf(b, w, FINE, u=uu),
         "torch": sample_pdf_reference,
     }
     if device.type == "cuda":
         impls["torch.compile"] = torch.compile(sample_pdf_reference)
     nerfacc = (lambda: nerfacc_importance_samples(bins, weights)) if has_nerfacc(device) else None
-    return pdf_cases("sample_pdf", size, bins, weights, impls, sample_pdf_reference, device, nerfacc)
+    return [
+        *pdf_cases("sample_pdf", size, bins, weights, impls, sample_pdf_reference, device, nerfacc),
+        *pdf_default_cases("sample_pdf", size, bins, weights, lambda b, w: sample_pdf(b, w, FINE),
+                           sample_pdf_reference, device),
+    ]
 
 
 def sample_pdf_packed_cases(inputs: dict, device: torch.device) -> list[Case]:
@@ -222,12 +261,17 @@ def sample_pdf_packed_cases(inputs: dict, device: torch.device) -> list[Case]:
         "kernel": lambda b, w, uu: sample_pdf_packed(
             b, w, offsets, FINE, u=uu, backend="kernel", check_values=False
         ),
+        "ours, values checked": lambda b, w, uu: sample_pdf_packed(b, w, offsets, FINE, u=uu),
         "torch": reference,
     }
     if device.type == "cuda":
         impls["torch.compile"] = torch.compile(reference)
     size = f"R={offsets.numel() - 1} bins={weights.numel()} (0..{COARSE - 2} per ray) N={FINE}"
-    return pdf_cases("sample_pdf_packed", size, bins, weights, impls, reference, device)
+    return [
+        *pdf_cases("sample_pdf_packed", size, bins, weights, impls, reference, device),
+        *pdf_default_cases("sample_pdf_packed", size, bins, weights,
+                           lambda b, w: sample_pdf_packed(b, w, offsets, FINE), reference, device),
+    ]
 
 
 def cases(device: torch.device) -> list[Case]:

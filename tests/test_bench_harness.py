@@ -22,3 +22,12 @@ def test_a_case_with_a_truth_reports_each_variants_error():
     case = Case("op", "fwd", "64", [Variant("kernel", lambda: x.float() * 2)], lambda: x.double() * 2, 512)
     (result,) = run_case(case, torch.device("cpu"), repeats=2, warmup=1)
     assert result.max_abs_err is not None and result.max_abs_err < 1e-6
+
+
+def test_speedups_are_our_kernels_or_else_our_default_calls():
+    x = torch.rand(64)
+    both = [Variant("kernel", lambda: x * 2), Variant("ours, defaults", lambda: x * 2), Variant("torch", lambda: x + x)]
+    kernel, defaults, _ = run_case(Case("op", "fwd", "64", both, None, 512), torch.device("cpu"), 2, 1)
+    assert set(kernel.speedups) == {"ours, defaults", "torch"} and not defaults.speedups
+    (defaults, _) = run_case(Case("op", "fwd", "64", both[1:], None, 512), torch.device("cpu"), 2, 1)
+    assert set(defaults.speedups) == {"torch"}
