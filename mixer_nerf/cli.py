@@ -260,8 +260,9 @@ def run_ablate(args: argparse.Namespace) -> int:
     else:
         if args.steps is None and args.time_budget is None:
             raise UserError("give --steps N (equal steps) or --time-budget SECONDS (equal training time)")
+        base, lpips = train_config_from_args(args), True
         presets = "ABCD" if args.presets is None else args.presets
-        base, seeds, lpips = train_config_from_args(args), "0,1" if args.seeds is None else args.seeds, True
+        seeds = "0,1" if args.seeds is None else args.seeds
     overrides = {**base.model_overrides, **parse_model_overrides(args.model_override)}
     plan = AblationPlan(
         base=dataclasses.replace(base, model_overrides=overrides), presets=parse_presets(presets),
@@ -286,14 +287,11 @@ def run_ablate(args: argparse.Namespace) -> int:
 def _saved_ablation(args: argparse.Namespace) -> tuple[TrainConfig, str, str, bool]:
     """--report's settings, presets, seeds and LPIPS: those of the plan saved in --out, with what
     was typed on top."""
-    import json
+    from .ablation.plan import PLAN_FILE, saved_plan
 
-    from .ablation.plan import PLAN_FILE
-
-    path = Path(args.out) / PLAN_FILE
-    if not path.is_file():
+    saved = saved_plan(Path(args.out))
+    if saved is None:
         raise UserError(f"{args.out}: no ablation to report ({PLAN_FILE} missing)")
-    saved = json.loads(path.read_text())
     settings = dict(saved["settings"])
     lpips = settings.pop("lpips", True)
     values = {**settings, **typed_settings(args), "out": args.out, "progress": False}

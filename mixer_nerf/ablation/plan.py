@@ -87,16 +87,23 @@ class AblationPlan:
 
     def check_settings(self) -> None:
         """Refuse a folder whose plan was written with other shared settings (a missing plan passes)."""
-        path = self.out / PLAN_FILE
-        if not path.is_file():
+        plan = saved_plan(self.out)
+        if plan is None:
             return
-        saved, settings = json.loads(path.read_text())["settings"], self.settings()
+        saved, settings = plan["settings"], self.settings()
         # plans written before a setting joined PER_RUN_SETTINGS still hold it
         differs = sorted(k for k in (set(saved) | set(settings)) - set(PER_RUN_SETTINGS)
                          if saved.get(k) != settings.get(k))
         if differs:
-            raise AblationError(f"{path}: the ablation there was started with other settings "
+            raise AblationError(f"{self.out / PLAN_FILE}: the ablation there was started with other settings "
                                 f"({', '.join(differs)})")
+
+
+def saved_plan(out: Path) -> dict[str, Any] | None:
+    """The plan the ablation in ``out`` was started with (its presets, seeds and shared settings),
+    or None where there is none."""
+    path = out / PLAN_FILE
+    return json.loads(path.read_text()) if path.is_file() else None
 
 
 def parse_presets(text: str) -> tuple[str, ...]:

@@ -141,7 +141,7 @@ class TrainConfig:
     proposal_weight_padding: float = option(
         0.0, "proposal sampler: added to every proposal weight before resampling, so that no part of "
         "a ray is given up (default 0: none)")
-    # Against floaters (a 600 s Fern run overfits); off until a screen measures it.
+    # Against floaters; off: on Fern's val split it did not help a 600 s run (docs/training.md).
     distortion_weight: float = option(
         0.0, "proposal sampler: weight of mip-NeRF 360's distortion loss on the main field's weights, "
         "which gathers each ray's weight into few short intervals (default 0: off; nerfacto uses 0.002)",
