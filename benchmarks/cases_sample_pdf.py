@@ -165,7 +165,8 @@ def packed_pdf_of(inputs: dict, device: torch.device, seed: int = 2):
 
 def pdf_cases(op: str, size: str, bins, weights, impls: dict, reference, device, nerfacc=None) -> list[Case]:
     """fwd and fwd+bwd cases of ``impls[name](bins, weights, u)`` at the deterministic positions;
-    ``reference`` gives the float64 truth, ``nerfacc`` an optional forward-only peer."""
+    ``reference`` gives the float64 truth (None: no truth, for variants that draw their own
+    positions), ``nerfacc`` an optional forward-only peer."""
     u = deterministic_u(device)
     R = impls["torch"](bins, weights, u).shape[0]
     item = bins.element_size()
@@ -190,48 +191,31 @@ def pdf_cases(op: str, size: str, bins, weights, impls: dict, reference, device,
 
     # backward: read grad_samples, bins, weights; write grad_bins, grad_weights
     bwd_bytes = (R * FINE + 2 * (bins.numel() + weights.numel())) * item
+    has_truth = reference is not None
     return [
-        Case(op, "fwd", size, fwd_variants, lambda: forward(reference, torch.float64), fwd_bytes),
+        Case(op, "fwd", size, fwd_variants, (lambda: forward(reference, torch.float64)) if has_truth else None,
+             fwd_bytes),
         Case(
             op,
             "fwd+bwd",
             size,
             [Variant(name, lambda fn=fn: step(fn)) for name, fn in impls.items()],
-            lambda: step(reference, torch.float64),
+            (lambda: step(reference, torch.float64)) if has_truth else None,
             fwd_bytes + bwd_bytes,
         ),
     ]
 
 
 def pdf_default_cases(op: str, size: str, bins, weights, ours, reference, device) -> list[Case]:
-    """fwd and fwd+bwd of what a user calls, ``ours(bins, weights)`` (stratified positions drawn by
-    the op, values checked), beside ``reference(bins, weights, u)`` with positions drawn as a caller
-    without the op would; no error column (each variant draws other positions)."""
+    """:func:`pdf_cases` of what a user calls, ``ours(bins, weights)`` (stratified positions drawn
+    by the op, values checked), beside ``reference(bins, weights, u)`` with positions drawn as a
+    caller without the op would; no error column (each variant draws other positions)."""
     R = weights.shape[0] if weights.dim() == 2 else bins.shape[0] - weights.shape[0]
-    item = bins.element_size()
-    gen = torch.Generator(device=device).manual_seed(1)
-    upstream = torch.randn(R, FINE, generator=gen, device=device)
-    fns = {"ours, defaults": ours, "torch": lambda b, w: reference(b, w, stratified_u(R, device))}
+    impls = {"ours, defaults": lambda b, w, _: ours(b, w),
+             "torch": lambda b, w, _: reference(b, w, stratified_u(R, device))}
     if device.type == "cuda":
-        fns["torch.compile"] = torch.compile(fns["torch"])
-
-    def forward(fn):
-        with torch.no_grad():
-            return fn(bins, weights)
-
-    def step(fn):
-        leaves = [x.detach().requires_grad_() for x in (bins, weights)]
-        out = fn(*leaves)
-        return (out.detach(), *torch.autograd.grad(out, leaves, upstream))
-
-    fwd_bytes = (bins.numel() + weights.numel() + R * FINE) * item  # the drawn positions not counted
-    bwd_bytes = (R * FINE + 2 * (bins.numel() + weights.numel())) * item
-    size = f"{size} stratified, drawn (default)"
-    return [
-        Case(op, "fwd", size, [Variant(n, lambda fn=fn: forward(fn)) for n, fn in fns.items()], None, fwd_bytes),
-        Case(op, "fwd+bwd", size, [Variant(n, lambda fn=fn: step(fn)) for n, fn in fns.items()], None,
-             fwd_bytes + bwd_bytes),
-    ]
+        impls["torch.compile"] = torch.compile(impls["torch"])
+    return pdf_cases(op, f"{size} stratified, drawn (default)", bins, weights, impls, None, device)
 
 
 def sample_pdf_cases(size: str, inputs: dict, device: torch.device) -> list[Case]:
