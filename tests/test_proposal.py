@@ -34,7 +34,7 @@ def sampler(rounds=(16, 8), samples=6, spacing="linear") -> ProposalSampler:
 @pytest.mark.parametrize("kwargs, match", [
     ({"samples_per_round": ()}, "samples_per_round"), ({"samples_per_round": (4, 0)}, "samples_per_round"),
     ({"num_samples": 0}, "num_samples"), ({"spacing": "log"}, "spacing"), ({"weight_padding": -1.0}, "padding"),
-    ({"jitter": "per_bin"}, "jitter")])
+    ({"jitter": "per_bin"}, "jitter"), ({"residual": "far"}, "residual")])
 def test_options_reject_bad_values(kwargs, match):
     with pytest.raises(ValueError, match=match):
         ProposalOptions(**kwargs)
@@ -103,6 +103,38 @@ def test_loss_is_zero_when_each_round_bounds_the_weights_and_reaches_only_the_pr
     loss = proposal_loss([short], edges, main)
     loss.backward()
     assert loss.item() > 0 and short.weights.grad.abs().sum() > 0 and main.grad is None
+
+
+class Transparent(nn.Module):
+    """A proposal network that sees nothing on any ray."""
+
+    def density(self, x: torch.Tensor) -> torch.Tensor:
+        return x.new_zeros(x.shape[:-1])
+
+
+def test_residual_last_gives_the_remaining_transmittance_to_the_last_interval_with_gradient():
+    w = (torch.rand(5, 7) / 10).requires_grad_()
+    kept = ProposalSampler([Transparent()], ProposalOptions((4,), 6, residual="last")).target_weights(w)
+    torch.testing.assert_close(kept.sum(-1), torch.ones(5))
+    torch.testing.assert_close(kept[:, :-1], w[:, :-1])
+    kept[:, -1].sum().backward()  # the last weight is 1 - (the others' sum)
+    torch.testing.assert_close(w.grad, torch.cat([-torch.ones(5, 6), torch.zeros(5, 1)], -1))
+    assert ProposalSampler([Transparent()], ProposalOptions((4,), 6)).target_weights(w) is w
+
+
+def test_a_ray_the_proposals_see_as_transparent_is_sampled_along_it_or_at_its_far_end():
+    """Nothing seen: dropping the residual leaves each round's PDF uniform (samples spread along
+    the ray); giving it to the last interval puts every sample in the last quarter of the ray,
+    as nerfacc's estimator does."""
+    gen = torch.Generator().manual_seed(0)
+    o, d = rays(64, gen)
+
+    def far_share(residual: str) -> float:
+        prop = ProposalSampler([Transparent(), Transparent()], ProposalOptions((8, 4), 8, residual=residual))
+        s = prop.sample(o, d, 2.0, 6.0, stratified=True, generator=gen)
+        return (0.5 * (s.t_starts + s.t_ends) >= 5.0).float().mean().item()
+
+    assert far_share("drop") < 0.3 and far_share("last") == 1.0
 
 
 def test_a_coarse_round_bounds_fine_intervals_by_the_weight_of_those_it_overlaps():

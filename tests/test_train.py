@@ -118,6 +118,7 @@ def params_of(trainer: Trainer) -> dict[str, torch.Tensor]:
         ("empty_space_points", 0),
         ("proposal_update_every", 0),
         ("proposal_jitter", "per_bin"),
+        ("proposal_residual", "far"),
         ("proposal_weight_padding", -1e-4),
         ("distortion_weight", -1e-3),
         ("distortion_weight", math.nan),
@@ -679,6 +680,14 @@ def test_proposal_sampler_trains_its_networks_and_renders_from_the_checkpoint(tm
     run = load_trained(tmp_path / "checkpoint.pt")
     rays_o, rays_d = trainer.val_scene.rays_for_image(0)
     torch.testing.assert_close(run.render(rays_o, rays_d).color, trainer.render_rgb(rays_o, rays_d))
+
+
+def test_proposal_residual_reaches_the_sampler_and_trains(tmp_path):
+    trainer = Trainer(tiny_config(tmp_path, sampler="proposal", proposal_rounds=(12, 8), proposal_samples=6,
+                                  proposal_residual="last", steps=3), log=quiet)
+    assert trainer.fields.proposal.options.residual == "last"
+    trainer.fit()
+    assert all(math.isfinite(float(r["loss"])) for r in trainer.train_log.rows())
 
 
 def test_val_holdout_trains_without_the_val_views_and_evaluates_on_them(llff_scene, tmp_path):

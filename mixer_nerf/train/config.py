@@ -9,7 +9,7 @@ from typing import Any
 
 from ..data import FORMATS
 from ..render.image_renderer import RENDER_SAMPLES
-from ..render.skipping import JITTERS, MarchingOptions
+from ..render.skipping import JITTERS, RESIDUALS, MarchingOptions
 
 PRESETS = ("A", "B", "C", "D")
 PRECISIONS = ("bf16", "tf32", "fp32")
@@ -141,6 +141,10 @@ class TrainConfig:
     proposal_weight_padding: float = option(
         0.0, "proposal sampler: added to every proposal weight before resampling, so that no part of "
         "a ray is given up (default 0: none)")
+    proposal_residual: str = option(
+        "drop", "proposal sampler: a ray's transmittance left after its last interval is dropped (each "
+        "round's PDF is its weights normalised) or added to the last interval (nerfacc's estimator), "
+        "in sampling and in the proposal loss", choices=RESIDUALS)
     # Against floaters; off: on Fern's val split it did not help a 600 s run (docs/training.md).
     distortion_weight: float = option(
         0.0, "proposal sampler: weight of mip-NeRF 360's distortion loss on the main field's weights, "
@@ -202,6 +206,7 @@ class TrainConfig:
         if self.proposal_update_every < 1:
             raise ValueError(f"proposal_update_every must be positive, got {self.proposal_update_every}")
         _one_of("proposal_jitter", self.proposal_jitter, JITTERS)
+        _one_of("proposal_residual", self.proposal_residual, RESIDUALS)
         if not self.proposal_weight_padding >= 0:
             raise ValueError(f"proposal_weight_padding must be >= 0, got {self.proposal_weight_padding}")
         if not (math.isfinite(self.distortion_weight) and self.distortion_weight >= 0):

@@ -297,7 +297,8 @@ class Trainer:
             stratified=True, background=self.background, generator=self.sampler.generator, backend=cfg.backend,
             train_proposal=update)
         self.samples_seen += samples.t_starts.numel()
-        loss = proposal_loss(samples.rounds, samples.edges, out.weights) if update else out.color.new_zeros(())
+        weights = self.fields.proposal.target_weights(out.weights)
+        loss = proposal_loss(samples.rounds, samples.edges, weights) if update else out.color.new_zeros(())
         losses = {"loss_coarse": F.mse_loss(out.color, target),
                   "loss_proposal": cfg.proposal_loss_weight * loss}
         if cfg.distortion_weight > 0:  # the edges are in s (no gradient): only the main field's weights learn

@@ -25,6 +25,7 @@ from .occupancy_grid import CellShare, OccupancyGrid
 from .occupancy_sampler import GridRefresh, OccupancySampler
 from .proposal import (
     JITTERS,
+    RESIDUALS,
     ProposalOptions,
     ProposalSampler,
     proposal_loss,
@@ -35,6 +36,7 @@ from .sample_budget import SampleBudget
 
 __all__ = [
     "JITTERS",
+    "RESIDUALS",
     "CellShare",
     "GridRefresh",
     "MarchedResult",

@@ -28,6 +28,7 @@ from ..volume import RayBundleResult, composite_samples, query_field
 
 SPACINGS = ("linear", "disparity")
 JITTERS = ("per_sample", "per_ray")
+RESIDUALS = ("drop", "last")
 UPDATE_RAMP_STEPS = 1000
 """Steps over which :func:`proposal_update_due`'s interval grows from 1 to its final value."""
 
@@ -51,6 +52,11 @@ class ProposalOptions:
         ray is ever given up entirely (0: none, the trainer's default).
     jitter: stratified positions ``u`` jittered all of a ray's by one offset (``"per_ray"``:
         equal steps in ``u``, as nerfacc's sampler; the default) or each by itself (``"per_sample"``).
+    residual: what becomes of a ray's transmittance left after its last interval (1 - opacity)
+        in each round and in the loss's target: ``"drop"`` it (a round's PDF is its weights
+        normalised; the default) or add it to the last interval's weight (``"last"``: a CDF that
+        ends at 1, as nerfacc's estimator's, so a ray its networks see as still transparent is
+        sampled towards its far end too).
     """
 
     samples_per_round: tuple[int, ...] = (128, 64)
@@ -58,6 +64,7 @@ class ProposalOptions:
     spacing: str = "linear"
     weight_padding: float = 0.0
     jitter: str = "per_ray"
+    residual: str = "drop"
 
     def __post_init__(self) -> None:
         if not self.samples_per_round or any(n < 1 for n in self.samples_per_round):
@@ -70,6 +77,8 @@ class ProposalOptions:
             raise ValueError(f"weight_padding must be >= 0, got {self.weight_padding}")
         if self.jitter not in JITTERS:
             raise ValueError(f"jitter must be one of {JITTERS}, got {self.jitter!r}")
+        if self.residual not in RESIDUALS:
+            raise ValueError(f"residual must be one of {RESIDUALS}, got {self.residual!r}")
 
 
 class ProposalRound(NamedTuple):
@@ -124,11 +133,20 @@ class ProposalSampler(nn.Module):
             t = self._to_t(edges, near, far)
             mids = 0.5 * (t[:, 1:] + t[:, :-1])
             sigma = net.density(rays_o[:, None, :] + mids[..., None] * rays_d[:, None, :]).float() * norm
-            weights = _weights(sigma, t[:, :-1], t[:, 1:], backend)
+            weights = self.target_weights(_weights(sigma, t[:, :-1], t[:, 1:], backend))
             rounds.append(ProposalRound(edges, weights))
         edges = self._resample(edges, weights, opts.num_samples + 1, stratified, generator, backend)
         t = self._to_t(edges, near, far)
         return ProposalSamples(t[:, :-1], t[:, 1:], edges, tuple(rounds))
+
+    def target_weights(self, weights: torch.Tensor) -> torch.Tensor:
+        """Volume-rendering weights ``(R, n)`` as this sampler's options resample them and as
+        :func:`proposal_loss` takes the main field's: with ``residual="last"``, the last
+        interval's weight takes the ray's remaining transmittance (differentiably)."""
+        if self.options.residual == "drop":
+            return weights
+        remaining = (1 - weights.sum(-1, keepdim=True)).clamp_min(0)
+        return torch.cat([weights[:, :-1], weights[:, -1:] + remaining], dim=-1)
 
     @torch.no_grad()
     def _resample(self, edges, weights, count, stratified, generator, backend) -> torch.Tensor:
