@@ -141,6 +141,7 @@ class TrainConfig:
     proposal_weight_padding: float = option(
         0.0, "proposal sampler: added to every proposal weight before resampling, so that no part of "
         "a ray is given up (default 0: none)")
+    # drop: a Fern val screen gave "last" no gain (docs/skipping.md)
     proposal_residual: str = option(
         "drop", "proposal sampler: a ray's transmittance left after its last interval is dropped (each "
         "round's PDF is its weights normalised) or added to the last interval (nerfacc's estimator), "
