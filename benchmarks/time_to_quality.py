@@ -41,7 +41,7 @@ from benchmarks.skip_report import skip_report
 from benchmarks.validation import validate
 from mixer_nerf.ablation import parse_model_overrides
 from mixer_nerf.cli_options import add_options
-from mixer_nerf.data import load_scene
+from mixer_nerf.data import detect_format, load_split
 from mixer_nerf.render.skipping import JITTERS
 from mixer_nerf.train.output import write_text_atomic
 from mixer_nerf.train.trainer import TrainingClock
@@ -380,10 +380,10 @@ def main() -> None:
     torch.backends.cuda.matmul.allow_tf32 = True
     torch.backends.cudnn.allow_tf32 = True
     device = torch.device(args.device)
-    # only when asked: Blender's loader has no such split
-    splits = {"val_holdout": args.val_holdout} if args.val_holdout else {}
-    train = load_scene(args.data, split="train", **splits).to(device)
-    val = load_scene(args.data, split="val", **splits).to(device)
+    # as the trainer loads them: a val split held out of a capture's training views is refused for Blender
+    fmt, holdout = detect_format(args.data), args.val_holdout or 0
+    train = load_split(args.data, fmt, "train", val_holdout=holdout).to(device)
+    val = load_split(args.data, fmt, "val", val_holdout=holdout).to(device)
     checkpoints = [float(c) for c in args.checkpoints.split(",")]
     label = args.label or args.method
 

@@ -41,7 +41,7 @@ def test_a_stopped_curve_resumes_from_its_run_dir(tmp_path, monkeypatch, capsys)
     assert points[1]["step"] > state["step"] >= points[0]["step"]
 
 
-def test_grad_clip_and_adam_eps_reach_our_trainers_config_and_clip_only_ours(tmp_path, monkeypatch, capsys):
+def test_trainer_flags_reach_our_trainers_config_and_clip_only_ours(tmp_path, monkeypatch, capsys):
     import mixer_nerf.train
 
     class Built(Exception):
@@ -53,14 +53,23 @@ def test_grad_clip_and_adam_eps_reach_our_trainers_config_and_clip_only_ours(tmp
     scene = ensure_procedural_scene(resolution=16, n_train=4, n_val=2, n_test=2)
     monkeypatch.setattr(mixer_nerf.train, "Trainer", trainer)
     argv = ["--device", "cpu", "--data", str(scene), "--out", str(tmp_path), "--grad-clip", "0.5",
-            "--adam-eps", "1e-8"]
+            "--adam-eps", "1e-8", "--proposal-residual", "last"]
     with pytest.raises(Built) as built:
         run(monkeypatch, "--method", "ours", *argv)
     (cfg,) = built.value.args
-    assert (cfg.grad_clip, cfg.adam_eps) == (0.5, 1e-8)
+    assert (cfg.grad_clip, cfg.adam_eps, cfg.proposal_residual) == (0.5, 1e-8, "last")
     with pytest.raises(SystemExit):
         run(monkeypatch, "--method", "nerfacc-proposal", *argv)
     assert "--grad-clip needs --method ours" in capsys.readouterr().err
+
+
+def test_a_val_holdout_on_a_blender_scene_is_refused_as_the_trainer_refuses_it(tmp_path, monkeypatch):
+    from mixer_nerf.data import DatasetError
+
+    scene = ensure_procedural_scene(resolution=16, n_train=4, n_val=2, n_test=2)
+    with pytest.raises(DatasetError, match="Blender scenes ship a val split"):
+        run(monkeypatch, "--method", "ours", "--device", "cpu", "--data", str(scene), "--out", str(tmp_path),
+            "--val-holdout", "2")
 
 
 def test_plot_adds_runs_from_side_by_side_files_in_place_of_their_labels(tmp_path, monkeypatch):
