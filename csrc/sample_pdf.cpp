@@ -67,11 +67,12 @@ struct Cpu {
   template <typename Rows>
   static std::tuple<at::Tensor, at::Tensor, at::Tensor> forward_stratified(
       const at::Tensor& bins, const at::Tensor& weights, std::optional<at::Generator> generator,
-      double weight_padding, const RayBatch& batch, Rows rows, const std::optional<at::Tensor>& /*offsets*/) {
+      double weight_padding, bool keep_positions, const RayBatch& batch, Rows rows,
+      const std::optional<at::Tensor>& /*offsets*/) {
     const at::Tensor u = stratified_positions(batch, generator, bins);
     std::atomic<int32_t> invalid{0};
     at::Tensor samples = sample(bins, weights, u, weight_padding, batch, rows, &invalid);
-    return {samples, u, invalid_flag(invalid.load(), bins)};
+    return {samples, keep_positions ? u : at::empty({batch.rays, 0}, u.options()), invalid_flag(invalid.load(), bins)};
   }
 
   // sample_pdf of R rays whose bins `rows` places (DenseBins or PackedBins): samples (R, S); with

@@ -144,8 +144,10 @@ inline void check_grad(const at::Tensor& grad_samples, const at::Tensor& bins, c
 // The *_stratified ops draw their own positions u_n = (n + xi_n) / N, xi ~ U[0, 1), from
 // `generator`: on the CPU the stream torch.rand draws (the Python path's, bit for bit), on CUDA
 // Philox in the kernel (one launch, graph-safe). Besides their samples they return the positions
-// drawn, (R, N) in the accumulation dtype (sample_pdf's backward ops take them), and, like
-// hierarchical_samples_fwd, invalid (1) int32: the InvalidInput bits of the values read.
+// drawn, (R, N) in the accumulation dtype (sample_pdf's backward ops take them; with
+// keep_positions false, (R, 0): a caller without gradients has no use for them, and not writing
+// them spares the kernel as many bytes as the samples), and, like hierarchical_samples_fwd,
+// invalid (1) int32: the InvalidInput bits of the values read.
 template <typename Device>
 struct SamplePdfOps {
   static DenseBins dense_rows(const at::Tensor& weights) { return {static_cast<int>(weights.size(1))}; }
@@ -162,10 +164,10 @@ struct SamplePdfOps {
 
   static std::tuple<at::Tensor, at::Tensor, at::Tensor> dense_stratified_fwd(
       const at::Tensor& bins, const at::Tensor& weights, int64_t num_samples, std::optional<at::Generator> generator,
-      double weight_padding) {
+      double weight_padding, bool keep_positions) {
     check_dense_pdf(bins, weights, Device::kind);
     check_bins(bins, weights);
-    return Device::forward_stratified(bins, weights, generator, weight_padding,
+    return Device::forward_stratified(bins, weights, generator, weight_padding, keep_positions,
                                       drawn_positions(bins.size(0), num_samples), dense_rows(weights), std::nullopt);
   }
 
@@ -185,10 +187,10 @@ struct SamplePdfOps {
 
   static std::tuple<at::Tensor, at::Tensor, at::Tensor> packed_stratified_fwd(
       const at::Tensor& bins, const at::Tensor& weights, const at::Tensor& offsets, int64_t num_samples,
-      std::optional<at::Generator> generator, double weight_padding) {
+      std::optional<at::Generator> generator, double weight_padding, bool keep_positions) {
     const int64_t rays = check_packed_pdf(bins, weights, offsets, Device::kind);
-    return Device::forward_stratified(bins, weights, generator, weight_padding, drawn_positions(rays, num_samples),
-                                      packed_rows(weights, offsets), offsets);
+    return Device::forward_stratified(bins, weights, generator, weight_padding, keep_positions,
+                                      drawn_positions(rays, num_samples), packed_rows(weights, offsets), offsets);
   }
 
   static std::tuple<at::Tensor, at::Tensor> packed_bwd(const at::Tensor& grad_samples, const at::Tensor& bins,

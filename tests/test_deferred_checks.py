@@ -150,11 +150,13 @@ def _pdf(device, rays=29, bins=13):
 def test_sample_pdf_flags_each_kind_of_bad_value(device):
     (edges, weights), (bins, packed_weights, offsets) = _pdf(device)
 
+    ops = torch.ops.mixer_nerf
+
     def dense(edges, weights, num_samples=7):
-        return int(torch.ops.mixer_nerf.sample_pdf_stratified_fwd(edges, weights, num_samples, None, 0.0)[2])
+        return int(ops.sample_pdf_stratified_fwd(edges, weights, num_samples, None, 0.0, False)[2])
 
     def packed(bins, weights, offsets, num_samples=7):
-        out = torch.ops.mixer_nerf.sample_pdf_packed_stratified_fwd(bins, weights, offsets, num_samples, None, 0.0)
+        out = ops.sample_pdf_packed_stratified_fwd(bins, weights, offsets, num_samples, None, 0.0, False)
         assert out[0].isfinite().all()  # whatever the offsets: clamped, in bounds
         return int(out[2])
 

@@ -971,12 +971,13 @@ def test_packed_cuda_adversarial_and_opcheck():
 # sample_pdf_packed_stratified_fwd
 
 
-def _draw(bins, weights, N, generator, offsets=None, weight_padding=0.0):
+def _draw(bins, weights, N, generator, offsets=None, weight_padding=0.0, keep_positions=True):
     """samples, u, invalid of the stratified op of the layout (packed if offsets are given)."""
     if offsets is None:
-        return torch.ops.mixer_nerf.sample_pdf_stratified_fwd(bins, weights, N, generator, weight_padding)
+        return torch.ops.mixer_nerf.sample_pdf_stratified_fwd(bins, weights, N, generator, weight_padding,
+                                                              keep_positions)
     return torch.ops.mixer_nerf.sample_pdf_packed_stratified_fwd(bins, weights, offsets, N, generator,
-                                                                 weight_padding)
+                                                                 weight_padding, keep_positions)
 
 
 def _given(bins, weights, u, offsets=None, weight_padding=0.0):
@@ -1021,6 +1022,8 @@ def test_stratified_op_matches_reference_on_the_positions_it_drew(layout, dtype,
     # On the CPU the positions are the Python path's, bit for bit: torch.rand's stream.
     assert torch.equal(u, _stratified_u(R, N, torch.Generator().manual_seed(seed), CPU, u.dtype))
     assert torch.equal(samples, _given(bins, weights, u, offsets))
+    unkept = _draw(bins, weights, N, torch.Generator().manual_seed(seed), offsets, keep_positions=False)
+    assert torch.equal(unkept[0], samples) and unkept[1].shape == (R, 0)
     want = (reference_samples(bins, weights, u) if offsets is None
             else packed_reference_samples(bins, weights, offsets, u))
     torch.testing.assert_close(samples, want, atol=tolerance(dtype, B), rtol=0)
@@ -1035,8 +1038,8 @@ def test_stratified_op_matches_reference_on_the_positions_it_drew(layout, dtype,
     if offsets is None:
         want = _reference_grads(bins, weights, u, upstream=upstream)
     else:
-        want = [g.to(dtype) for g in _packed_grads("torch", bins.double(), weights.double(), offsets, u.double(),
-                                                  upstream.double())]
+        as_double = (bins.double(), weights.double(), offsets, u.double(), upstream.double())
+        want = [g.to(dtype) for g in _packed_grads("torch", *as_double)]
     for got, expected in zip(grads, want, strict=True):
         if got is None:  # no samples: no gradient
             assert N == 0 or R == 0
@@ -1100,19 +1103,23 @@ def test_stratified_opcheck():
     bins, weights = random_pdf(5, 7)
     # Each call draws afresh, so only the checks that compare no two calls' values.
     utils = ("test_schema", "test_faketensor")
-    opcheck(torch.ops.mixer_nerf.sample_pdf_stratified_fwd.default, (bins, weights, 9, None, 0.0),
-            test_utils=utils)
     packed = random_packed_pdf([3, 0, 5, 1])
-    opcheck(torch.ops.mixer_nerf.sample_pdf_packed_stratified_fwd.default, (*packed, 6, None, 0.0),
-            test_utils=utils)
+    for keep in (True, False):
+        opcheck(torch.ops.mixer_nerf.sample_pdf_stratified_fwd.default, (bins, weights, 9, None, 0.0, keep),
+                test_utils=utils)
+        opcheck(torch.ops.mixer_nerf.sample_pdf_packed_stratified_fwd.default, (*packed, 6, None, 0.0, keep),
+                test_utils=utils)
 
 
 @cuda
 @needs_cuda
 @pytest.mark.parametrize("layout", ["dense", "packed"])
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64, torch.float16])
-@pytest.mark.parametrize("shape", [(1, 1, 1), (3, 31, 33), (1000, 37, 5), (65536, 62, 128), (0, 4, 3), (6, 5, 0)],
-                         ids=lambda s: "x".join(map(str, s)))
+@pytest.mark.parametrize(
+    "shape",
+    [(1, 1, 1), (3, 31, 33), (1000, 37, 5), (65536, 62, 128), (0, 4, 3), (6, 5, 0)],
+    ids=lambda s: "x".join(map(str, s)),
+)
 def test_cuda_stratified_op_matches_the_cpu_op_on_its_positions(layout, dtype, shape):
     R, B, N = shape
     dev = torch.device("cuda")
@@ -1121,6 +1128,9 @@ def test_cuda_stratified_op_matches_the_cpu_op_on_its_positions(layout, dtype, s
     assert samples.shape == (R, N) and samples.dtype == dtype and u.dtype == accumulation_dtype(dtype)
     assert int(invalid) == 0
     assert_stratified(u, N)
+    unkept = _draw(bins, weights, N, torch.Generator(dev).manual_seed(3), offsets, keep_positions=False)
+    kept = _draw(bins, weights, N, torch.Generator(dev).manual_seed(3), offsets)
+    assert torch.equal(unkept[0], kept[0]) and unkept[1].shape == (R, 0)
     to_cpu = [None if t is None else t.cpu() for t in (bins, weights, u, offsets)]
     cpu = _given(*to_cpu[:3], to_cpu[3])
     atol = {torch.float32: 1e-6, torch.float64: 1e-14, torch.float16: 1e-3}[dtype]  # FMA on the GPU
@@ -1135,7 +1145,8 @@ def test_cuda_stratified_op_matches_the_cpu_op_on_its_positions(layout, dtype, s
     if not out.numel():
         return
     grads = torch.autograd.grad(out, pdf, upstream)
-    backward = torch.ops.mixer_nerf.sample_pdf_bwd if offsets is None else torch.ops.mixer_nerf.sample_pdf_packed_bwd
+    ops = torch.ops.mixer_nerf
+    backward = ops.sample_pdf_bwd if offsets is None else ops.sample_pdf_packed_bwd
     layout_args = () if offsets is None else (offsets.cpu(),)
     want = backward(upstream.cpu(), bins.cpu(), weights.cpu(), *layout_args, u.cpu(), 0.0)
     for got, expected in zip(grads, want, strict=True):
@@ -1154,7 +1165,8 @@ def test_cuda_stratified_sample_pdf_is_reproducible_and_spread():
     again = sample_pdf(bins, weights, N, generator=torch.Generator(dev).manual_seed(seed))
     assert torch.equal(first, again)
     gen = torch.Generator(dev).manual_seed(seed)
-    assert not torch.equal(sample_pdf(bins, weights, N, generator=gen), sample_pdf(bins, weights, N, generator=gen))
+    assert not torch.equal(sample_pdf(bins, weights, N, generator=gen),
+                           sample_pdf(bins, weights, N, generator=gen))  # its offset advances
     # Each sample's place in its stratum averages about 1/2 and is spread over it.
     u = _draw(bins, weights, N, torch.Generator(dev).manual_seed(seed))[1]
     place = u * N - torch.arange(N, device=dev)
@@ -1204,8 +1216,8 @@ def test_cuda_packed_shared_memory_covers_the_clamped_rays():
     bins, weights, _ = random_packed_pdf([3, 60, 2, 1])  # N = 66
     for bad in ([40, 63, 65, 65, 66], [0, 1, 2, 6, 7]):  # the first ray 63 bins long; the last 60
         bad = torch.tensor(bad)
-        cpu = sample_pdf_packed(bins, weights, bad, 16, deterministic=True, backend="kernel", check_values=False)
-        gpu = sample_pdf_packed(bins.to(dev), weights.to(dev), bad.to(dev), 16, deterministic=True,
-                                backend="kernel", check_values=False)
+        unchecked = {"deterministic": True, "backend": "kernel", "check_values": False}
+        cpu = sample_pdf_packed(bins, weights, bad, 16, **unchecked)
+        gpu = sample_pdf_packed(bins.to(dev), weights.to(dev), bad.to(dev), 16, **unchecked)
         assert gpu.isfinite().all()
         torch.testing.assert_close(gpu.cpu(), cpu, atol=1e-6, rtol=0)

@@ -382,14 +382,16 @@ struct Cuda {
   template <typename Rows>
   static std::tuple<at::Tensor, at::Tensor, at::Tensor> forward_stratified(
       const at::Tensor& bins, const at::Tensor& weights, std::optional<at::Generator> generator,
-      double weight_padding, const RayBatch& batch, Rows rows, const std::optional<at::Tensor>& offsets) {
+      double weight_padding, bool keep_positions, const RayBatch& batch, Rows rows,
+      const std::optional<at::Tensor>& offsets) {
     const c10::cuda::CUDAGuard guard(bins.device());
     at::Tensor samples = at::empty({batch.rays, batch.samples}, bins.options());
-    at::Tensor u = at::empty({batch.rays, batch.samples}, bins.options().dtype(at::toOpMathType(bins.scalar_type())));
+    at::Tensor u = at::empty({batch.rays, keep_positions ? batch.samples : 0},
+                             bins.options().dtype(at::toOpMathType(bins.scalar_type())));
     at::Tensor invalid = at::zeros({1}, bins.options().dtype(at::kInt));
     if (batch.rays > 0) {  // even without samples: the values are still checked
-      sample(bins, weights, nullptr, philox_for(generator, batch.samples), &u, weight_padding, batch, rows, offsets,
-             samples, invalid.data_ptr<int32_t>());
+      sample(bins, weights, nullptr, philox_for(generator, batch.samples), keep_positions ? &u : nullptr,
+             weight_padding, batch, rows, offsets, samples, invalid.data_ptr<int32_t>());
     }
     return {samples, u, invalid};
   }

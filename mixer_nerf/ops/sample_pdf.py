@@ -25,9 +25,9 @@ Positions ``u``:
     Philox inside the one kernel launch, from the state of ``generator`` (or of torch's default
     CUDA generator): the same seed gives the same samples, and a CUDA graph capturing the call
     draws afresh at every replay. That stream is not ``torch.rand``'s, so on CUDA the kernels and
-    the reference path agree in distribution, not sample for sample. The op also writes the
-    positions it drew, ``(R, N)`` in the accumulation dtype, which the backward reads (they are not
-    redrawn there).
+    the reference path agree in distribution, not sample for sample. When ``bins`` or ``weights``
+    require grad, the op also writes the positions it drew, ``(R, N)`` in the accumulation dtype,
+    which the backward reads (they are not redrawn there); otherwise it writes only the samples.
 
 Value checks (``check_values=True``, the default): on the CPU, on the reference path and for
 given or deterministic positions they run before the op (on a GPU each costs a host
@@ -106,7 +106,8 @@ def sample_pdf(
     pad = check_weight_padding(weight_padding)
     if drawn:
         check_generator(generator, bins)
-        samples, _, invalid = _SAMPLE_PDF_STRATIFIED(bins, weights, num_samples, generator, pad)
+        keep = _needs_grad(bins, weights)
+        samples, _, invalid = _SAMPLE_PDF_STRATIFIED(bins, weights, num_samples, generator, pad, keep)
         if deferred:
             deferred_checks.watch(invalid, "sample_pdf", INVALID_INPUT)
         return samples
@@ -165,7 +166,10 @@ def sample_pdf_packed(
     pad = check_weight_padding(weight_padding)
     if drawn:
         check_generator(generator, bins)
-        samples, _, invalid = _SAMPLE_PDF_PACKED_STRATIFIED(bins, weights, offsets, num_samples, generator, pad)
+        keep = _needs_grad(bins, weights)
+        samples, _, invalid = _SAMPLE_PDF_PACKED_STRATIFIED(
+            bins, weights, offsets, num_samples, generator, pad, keep
+        )
         if deferred:
             deferred_checks.watch(invalid, "sample_pdf_packed", PACKED_INVALID_INPUT)
         return samples
@@ -229,6 +233,11 @@ PACKED_INVALID_INPUT = {
 }
 
 
+def _needs_grad(bins: torch.Tensor, weights: torch.Tensor) -> bool:
+    """Whether the call records a backward, which reads the positions drawn."""
+    return torch.is_grad_enabled() and (bins.requires_grad or weights.requires_grad)
+
+
 def check_weight_padding(weight_padding: float) -> float:
     """``weight_padding`` as a float, else an error naming it."""
     if isinstance(weight_padding, bool) or not isinstance(weight_padding, (int, float)):
@@ -290,24 +299,27 @@ def _sample_pdf_bwd_fake(grad_samples, bins, weights, *offsets_u_and_padding):
 
 
 def _stratified_fwd_fake(bins, weights, *offsets_and_draw):
-    *offsets, num_samples, _generator, _weight_padding = offsets_and_draw
+    *offsets, num_samples, _generator, _weight_padding, keep_positions = offsets_and_draw
     num_rays = offsets[0].shape[0] - 1 if offsets else bins.shape[0]
     acc = accumulation_dtype(bins.dtype)
-    return (bins.new_empty(num_rays, num_samples), bins.new_empty(num_rays, num_samples, dtype=acc),
+    return (bins.new_empty(num_rays, num_samples),
+            bins.new_empty(num_rays, num_samples if keep_positions else 0, dtype=acc),
             bins.new_empty(1, dtype=torch.int32))
 
 
 class _Stratified(KernelOp):
-    """A ``*_stratified_fwd`` op: inputs ``(*pdf, num_samples, generator, weight_padding)``, outputs
-    (samples, the positions drawn, invalid). Its backward is the given-positions op's, on the
-    positions drawn in place of ``num_samples`` and ``generator``."""
+    """A ``*_stratified_fwd`` op: inputs ``(*pdf, num_samples, generator, weight_padding,
+    keep_positions)``, outputs (samples, the positions drawn, invalid). Its backward is the
+    given-positions op's, on the positions drawn (kept: the caller passes keep_positions=True when
+    a backward is recorded) in place of ``num_samples`` and ``generator``."""
 
     def save(self, ctx, inputs: tuple, outputs: tuple) -> None:
-        *pdf, _num_samples, _generator, weight_padding = inputs
+        *pdf, _num_samples, _generator, weight_padding, _keep_positions = inputs
         super().save(ctx, (*pdf, outputs[1], weight_padding), outputs)
 
     def backward(self, ctx, *grads) -> tuple:
-        return *super().backward(ctx, *grads), None  # the positions' slot stood for two inputs
+        # The positions' slot stood for num_samples and generator, and keep_positions has none.
+        return *super().backward(ctx, *grads), None, None
 
 
 _SAMPLE_PDF = KernelOp("sample_pdf_fwd", _sample_pdf_fwd_fake, "sample_pdf_bwd", _sample_pdf_bwd_fake)
