@@ -1124,7 +1124,11 @@ def test_cuda_stratified_op_matches_the_cpu_op_on_its_positions(layout, dtype, s
     R, B, N = shape
     dev = torch.device("cuda")
     bins, weights, offsets = _random_layout(layout, R, B, dtype, dev)
+    # Poisoned outputs (see _poisoned): an element the kernel forgets to write reads back as NaN.
+    addresses = _poisoned(((R, N), dtype), ((R, N), accumulation_dtype(dtype)))
     samples, u, invalid = _draw(bins, weights, N, None, offsets)
+    assert R * N == 0 or {samples.data_ptr(), u.data_ptr()} <= addresses
+    assert samples.isfinite().all() and u.isfinite().all()
     assert samples.shape == (R, N) and samples.dtype == dtype and u.dtype == accumulation_dtype(dtype)
     assert int(invalid) == 0
     assert_stratified(u, N)
