@@ -9,6 +9,7 @@ import pytest
 import torch
 from torch.library import opcheck
 
+from mixer_nerf.ops import check_pending
 from mixer_nerf.ops._dispatch import use_kernel
 from mixer_nerf.ops.hierarchical_samples import hierarchical_samples
 from mixer_nerf.ops.hierarchical_samples_reference import hierarchical_samples_reference
@@ -18,6 +19,7 @@ from mixer_nerf.ops.sample_pdf_reference import (
     sample_pdf_packed_reference,
     sample_pdf_reference,
 )
+from dispatch_count import dispatched_ops
 
 CPU = torch.device("cpu")
 HAS_CUDA = torch.cuda.is_available()
@@ -1177,19 +1179,34 @@ def test_cuda_stratified_sample_pdf_is_reproducible_and_spread():
     assert abs(place.mean().item() - 0.5) < 0.01 and abs(place.std().item() - 12 ** -0.5) < 0.01
 
 
+@pytest.mark.parametrize("layout", ["dense", "packed"])
+def test_stratified_call_is_one_op(layout):
+    """Without value checks (on the CPU they run before the op) the default call is the op alone:
+    no separate draw of the positions."""
+    bins, weights, offsets = _random_layout(layout, 7, 9, torch.float32)
+    call = sample_pdf if offsets is None else functools.partial(sample_pdf_packed, offsets=offsets)
+    with dispatched_ops() as ops:
+        call(bins, weights, num_samples=16, backend="kernel", check_values=False)
+    assert ops == {f"mixer_nerf.sample_pdf{'' if offsets is None else '_packed'}_stratified_fwd": 1}
+
+
 @cuda
 @needs_cuda
 def test_cuda_stratified_sample_pdf_is_one_launch_without_a_host_sync():
     dev = torch.device("cuda")
     bins, weights = random_pdf(4096, 63, device=dev)
     sample_pdf(bins, weights, 128)  # warm-up: the extension, the deferred checks' buffers
+    check_pending()
     torch.cuda.synchronize()
     torch.cuda.set_sync_debug_mode("error")
     try:
+        with dispatched_ops() as ops:  # the checks too: the first of a new batch reads nothing back
+            out = sample_pdf(bins, weights, 128)
         for _ in range(3):
             out = sample_pdf(bins, weights, 128)
     finally:
         torch.cuda.set_sync_debug_mode("default")
+    assert ops == {"mixer_nerf.sample_pdf_stratified_fwd": 1}
     assert_valid_samples(out, bins)
 
 
