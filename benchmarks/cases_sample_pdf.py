@@ -18,7 +18,10 @@ Cases:
     x ~ U[0, 1) (0..62 bins, mean ~21, some rays without bins), deterministic positions. No
     nerfacc variant: its packed importance sampling takes another layout (per-edge flags).
   * sample_pdf and sample_pdf_packed fwd and fwd+bwd, stratified positions drawn by each variant
-    (the default call, values checked): no error column, as every variant draws other positions.
+    (the default call, values checked: on CUDA our kernel draws the positions by Philox and checks
+    the values inside its one launch, with no host sync but the packed op's sizing of shared
+    memory; the others draw by torch.rand): no error column, as every variant draws other
+    positions.
 Our "kernel" variants run with check_values=False (the inputs are valid by construction), "ours,
 values checked" with the default checks at the same positions; the reference variants take the
 same u tensor the kernel sees.

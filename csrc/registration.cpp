@@ -10,9 +10,14 @@ TORCH_LIBRARY(mixer_nerf, m) {
   // sample_pdf: bins (R, B+1), weights (R, B), u (R, N) -> samples (R, N)
   m.def("sample_pdf_fwd(Tensor bins, Tensor weights, Tensor u, float weight_padding) -> Tensor");
   m.def("sample_pdf_bwd(Tensor grad_samples, Tensor bins, Tensor weights, Tensor u, float weight_padding) -> (Tensor, Tensor)");
+  //   the same with stratified positions drawn by the op from generator: (n + U[0, 1)) / num_samples
+  //   -> samples (R, N), the positions drawn u (R, N) (what sample_pdf_bwd takes; (R, 0), not written,
+  //   unless keep_positions), invalid (1) int32 (sample_pdf.h InvalidInput bits)
+  m.def("sample_pdf_stratified_fwd(Tensor bins, Tensor weights, int num_samples, Generator? generator, float weight_padding, bool keep_positions) -> (Tensor, Tensor, Tensor)");
   // sample_pdf_packed: ray r has B_r = offsets[r+1] - offsets[r] bins: weights (N), edges (N + R) (ray r's
   //   B_r + 1 edges from offsets[r] + r), u (S) or (R, S) -> samples (R, S)
   m.def("sample_pdf_packed_fwd(Tensor bins, Tensor weights, Tensor offsets, Tensor u, float weight_padding) -> Tensor");
+  m.def("sample_pdf_packed_stratified_fwd(Tensor bins, Tensor weights, Tensor offsets, int num_samples, Generator? generator, float weight_padding, bool keep_positions) -> (Tensor, Tensor, Tensor)");
   m.def("sample_pdf_packed_bwd(Tensor grad_samples, Tensor bins, Tensor weights, Tensor offsets, Tensor u, float weight_padding) -> (Tensor, Tensor)");
   // hierarchical_samples: z_coarse (R, S), weights (R, S), u (R, N) -> merged depths (R, S+N), invalid (1) int32
   m.def("hierarchical_samples_fwd(Tensor z_coarse, Tensor weights, Tensor u, float weight_padding) -> (Tensor, Tensor)");

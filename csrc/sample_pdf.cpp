@@ -52,15 +52,34 @@ void sample_ray(Weights weights, Edges edges, int num_bins, const acc_t* u, int6
   }
 }
 
-// The sample_pdf ops' CPU kernels, for SamplePdfOps (sample_pdf.h).
+// The sample_pdf ops' CPU kernels, for SamplePdfOps (sample_pdf.h). Each checks the values it
+// reads only where it returns `invalid`: the given-positions sample_pdf ops' callers check first.
 struct Cpu {
   static constexpr at::DeviceType kind = at::kCPU;
 
-  // sample_pdf of R rays whose bins `rows` places (DenseBins or PackedBins): samples (R, S).
   template <typename Rows>
   static at::Tensor forward(const at::Tensor& bins, const at::Tensor& weights, const at::Tensor& u,
                             double weight_padding, const RayBatch& batch, Rows rows,
                             const std::optional<at::Tensor>& /*offsets*/) {
+    return sample(bins, weights, u, weight_padding, batch, rows, nullptr);
+  }
+
+  template <typename Rows>
+  static std::tuple<at::Tensor, at::Tensor, at::Tensor> forward_stratified(
+      const at::Tensor& bins, const at::Tensor& weights, std::optional<at::Generator> generator,
+      double weight_padding, bool keep_positions, const RayBatch& batch, Rows rows,
+      const std::optional<at::Tensor>& /*offsets*/) {
+    const at::Tensor u = stratified_positions(batch, generator, bins);
+    std::atomic<int32_t> invalid{0};
+    at::Tensor samples = sample(bins, weights, u, weight_padding, batch, rows, &invalid);
+    return {samples, keep_positions ? u : at::empty({batch.rays, 0}, u.options()), invalid_flag(invalid.load(), bins)};
+  }
+
+  // sample_pdf of R rays whose bins `rows` places (DenseBins or PackedBins): samples (R, S); with
+  // `invalid`, the InvalidInput bits of the bins, weights and offsets read are OR-ed into it.
+  template <typename Rows>
+  static at::Tensor sample(const at::Tensor& bins, const at::Tensor& weights, const at::Tensor& u,
+                           double weight_padding, const RayBatch& batch, Rows rows, std::atomic<int32_t>* invalid) {
     at::Tensor samples = at::empty({batch.rays, batch.samples}, bins.options());
     const int64_t bins_per_ray = weights.numel() / std::max<int64_t>(1, batch.rays);
     MIXER_NERF_DISPATCH_FLOATING(bins.scalar_type(), "sample_pdf_fwd_cpu", [&] {
@@ -71,14 +90,20 @@ struct Cpu {
       scalar_t* out_p = samples.data_ptr<scalar_t>();
       at::parallel_for(0, batch.rays, grain_for(bins_per_ray + batch.samples), [&](int64_t begin, int64_t end) {
         std::vector<cdf_t> cdf;
+        int32_t bits = 0;
         for (int64_t r = begin; r < end; ++r) {
           const RayBins ray = rows(r);
+          if (invalid) {
+            bits |= invalid_pdf_bits(bins_p + ray.edges, ray.num_bins + 1, weights_p + ray.weights, ray.num_bins, 0, 1);
+            if (!rows.well_formed(r)) bits |= kBadOffsets;
+          }
           if (cdf.size() < size_t(ray.num_bins) + 1) cdf.resize(size_t(ray.num_bins) + 1);
           scalar_t* out = out_p + r * batch.samples;
           sample_ray(PaddedWeights<acc, scalar_t>{weights_p + ray.weights, static_cast<acc>(weight_padding)},
                      GivenEdges<acc, scalar_t>{bins_p + ray.edges}, ray.num_bins, u_p + r * batch.u_row_stride,
                      batch.samples, cdf.data(), [&](int64_t n, acc s) { out[n] = static_cast<scalar_t>(s); });
         }
+        if (bits) invalid->fetch_or(bits, std::memory_order_relaxed);
       });
     });
     return samples;
@@ -136,8 +161,8 @@ struct Cpu {
         int32_t bits = 0;
         for (int64_t r = begin; r < end; ++r) {
           const scalar_t* z = z_p + r * coarse;
-          bits |= invalid_ray_bits(z, weights_p + r * coarse, coarse, u_p + r * batch.u_row_stride, batch.samples,
-                                   0, 1);
+          bits |= invalid_pdf_bits(z, coarse, weights_p + r * coarse, coarse, 0, 1) |
+                  invalid_position_bits(u_p + r * batch.u_row_stride, batch.samples, 0, 1);
           scalar_t* row = out_p + r * merged;
           // Coarse depths emitted so far; ties put the coarse depth first, and NaN samples (a ray
           // with a NaN weight) go after every coarse depth, as torch.sort puts NaN last.
@@ -153,17 +178,27 @@ struct Cpu {
         invalid.fetch_or(bits, std::memory_order_relaxed);
       });
     });
-    return {out, at::full({1}, invalid.load(), z_coarse.options().dtype(at::kInt))};
+    return {out, invalid_flag(invalid.load(), z_coarse)};
   }
 
   static std::tuple<at::Tensor, at::Tensor> hierarchical_stratified(const at::Tensor& z_coarse,
-                                                                    const at::Tensor& weights, int64_t num_samples,
+                                                                    const at::Tensor& weights,
                                                                     std::optional<at::Generator> generator,
-                                                                    double weight_padding) {
-    const auto acc_options = z_coarse.options().dtype(at::toOpMathType(z_coarse.scalar_type()));
-    const at::Tensor jitter = at::rand({z_coarse.size(0), num_samples}, generator, acc_options);
-    const at::Tensor u = (at::arange(num_samples, acc_options) + jitter) / static_cast<double>(num_samples);
-    return hierarchical(z_coarse, weights, u, weight_padding, RayBatch{z_coarse.size(0), num_samples, num_samples});
+                                                                    double weight_padding, const RayBatch& batch) {
+    return hierarchical(z_coarse, weights, stratified_positions(batch, generator, z_coarse), weight_padding, batch);
+  }
+
+  // (n + U[0, 1)) / N, (R, N) in the accumulation dtype of `like`: the Python path's expression,
+  // on the stream torch.rand draws from `generator`.
+  static at::Tensor stratified_positions(const RayBatch& batch, std::optional<at::Generator> generator,
+                                         const at::Tensor& like) {
+    const auto acc_options = like.options().dtype(at::toOpMathType(like.scalar_type()));
+    const at::Tensor jitter = at::rand({batch.rays, batch.samples}, generator, acc_options);
+    return (at::arange(batch.samples, acc_options) + jitter) / static_cast<double>(batch.samples);
+  }
+
+  static at::Tensor invalid_flag(int32_t bits, const at::Tensor& like) {
+    return at::full({1}, bits, like.options().dtype(at::kInt));
   }
 };
 

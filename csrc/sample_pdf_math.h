@@ -38,6 +38,7 @@ struct DenseBins {
   C10_HOST_DEVICE RayBins operator()(int64_t ray) const {
     return {ray * num_bins, ray * (num_bins + 1), num_bins};
   }
+  C10_HOST_DEVICE bool well_formed(int64_t /*ray*/) const { return true; }
 };
 
 // Packed: ray r has B_r = offsets[r+1] - offsets[r] >= 0 bins, weights offsets[r] .. offsets[r+1]-1
@@ -50,6 +51,10 @@ struct PackedBins {
   C10_HOST_DEVICE RayBins operator()(int64_t ray) const {
     const composite_layout::RaySpan weights = composite_layout::PackedRays{offsets, total, num_rays}(ray);
     return {weights.offset, weights.offset + ray, static_cast<int>(weights.count)};
+  }
+  // Whether ray `ray`'s offsets are ones validation accepts (the value checks report the rest).
+  C10_HOST_DEVICE bool well_formed(int64_t ray) const {
+    return composite_layout::PackedRays{offsets, total, num_rays}.well_formed(ray, num_rays);
   }
 };
 

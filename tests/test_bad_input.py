@@ -224,6 +224,11 @@ OP_CASES = {
         TypeError,
         "offsets",
     ),
+    "sample_pdf_packed offsets past N": (
+        lambda b: sample_pdf_packed(**packed_pdf_args(offsets=OFFSETS + 1), num_samples=4, backend=b),
+        ValueError,
+        "offsets must start at 0",
+    ),
     "sample_pdf_packed negative weights": (
         lambda b: sample_pdf_packed(**packed_pdf_args(weights=-torch.rand(5)), num_samples=4, backend=b),
         ValueError,

@@ -9,7 +9,15 @@ import pytest
 import torch
 
 from mixer_nerf import _extension
-from mixer_nerf.ops import check_pending, composite, composite_packed, deferred_checks, hierarchical_samples
+from mixer_nerf.ops import (
+    check_pending,
+    composite,
+    composite_packed,
+    deferred_checks,
+    hierarchical_samples,
+    sample_pdf,
+    sample_pdf_packed,
+)
 from mixer_nerf.ops.composite import INVALID_INPUT
 
 NEGATIVE_SIGMA, REVERSED_INTERVAL, BAD_OFFSETS = 1, 2, 4
@@ -123,6 +131,92 @@ def test_hierarchical_samples_flags_each_kind_of_bad_value(device):
     assert invalid(bad_z, bad_w, u.flip(-1)) == 1 | 2 | 8
     with pytest.raises(ValueError, match="z_coarse must be sorted"):  # the CPU checks first
         hierarchical_samples(bad_z.cpu(), w.cpu(), 17, u=u.cpu(), backend="kernel")
+
+
+def _pdf(device, rays=29, bins=13):
+    """Dense bins (R, B+1), weights (R, B), and the same rays packed with 0 .. B bins each: bins
+    (N + R), weights (N), offsets (R+1)."""
+    gen = torch.Generator().manual_seed(torch.seed() % 2**31)
+    edges = (2 + 4 * torch.rand(rays, bins + 1, generator=gen)).sort(dim=-1).values
+    weights = torch.rand(rays, bins, generator=gen)
+    counts = torch.randint(0, bins + 1, (rays,), generator=gen)
+    slots = torch.arange(bins + 1)
+    offsets = torch.cat([torch.zeros(1, dtype=torch.long), counts.cumsum(0)])
+    packed = (edges[slots <= counts[:, None]], weights[slots[:-1] < counts[:, None]], offsets)
+    return [x.to(device) for x in (edges, weights)], [x.to(device) for x in packed]
+
+
+@pytest.mark.parametrize("device", devices)
+def test_sample_pdf_flags_each_kind_of_bad_value(device):
+    (edges, weights), (bins, packed_weights, offsets) = _pdf(device)
+
+    ops = torch.ops.mixer_nerf
+
+    def dense(edges, weights, num_samples=7):
+        return int(ops.sample_pdf_stratified_fwd(edges, weights, num_samples, None, 0.0, False)[2])
+
+    def packed(bins, weights, offsets, num_samples=7):
+        out = ops.sample_pdf_packed_stratified_fwd(bins, weights, offsets, num_samples, None, 0.0, False)
+        assert out[0].isfinite().all()  # whatever the offsets: clamped, in bounds
+        return int(out[2])
+
+    # (packed: a ray's first edge below the last of the ray before it is no error)
+    assert dense(edges, weights) == 0 and packed(bins, packed_weights, offsets) == 0
+    bad_w, bad_e = weights.clone(), edges.clone()
+    bad_w[28, 12] = -1e-6
+    bad_e[3, 5] = bad_e[3, 6] + 1
+    assert dense(edges, bad_w) == 1 and dense(bad_e, weights) == 2
+    assert dense(bad_e, bad_w, num_samples=0) == 1 | 2  # checked without samples too
+    assert packed(bins, -packed_weights - 1, offsets) == 1
+    assert packed(bins.flip(0), packed_weights, offsets) == 2  # every ray with 2 edges or more
+    n = packed_weights.shape[0]
+    for broken in (offsets + 1, offsets.clamp(max=n - 1), offsets.flip(0)):
+        assert packed(bins, packed_weights, broken) & 16
+
+
+def test_the_cpu_checks_sample_pdf_before_the_kernel():
+    (edges, weights), (bins, packed_weights, offsets) = _pdf("cpu")
+    with pytest.raises(ValueError, match="weights must be non-negative"):
+        sample_pdf(edges, -weights, 8, backend="kernel")
+    with pytest.raises(ValueError, match="bins must be sorted"):
+        sample_pdf(edges.flip(-1), weights, 8, backend="kernel")
+    with pytest.raises(ValueError, match="bins must be sorted"):
+        sample_pdf_packed(bins.flip(0), packed_weights, offsets, 8, backend="kernel")
+    with pytest.raises(ValueError, match="offsets must start at 0"):
+        sample_pdf_packed(bins, packed_weights, offsets + 1, 8, backend="kernel")
+    assert not deferred_checks.pending_count()
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU")
+def test_sample_pdf_on_a_gpu_checks_without_a_sync_and_reports_later():
+    (edges, weights), (bins, packed_weights, offsets) = _pdf("cuda", rays=4096, bins=63)
+    sample_pdf(edges, weights, 128)  # warm-up: the op, pinned buffers, events
+    check_pending()
+    torch.cuda.synchronize()
+    torch.cuda.set_sync_debug_mode("error")
+    try:
+        sample_pdf(edges, weights, 128)  # stratified, the default
+        sample_pdf(edges, -weights, 128)  # returns: the GPU has not looked yet
+    finally:
+        torch.cuda.set_sync_debug_mode("default")
+    with pytest.raises(ValueError, match="sample_pdf: weights must be non-negative"):
+        check_pending()
+    torch.cuda.set_sync_debug_mode("error")
+    try:
+        sample_pdf(edges.flip(-1), weights, 128)
+    finally:
+        torch.cuda.set_sync_debug_mode("default")
+    with pytest.raises(ValueError, match="sample_pdf: bins must be sorted"):
+        check_pending()
+    # The packed op syncs once, to size shared memory by its longest ray (documented), but checks
+    # the values in its kernel all the same.
+    sample_pdf_packed(bins, packed_weights, offsets + 1, 32)  # shifted rays: unsorted within, too
+    with pytest.raises(ValueError, match="sample_pdf_packed: .*offsets must start at 0"):
+        check_pending()
+    sample_pdf_packed(bins, -packed_weights - 1, offsets, 32)
+    with pytest.raises(ValueError, match="sample_pdf_packed: weights must be non-negative"):
+        check_pending()
 
 
 @pytest.mark.cuda

@@ -9,6 +9,7 @@ import pytest
 import torch
 from torch.library import opcheck
 
+from mixer_nerf.ops import check_pending
 from mixer_nerf.ops._dispatch import use_kernel
 from mixer_nerf.ops.hierarchical_samples import hierarchical_samples
 from mixer_nerf.ops.hierarchical_samples_reference import hierarchical_samples_reference
@@ -18,6 +19,7 @@ from mixer_nerf.ops.sample_pdf_reference import (
     sample_pdf_packed_reference,
     sample_pdf_reference,
 )
+from dispatch_count import dispatched_ops
 
 CPU = torch.device("cpu")
 HAS_CUDA = torch.cuda.is_available()
@@ -645,9 +647,11 @@ def test_cuda_opcheck():
     opcheck(torch.ops.mixer_nerf.hierarchical_samples_fwd.default, (z, coarse_weights, u, 0.0))
 
 
-def _stratified_u(R: int, N: int, generator: torch.Generator, device: torch.device) -> torch.Tensor:
+def _stratified_u(R: int, N: int, generator: torch.Generator, device: torch.device,
+                  dtype: torch.dtype = torch.float32) -> torch.Tensor:
     """The Python path's stratified positions: (n + U[0, 1)) / N from torch.rand."""
-    return (torch.arange(N, device=device) + torch.rand(R, N, generator=generator, device=device)) / N
+    jitter = torch.rand(R, N, generator=generator, device=device, dtype=dtype)
+    return (torch.arange(N, device=device, dtype=dtype) + jitter) / N
 
 
 def test_stratified_kernel_draws_the_stream_torch_rand_draws_on_the_cpu():
@@ -962,3 +966,279 @@ def test_packed_cuda_adversarial_and_opcheck():
         torch.ops.mixer_nerf.sample_pdf_packed_bwd.default,
         (grad, bins, weights, offsets, sorted_u(5, 6, device=dev), 0.0),
     )
+
+
+# ---------------------------------------------------------------------------------------------
+# Stratified positions drawn by the op (the default call): sample_pdf_stratified_fwd and
+# sample_pdf_packed_stratified_fwd
+
+
+def _draw(bins, weights, N, generator, offsets=None, weight_padding=0.0, keep_positions=True):
+    """samples, u, invalid of the stratified op of the layout (packed if offsets are given)."""
+    if offsets is None:
+        return torch.ops.mixer_nerf.sample_pdf_stratified_fwd(bins, weights, N, generator, weight_padding,
+                                                              keep_positions)
+    return torch.ops.mixer_nerf.sample_pdf_packed_stratified_fwd(bins, weights, offsets, N, generator,
+                                                                 weight_padding, keep_positions)
+
+
+def _given(bins, weights, u, offsets=None, weight_padding=0.0):
+    """The given-positions op of the layout."""
+    if offsets is None:
+        return torch.ops.mixer_nerf.sample_pdf_fwd(bins, weights, u, weight_padding)
+    return torch.ops.mixer_nerf.sample_pdf_packed_fwd(bins, weights, offsets, u, weight_padding)
+
+
+def assert_stratified(u, N):
+    """One position per stratum: u_n = (n + xi) / N in [n / N, (n + 1) / N), hence sorted. Its
+    upper end only by rounding: n + xi rounds to n + 1 for xi within half an ulp of n below 1."""
+    strata = torch.arange(N, dtype=u.dtype, device=u.device)
+    assert ((u >= strata / N) & (u <= (strata + 1) / N)).all()
+    assert (u[:, 1:] >= u[:, :-1]).all()
+    if u.numel() >= 1000:
+        assert (u < (strata + 1) / N).float().mean() > 0.99
+
+
+def _random_layout(layout, R, B, dtype, device=CPU):
+    """bins, weights, offsets (None for dense) of R random rays of up to B bins."""
+    if layout == "dense":
+        return (*random_pdf(R, B, dtype, device), None)
+    counts = torch.randint(0, B + 1, (R,))
+    return random_packed_pdf(counts, dtype, device)
+
+
+@pytest.mark.parametrize("layout", ["dense", "packed"])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("shape", [(1, 1, 1), (5, 1, 7), (0, 4, 3), (6, 5, 0), (40, 63, 128), (17, 37, 45)])
+def test_stratified_op_matches_reference_on_the_positions_it_drew(layout, dtype, shape):
+    R, B, N = shape
+    seed = int(torch.randint(2**31, ()).item())
+    print(f"seed={seed}")
+    torch.manual_seed(seed)
+    bins, weights, offsets = _random_layout(layout, R, B, dtype)
+    samples, u, invalid = _draw(bins, weights, N, torch.Generator().manual_seed(seed), offsets)
+    assert samples.shape == (R, N) and samples.dtype == dtype
+    assert u.shape == (R, N) and u.dtype == accumulation_dtype(dtype)
+    assert invalid.dtype == torch.int32 and int(invalid) == 0
+    assert_stratified(u, N)
+    # On the CPU the positions are the Python path's, bit for bit: torch.rand's stream.
+    assert torch.equal(u, _stratified_u(R, N, torch.Generator().manual_seed(seed), CPU, u.dtype))
+    assert torch.equal(samples, _given(bins, weights, u, offsets))
+    unkept = _draw(bins, weights, N, torch.Generator().manual_seed(seed), offsets, keep_positions=False)
+    assert torch.equal(unkept[0], samples) and unkept[1].shape == (R, 0)
+    want = (reference_samples(bins, weights, u) if offsets is None
+            else packed_reference_samples(bins, weights, offsets, u))
+    torch.testing.assert_close(samples, want, atol=tolerance(dtype, B), rtol=0)
+
+    # The default call: these samples, and gradients through the positions drawn.
+    pdf = [bins.clone().requires_grad_(), weights.clone().requires_grad_()]
+    call = sample_pdf if offsets is None else functools.partial(sample_pdf_packed, offsets=offsets)
+    ours = call(*pdf, num_samples=N, generator=torch.Generator().manual_seed(seed), backend="kernel")
+    assert torch.equal(ours, samples)
+    upstream = torch.randn(R, N, dtype=dtype)
+    grads = torch.autograd.grad(ours, pdf, upstream, allow_unused=True)
+    if offsets is None:
+        want = _reference_grads(bins, weights, u, upstream=upstream)
+    else:
+        as_double = (bins.double(), weights.double(), offsets, u.double(), upstream.double())
+        want = [g.to(dtype) for g in _packed_grads("torch", *as_double)]
+    for got, expected in zip(grads, want, strict=True):
+        if got is None:  # no samples: no gradient
+            assert N == 0 or R == 0
+            continue
+        scale = expected.abs().max().item() if expected.numel() else 1.0
+        torch.testing.assert_close(got, expected, atol=grad_tolerance(dtype) * max(scale, 1.0), rtol=0)
+
+
+@pytest.mark.parametrize("layout", ["dense", "packed"])
+def test_stratified_gradcheck(layout):
+    seed = int(torch.randint(2**31, ()).item())
+    bins, weights, offsets = _random_layout(layout, 4, 6, torch.float64)
+    weights = weights + 0.1  # no empty bin: finite differences across a flat stretch of the CDF jump
+    call = sample_pdf if offsets is None else functools.partial(sample_pdf_packed, offsets=offsets)
+
+    def draw(b, w):  # the same positions at every evaluation
+        return call(b, w, num_samples=5, generator=torch.Generator().manual_seed(seed), weight_padding=0.01,
+                    backend="kernel")
+
+    torch.autograd.gradcheck(draw, (bins.requires_grad_(), weights.requires_grad_()))
+
+
+def test_stratified_seed_decides_the_draws():
+    bins, weights = random_pdf(33, 12)
+    seed = torch.seed()
+    first = sample_pdf(bins, weights, 40, generator=torch.Generator().manual_seed(seed), backend="kernel")
+    again = sample_pdf(bins, weights, 40, generator=torch.Generator().manual_seed(seed), backend="kernel")
+    assert torch.equal(first, again)
+    gen = torch.Generator().manual_seed(seed)
+    assert not torch.equal(sample_pdf(bins, weights, 40, generator=gen, backend="kernel"),
+                           sample_pdf(bins, weights, 40, generator=gen, backend="kernel"))  # it advances
+    torch.manual_seed(seed)  # generator=None: torch's default generator of the device
+    default = sample_pdf(bins, weights, 40, backend="kernel")
+    assert torch.equal(default, first)
+
+
+def test_stratified_adversarial_pdfs():
+    """Zero weights, one bin, tiny and huge weights, and a NaN weight (its ray samples NaN and gets
+    NaN gradients; the other rays are untouched), through the positions the op drew."""
+    bins = torch.tensor([[0.0, 1.0, 2.0, 6.0], [0.0, 1.0, 2.0, 6.0], [0.0, 1.0, 2.0, 6.0],
+                         [0.0, 1.0, 2.0, 6.0], [-1.0, -1.0, -1.0, -1.0]], dtype=torch.float64)
+    weights = torch.tensor([[0.0, 0.0, 0.0], [1e-300, 0.0, 1e-300], [1e300, 1.0, 1e300],
+                            [1.0, float("nan"), 1.0], [1.0, 1.0, 1.0]], dtype=torch.float64)
+    samples, u, invalid = _draw(bins, weights, 9, torch.Generator().manual_seed(1))
+    assert int(invalid) == 0  # NaN is not negative: the documented NaN rows, not an error
+    want = reference_samples(bins, weights, u)
+    torch.testing.assert_close(samples, want, rtol=0, atol=1e-12, equal_nan=True)
+    torch.testing.assert_close(samples[0], 6 * u[0])  # no PDF: uniform over the ray
+    assert samples[3].isnan().all() and not samples[[0, 1, 2, 4]].isnan().any()
+    assert (samples[4] == -1).all()
+    single = _draw(torch.tensor([[2.0, 4.0]]), torch.tensor([[0.7]]), 3, torch.Generator().manual_seed(2))
+    torch.testing.assert_close(single[0], 2 + 2 * single[1])
+    pdf = [bins.clone().requires_grad_(), weights.clone().requires_grad_()]
+    out = sample_pdf(*pdf, 9, generator=torch.Generator().manual_seed(1), backend="kernel")
+    grad_bins, grad_weights = torch.autograd.grad(out.nan_to_num().sum() + out[3].sum(), pdf)
+    assert grad_bins[3].isnan().all() and grad_weights[3].isnan().all()
+    assert grad_bins[[0, 1, 2, 4]].isfinite().all() and grad_weights[[0, 1, 2, 4]].isfinite().all()
+
+
+def test_stratified_opcheck():
+    bins, weights = random_pdf(5, 7)
+    # Each call draws afresh, so only the checks that compare no two calls' values.
+    utils = ("test_schema", "test_faketensor")
+    packed = random_packed_pdf([3, 0, 5, 1])
+    for keep in (True, False):
+        opcheck(torch.ops.mixer_nerf.sample_pdf_stratified_fwd.default, (bins, weights, 9, None, 0.0, keep),
+                test_utils=utils)
+        opcheck(torch.ops.mixer_nerf.sample_pdf_packed_stratified_fwd.default, (*packed, 6, None, 0.0, keep),
+                test_utils=utils)
+
+
+@cuda
+@needs_cuda
+@pytest.mark.parametrize("layout", ["dense", "packed"])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64, torch.float16])
+@pytest.mark.parametrize(
+    "shape",
+    [(1, 1, 1), (3, 31, 33), (1000, 37, 5), (65536, 62, 128), (0, 4, 3), (6, 5, 0)],
+    ids=lambda s: "x".join(map(str, s)),
+)
+def test_cuda_stratified_op_matches_the_cpu_op_on_its_positions(layout, dtype, shape):
+    R, B, N = shape
+    dev = torch.device("cuda")
+    bins, weights, offsets = _random_layout(layout, R, B, dtype, dev)
+    # Poisoned outputs (see _poisoned): an element the kernel forgets to write reads back as NaN.
+    addresses = _poisoned(((R, N), dtype), ((R, N), accumulation_dtype(dtype)))
+    samples, u, invalid = _draw(bins, weights, N, None, offsets)
+    assert R * N == 0 or {samples.data_ptr(), u.data_ptr()} <= addresses
+    assert samples.isfinite().all() and u.isfinite().all()
+    assert samples.shape == (R, N) and samples.dtype == dtype and u.dtype == accumulation_dtype(dtype)
+    assert int(invalid) == 0
+    assert_stratified(u, N)
+    unkept = _draw(bins, weights, N, torch.Generator(dev).manual_seed(3), offsets, keep_positions=False)
+    kept = _draw(bins, weights, N, torch.Generator(dev).manual_seed(3), offsets)
+    assert torch.equal(unkept[0], kept[0]) and unkept[1].shape == (R, 0)
+    to_cpu = [None if t is None else t.cpu() for t in (bins, weights, u, offsets)]
+    cpu = _given(*to_cpu[:3], to_cpu[3])
+    atol = {torch.float32: 1e-6, torch.float64: 1e-14, torch.float16: 1e-3}[dtype]  # FMA on the GPU
+    torch.testing.assert_close(samples.cpu(), cpu, atol=atol, rtol=0)
+    # The backward takes the positions drawn: the default call's gradients are the CPU op's on u.
+    pdf = [bins.clone().requires_grad_(), weights.clone().requires_grad_()]
+    call = sample_pdf if offsets is None else functools.partial(sample_pdf_packed, offsets=offsets)
+    gen = torch.Generator(dev).manual_seed(7)
+    out = call(*pdf, num_samples=N, generator=gen)
+    u = _draw(bins, weights, N, torch.Generator(dev).manual_seed(7), offsets)[1]
+    upstream = torch.randn(R, N, dtype=dtype, device=dev)
+    if not out.numel():
+        return
+    grads = torch.autograd.grad(out, pdf, upstream)
+    ops = torch.ops.mixer_nerf
+    backward = ops.sample_pdf_bwd if offsets is None else ops.sample_pdf_packed_bwd
+    layout_args = () if offsets is None else (offsets.cpu(),)
+    want = backward(upstream.cpu(), bins.cpu(), weights.cpu(), *layout_args, u.cpu(), 0.0)
+    for got, expected in zip(grads, want, strict=True):
+        scale = max(expected.abs().max().item(), 1.0) if expected.numel() else 1.0
+        torch.testing.assert_close(got.cpu(), expected, atol=grad_tolerance(dtype) * scale, rtol=0)
+
+
+@cuda
+@needs_cuda
+def test_cuda_stratified_sample_pdf_is_reproducible_and_spread():
+    dev = torch.device("cuda")
+    R, B, N = 65536, 63, 128
+    bins, weights = random_pdf(R, B, device=dev)
+    seed = torch.seed()
+    first = sample_pdf(bins, weights, N, generator=torch.Generator(dev).manual_seed(seed))
+    again = sample_pdf(bins, weights, N, generator=torch.Generator(dev).manual_seed(seed))
+    assert torch.equal(first, again)
+    gen = torch.Generator(dev).manual_seed(seed)
+    assert not torch.equal(sample_pdf(bins, weights, N, generator=gen),
+                           sample_pdf(bins, weights, N, generator=gen))  # its offset advances
+    # Each sample's place in its stratum averages about 1/2 and is spread over it.
+    u = _draw(bins, weights, N, torch.Generator(dev).manual_seed(seed))[1]
+    place = u * N - torch.arange(N, device=dev)
+    assert abs(place.mean().item() - 0.5) < 0.01 and abs(place.std().item() - 12 ** -0.5) < 0.01
+
+
+@pytest.mark.parametrize("layout", ["dense", "packed"])
+def test_stratified_call_is_one_op(layout):
+    """Without value checks (on the CPU they run before the op) the default call is the op alone:
+    no separate draw of the positions."""
+    bins, weights, offsets = _random_layout(layout, 7, 9, torch.float32)
+    call = sample_pdf if offsets is None else functools.partial(sample_pdf_packed, offsets=offsets)
+    with dispatched_ops() as ops:
+        call(bins, weights, num_samples=16, backend="kernel", check_values=False)
+    assert ops == {f"mixer_nerf.sample_pdf{'' if offsets is None else '_packed'}_stratified_fwd": 1}
+
+
+@cuda
+@needs_cuda
+def test_cuda_stratified_sample_pdf_is_one_launch_without_a_host_sync():
+    dev = torch.device("cuda")
+    bins, weights = random_pdf(4096, 63, device=dev)
+    sample_pdf(bins, weights, 128)  # warm-up: the extension, the deferred checks' buffers
+    check_pending()
+    torch.cuda.synchronize()
+    torch.cuda.set_sync_debug_mode("error")
+    try:
+        with dispatched_ops() as ops:  # the checks too: the first of a new batch reads nothing back
+            out = sample_pdf(bins, weights, 128)
+        for _ in range(3):
+            out = sample_pdf(bins, weights, 128)
+    finally:
+        torch.cuda.set_sync_debug_mode("default")
+    assert ops == {"mixer_nerf.sample_pdf_stratified_fwd": 1}
+    assert_valid_samples(out, bins)
+
+
+@cuda
+@needs_cuda
+def test_cuda_stratified_sample_pdf_replays_in_a_graph_with_fresh_draws():
+    dev = torch.device("cuda")
+    bins, weights = random_pdf(1024, 63, device=dev)
+    sample_pdf(bins, weights, 128)  # warm-up outside the capture
+    graph, stream = torch.cuda.CUDAGraph(), torch.cuda.Stream()
+    with torch.cuda.stream(stream), torch.cuda.graph(graph):
+        out = sample_pdf(bins, weights, 128)
+    graph.replay()
+    first = out.clone()
+    graph.replay()
+    torch.cuda.synchronize()
+    assert not torch.equal(first, out)
+    assert_valid_samples(out, bins)
+    assert_valid_samples(first, bins)
+
+
+@cuda
+@needs_cuda
+def test_cuda_packed_shared_memory_covers_the_clamped_rays():
+    """Unchecked offsets that do not start at 0 or end at N: the kernels run the first ray from 0
+    and the last to N, longer than any difference of the offsets; shared memory must hold them."""
+    dev = torch.device("cuda")
+    bins, weights, _ = random_packed_pdf([3, 60, 2, 1])  # N = 66
+    for bad in ([40, 63, 65, 65, 66], [0, 1, 2, 6, 7]):  # the first ray 63 bins long; the last 60
+        bad = torch.tensor(bad)
+        unchecked = {"deterministic": True, "backend": "kernel", "check_values": False}
+        cpu = sample_pdf_packed(bins, weights, bad, 16, **unchecked)
+        gpu = sample_pdf_packed(bins.to(dev), weights.to(dev), bad.to(dev), 16, **unchecked)
+        assert gpu.isfinite().all()
+        torch.testing.assert_close(gpu.cpu(), cpu, atol=1e-6, rtol=0)

@@ -89,12 +89,14 @@ struct WarpShared {
 
 // Where a ray's positions come from: row `ray` of u (stride 0: one row for every ray), or, where
 // u is null, drawn in the kernel: u_n = (n + xi_n) / N, xi_n uniform in [0, 1) from Philox block
-// offset / 4 + n of sequence `ray` (the generator's offset counts 32-bit values, 4 a block).
+// offset / 4 + n of sequence `ray` (the generator's offset counts 32-bit values, 4 a block), and
+// written to `drawn` (R, N) unless it is null (sample_pdf's backward takes them).
 template <typename acc>
 struct Positions {
   const acc* u;
   int64_t u_row_stride;
   at::PhiloxCudaState philox;
+  acc* drawn;
 };
 
 template <typename acc>
@@ -105,7 +107,8 @@ __device__ acc stratified_position(uint64_t seed, uint64_t offset, int64_t ray, 
 
 // Forward. Tail: sample_pdf: u then samples (N); hierarchical_samples: the coarse depths (S), then
 // u then the fine samples (N). `rows` places sample_pdf's bins (layout.num_bins is the most any
-// ray has); hierarchical_samples' rows are (R, S) coarse depths and weights.
+// ray has); hierarchical_samples' rows are (R, S) coarse depths and weights. Unless `invalid` is
+// null, the InvalidInput bits of the values read are OR-ed into it (sample_pdf.h).
 template <typename scalar_t, bool kMerge, typename Rows>
 __global__ void sample_forward_kernel(int64_t rays, WarpLayout layout, Rows rows,
                                       const scalar_t* __restrict__ edges_or_z, const scalar_t* __restrict__ weights,
@@ -139,13 +142,22 @@ __global__ void sample_forward_kernel(int64_t rays, WarpLayout layout, Rows rows
   for (int i = lane; i < longest; i += kWarpSize) {
     if (i < B) sh.w[i] = PaddedWeights<acc, scalar_t>{weights_row, pad}(i);
     if (kMerge ? i < S : i <= B) (kMerge ? z : sh.edges)[i] = static_cast<acc>(edges_row[i]);
-    if (i < N) fine[i] = u_row ? u_row[i] : stratified_position<acc>(seed, offset, ray, i, N);
+    if (i < N) {
+      const acc un = u_row ? u_row[i] : stratified_position<acc>(seed, offset, ray, i, N);
+      fine[i] = un;
+      if (positions.drawn) positions.drawn[ray * N + i] = un;
+    }
   }
   __syncwarp();
   if constexpr (kMerge) {
     for (int k = lane; k <= B; k += kWarpSize) sh.edges[k] = MidpointEdges<acc, acc>{z}(k);
-    // The values' checks (sample_pdf.h): the rows are in shared memory or cache already.
-    const int32_t bits = invalid_ray_bits(z, weights + ray * S, S, fine, N, lane, kWarpSize);
+  }
+  if (invalid) {  // the rows are in shared memory or cache already
+    const int32_t bits =
+        kMerge ? invalid_pdf_bits(z, S, weights + ray * S, S, lane, kWarpSize) |
+                     invalid_position_bits(fine, N, lane, kWarpSize)
+               : invalid_pdf_bits(sh.edges, B + 1, weights_row, B, lane, kWarpSize) |
+                     (lane == 0 && !rows.well_formed(ray) ? kBadOffsets : 0);
     if (bits) atomicOr(invalid, bits);  // only for bad input: no contention otherwise
   }
   const PaddedWeights<acc, acc> padded{sh.w, acc(0)};  // already padded and flushed: unchanged
@@ -328,13 +340,27 @@ void launch_warp_per_ray(Kernel kernel, const WarpLayout& layout, int64_t rays, 
 }
 
 // The most bins of any ray: dense, weights' width; packed, the longest ray (a host sync, after
-// the outputs are allocated so that they are the first allocations of the op).
+// the outputs are allocated so that they are the first allocations of the op). The spans are
+// those the kernels read, from offsets clamped as PackedBins clamps them (the first ray from 0,
+// the last to N): unchecked offsets can neither overflow the differences nor make a ray longer
+// than the shared memory sized for it, and no ray spans more than N < 2^30.
 int max_bins_of(const at::Tensor& weights, const std::optional<at::Tensor>& offsets) {
   if (!offsets) return static_cast<int>(weights.size(1));
-  if (offsets->size(0) < 2) return 0;
-  const int64_t most = (offsets->slice(0, 1) - offsets->slice(0, 0, -1)).max().item<int64_t>();
-  // No clamped ray (see PackedBins) spans more than this, nor more than N < 2^30.
-  return static_cast<int>(std::clamp<int64_t>(most, 0, weights.size(0)));
+  const int64_t rays = offsets->size(0) - 1, total = weights.size(0);
+  if (rays < 1) return 0;
+  at::Tensor bounds = offsets->clamp(0, total);
+  bounds.narrow(0, 0, 1).fill_(0);
+  bounds.narrow(0, rays, 1).fill_(total);
+  const int64_t most = (bounds.slice(0, 1) - bounds.slice(0, 0, -1)).max().item<int64_t>();
+  return static_cast<int>(std::clamp<int64_t>(most, 0, total));
+}
+
+// The generator's Philox state for positions drawn in the kernel, `samples` per ray (one block of
+// 4 values a sample), advancing it past them; the default CUDA generator if none is given.
+at::PhiloxCudaState philox_for(std::optional<at::Generator> generator, int64_t samples) {
+  auto* gen = at::get_generator_or_default<at::CUDAGeneratorImpl>(generator, at::cuda::detail::getDefaultCUDAGenerator());
+  const std::lock_guard<std::mutex> lock(gen->mutex_);
+  return gen->philox_cuda_state(4 * uint64_t(samples));
 }
 
 // The sample_pdf ops' CUDA kernels, for SamplePdfOps (sample_pdf.h).
@@ -347,18 +373,46 @@ struct Cuda {
                             const std::optional<at::Tensor>& offsets) {
     const c10::cuda::CUDAGuard guard(bins.device());
     at::Tensor samples = at::empty({batch.rays, batch.samples}, bins.options());
-    if (samples.numel() == 0) return samples;
+    if (samples.numel() > 0) {
+      sample(bins, weights, &u, {}, nullptr, weight_padding, batch, rows, offsets, samples, nullptr);
+    }
+    return samples;
+  }
+
+  template <typename Rows>
+  static std::tuple<at::Tensor, at::Tensor, at::Tensor> forward_stratified(
+      const at::Tensor& bins, const at::Tensor& weights, std::optional<at::Generator> generator,
+      double weight_padding, bool keep_positions, const RayBatch& batch, Rows rows,
+      const std::optional<at::Tensor>& offsets) {
+    const c10::cuda::CUDAGuard guard(bins.device());
+    at::Tensor samples = at::empty({batch.rays, batch.samples}, bins.options());
+    at::Tensor u = at::empty({batch.rays, keep_positions ? batch.samples : 0},
+                             bins.options().dtype(at::toOpMathType(bins.scalar_type())));
+    at::Tensor invalid = at::zeros({1}, bins.options().dtype(at::kInt));
+    if (batch.rays > 0) {  // even without samples: the values are still checked
+      sample(bins, weights, nullptr, philox_for(generator, batch.samples), keep_positions ? &u : nullptr,
+             weight_padding, batch, rows, offsets, samples, invalid.data_ptr<int32_t>());
+    }
+    return {samples, u, invalid};
+  }
+
+  // sample_pdf into `samples`, with positions from `u` (R, N) or (N), or drawn by `philox` (u
+  // null) into `drawn`; `invalid`, unless null, gets the InvalidInput bits of the values read.
+  template <typename Rows>
+  static void sample(const at::Tensor& bins, const at::Tensor& weights, const at::Tensor* u,
+                     at::PhiloxCudaState philox, at::Tensor* drawn, double weight_padding, const RayBatch& batch,
+                     Rows rows, const std::optional<at::Tensor>& offsets, at::Tensor& samples, int32_t* invalid) {
     const int max_bins = max_bins_of(weights, offsets);
     const int num_samples = int(batch.samples);
     MIXER_NERF_DISPATCH_FLOATING(bins.scalar_type(), "sample_pdf_fwd_cuda", [&] {
       using acc = acc_t<scalar_t>;
+      const Positions<acc> positions{u ? u->data_ptr<acc>() : nullptr, batch.u_row_stride, philox,
+                                     drawn ? drawn->data_ptr<acc>() : nullptr};
       launch_warp_per_ray<acc, acc>(sample_forward_kernel<scalar_t, false, Rows>, WarpLayout{max_bins, num_samples},
                                batch.rays, rows, bins.data_ptr<scalar_t>(), weights.data_ptr<scalar_t>(),
-                               Positions<acc>{u.data_ptr<acc>(), batch.u_row_stride, {}}, num_samples,
-                               static_cast<acc>(weight_padding), samples.data_ptr<scalar_t>(),
-                               static_cast<int32_t*>(nullptr));
+                               positions, num_samples, static_cast<acc>(weight_padding),
+                               samples.data_ptr<scalar_t>(), invalid);
     });
-    return samples;
   }
 
   template <typename Rows>
@@ -391,17 +445,11 @@ struct Cuda {
   }
 
   static std::tuple<at::Tensor, at::Tensor> hierarchical_stratified(const at::Tensor& z_coarse,
-                                                                    const at::Tensor& weights, int64_t num_samples,
+                                                                    const at::Tensor& weights,
                                                                     std::optional<at::Generator> generator,
-                                                                    double weight_padding) {
+                                                                    double weight_padding, const RayBatch& batch) {
     const c10::cuda::CUDAGuard guard(z_coarse.device());
-    auto* gen = at::get_generator_or_default<at::CUDAGeneratorImpl>(generator, at::cuda::detail::getDefaultCUDAGenerator());
-    at::PhiloxCudaState philox;
-    {
-      const std::lock_guard<std::mutex> lock(gen->mutex_);
-      philox = gen->philox_cuda_state(4 * uint64_t(num_samples));  // one block of 4 values a sample
-    }
-    return merge(z_coarse, weights, nullptr, num_samples, 0, philox, weight_padding);
+    return merge(z_coarse, weights, nullptr, batch.samples, 0, philox_for(generator, batch.samples), weight_padding);
   }
 
   // hierarchical_samples with positions from `u` (R, N) or (N), or drawn by `philox` (u null).
@@ -418,7 +466,8 @@ struct Cuda {
       launch_warp_per_ray<acc, acc>(sample_forward_kernel<scalar_t, true, DenseBins>,
                                WarpLayout{coarse - 2, coarse + num_samples}, rays, DenseBins{coarse - 2},
                                z_coarse.data_ptr<scalar_t>(), weights.data_ptr<scalar_t>(),
-                               Positions<acc>{u ? u->data_ptr<acc>() : nullptr, u_row_stride, philox}, num_samples,
+                               Positions<acc>{u ? u->data_ptr<acc>() : nullptr, u_row_stride, philox, nullptr},
+                               num_samples,
                                static_cast<acc>(weight_padding), merged.data_ptr<scalar_t>(),
                                invalid.data_ptr<int32_t>());
     });

@@ -41,9 +41,9 @@ class KernelOp:
     input). That returns the gradients of the leading inputs; the others get none. Gradients of
     unused outputs arrive as None (a kernel reads no zeros), so a backward kernel of an op with
     several outputs takes them as ``Tensor?``. An op whose backward kernel takes other arguments
-    overrides :meth:`save` and :meth:`backward`. The last ``check_outputs`` outputs are a kernel's
-    findings about its inputs (integer, not differentiable; see ``deferred_checks``): the backward
-    kernel takes no gradient for them.
+    overrides :meth:`save` and :meth:`backward`. The last ``aux_outputs`` outputs are not
+    differentiable: a kernel's findings about its inputs (integer; see ``deferred_checks``) or
+    random positions it drew. The backward kernel takes no gradient for them.
     """
 
     def __init__(
@@ -53,10 +53,10 @@ class KernelOp:
         backward: str | None = None,
         backward_fake: Callable | None = None,
         flags: Callable[[tuple[bool, ...]], tuple] = _no_flags,
-        check_outputs: int = 0,
+        aux_outputs: int = 0,
     ):
         self.name, self.backward_name, self.flags = name, backward, flags
-        self.check_outputs = check_outputs
+        self.aux_outputs = aux_outputs
         declare_fake(name, fake)
         if backward_fake is not None:
             declare_fake(backward, backward_fake)
@@ -67,9 +67,9 @@ class KernelOp:
             return _KernelFunction.apply(self, *inputs)
         return getattr(torch.ops.mixer_nerf, self.name)(*inputs)  # no autograd bookkeeping
 
-    def save(self, ctx, inputs: tuple) -> None:
+    def save(self, ctx, inputs: tuple, outputs: tuple | torch.Tensor) -> None:
         """Keeps every input for :meth:`backward`: tensors saved for backward, the rest (numbers,
-        absent optional tensors) on ``ctx``."""
+        absent optional tensors) on ``ctx``. The outputs are there for ops whose backward needs one."""
         ctx.tensor_slots = [i for i, x in enumerate(inputs) if isinstance(x, torch.Tensor)]
         ctx.inputs = [None if isinstance(x, torch.Tensor) else x for x in inputs]
         ctx.save_for_backward(*(inputs[i] for i in ctx.tensor_slots))
@@ -77,7 +77,7 @@ class KernelOp:
 
     def backward(self, ctx, *grads) -> tuple:
         """One gradient (or None) per input."""
-        grads = grads[: len(grads) - self.check_outputs]
+        grads = grads[: len(grads) - self.aux_outputs]
         if all(g is None for g in grads):
             return (None,) * len(ctx.inputs)
         inputs = list(ctx.inputs)
@@ -99,10 +99,10 @@ class _KernelFunction(torch.autograd.Function):
     @staticmethod
     def forward(ctx, op: KernelOp, *inputs):
         ctx.op = op
-        op.save(ctx, inputs)
         outputs = getattr(torch.ops.mixer_nerf, op.name)(*inputs)
-        if op.check_outputs:
-            ctx.mark_non_differentiable(*outputs[-op.check_outputs :])
+        op.save(ctx, inputs, outputs)
+        if op.aux_outputs:
+            ctx.mark_non_differentiable(*outputs[-op.aux_outputs :])
         return outputs
 
     @staticmethod

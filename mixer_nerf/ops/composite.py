@@ -216,9 +216,9 @@ def _interval_grads(needs_input_grad: tuple[bool, ...]) -> tuple[bool]:
 
 
 _COMPOSITE = KernelOp(
-    "composite_fwd", _composite_fwd_fake, "composite_bwd", _composite_bwd_fake, _interval_grads, check_outputs=1
+    "composite_fwd", _composite_fwd_fake, "composite_bwd", _composite_bwd_fake, _interval_grads, aux_outputs=1
 )
 _COMPOSITE_PACKED = KernelOp(
     "composite_packed_fwd", _composite_fwd_fake, "composite_packed_bwd", _composite_bwd_fake, _interval_grads,
-    check_outputs=1,
+    aux_outputs=1,
 )

@@ -19,7 +19,22 @@ Positions ``u``:
     boundary edges (where the coarse pass already samples), and the midpoints are the mean of
     the stratified sampler below, so deterministic and random runs estimate the same thing;
   * otherwise stratified: ``u_i = (i + xi_i) / N``, ``xi_i ~ U[0, 1)`` from ``generator`` —
-    sorted by construction, no sort needed.
+    sorted by construction, no sort needed. With the kernels (the default backend) the op draws
+    them itself, in the one call that samples: on the CPU from the stream ``torch.rand`` draws
+    (so the reference path with an equally seeded generator gives the same samples), on CUDA by
+    Philox inside the one kernel launch, from the state of ``generator`` (or of torch's default
+    CUDA generator): the same seed gives the same samples, and a CUDA graph capturing the call
+    draws afresh at every replay. That stream is not ``torch.rand``'s, so on CUDA the kernels and
+    the reference path agree in distribution, not sample for sample. When ``bins`` or ``weights``
+    require grad, the op also writes the positions it drew, ``(R, N)`` in the accumulation dtype,
+    which the backward reads (they are not redrawn there); otherwise it writes only the samples.
+
+Value checks (``check_values=True``, the default): on the CPU, on the reference path and for
+given or deterministic positions they run before the op (on a GPU each costs a host
+synchronisation). The default call on a GPU costs none: its kernel checks the values it reads
+(``weights >= 0``, ``bins`` sorted within each ray, the packed ``offsets``) and a bad one raises
+ValueError at a later call or at :func:`~mixer_nerf.ops.check_pending`
+(:mod:`~mixer_nerf.ops.deferred_checks`).
 """
 
 from __future__ import annotations
@@ -40,7 +55,10 @@ from ._checks import (
     check_shape,
     check_sorted,
     check_tensor,
+    nonnegative_message,
+    sorted_message,
 )
+from . import deferred_checks
 from ._dispatch import use_kernel
 from ._kernel_op import KernelOp
 from .sample_pdf_reference import accumulation_dtype, sample_pdf_packed_reference, sample_pdf_reference
@@ -67,21 +85,34 @@ def sample_pdf(
         u: optional explicit positions, (R, N) or (N,), sorted, in [0, 1].
         weight_padding: non-negative constant added to every weight (0: the PDF is exactly
             ``weights / weights.sum()``).
-        generator: random generator for the stratified positions.
+        generator: random generator for the stratified positions (None: torch's default
+            generator of the inputs' device).
         backend: ``"auto"``, ``"kernel"`` or ``"torch"`` (see :mod:`mixer_nerf.ops`).
         check_values: check that ``bins`` and ``u`` are sorted, ``weights >= 0`` and ``u`` in
-            [0, 1]. Each check reads its tensor once more and, on a GPU, synchronises with the
-            host; pass False on hot paths whose inputs are valid by construction.
+            [0, 1]. The default call (stratified positions) on a GPU checks in its kernel, with
+            no host synchronisation; otherwise each check reads its tensor once more before the
+            op and, on a GPU, synchronises with the host (see the module docstring). False skips
+            the checks.
 
     Returns:
         (R, N) samples in the dtype of ``bins``, sorted along each ray, differentiable with
         respect to ``bins`` and ``weights``.
     """
-    _validate_pdf(bins, weights, check_values)
+    kernel = use_kernel(backend, check_tensor("bins", bins).device)
+    drawn = kernel and u is None and not deterministic  # the kernel draws the stratified positions
+    deferred = drawn and check_values and deferred_checks.in_kernel(kernel, bins)
+    _validate_pdf(bins, weights, check_values and not deferred)
     check_int("num_samples", num_samples)
     pad = check_weight_padding(weight_padding)
+    if drawn:
+        check_generator(generator, bins)
+        keep = _needs_grad(bins, weights)
+        samples, _, invalid = _SAMPLE_PDF_STRATIFIED(bins, weights, num_samples, generator, pad, keep)
+        if deferred:
+            deferred_checks.watch(invalid, "sample_pdf", INVALID_INPUT)
+        return samples
     positions = sample_positions("bins", bins, num_samples, deterministic, u, generator, check_values)
-    if not use_kernel(backend, bins.device):
+    if not kernel:
         return sample_pdf_reference(bins, weights, positions, pad)
     return _SAMPLE_PDF(bins, weights, positions, pad)
 
@@ -115,23 +146,37 @@ def sample_pdf_packed(
         offsets: (R+1,) int64, non-decreasing from 0 to N.
         num_samples, deterministic, u, weight_padding, generator, backend: as in
             :func:`sample_pdf` (``u`` is (R, S) or (S,)).
-        check_values: also check the offsets' values and that each ray's edges are sorted (host
-            syncs on a GPU). The kernels clamp unchecked offsets into [0, N] (the first ray from
-            0, the last to N), so they never reach outside the arrays. On CUDA the kernels size
-            shared memory by the longest ray, which costs one host sync per call whatever
-            ``check_values``.
+        check_values: also check the offsets' values and that each ray's edges are sorted (as
+            :func:`sample_pdf` checks: in the kernel for the default call on a GPU, else before
+            the op). The kernels clamp unchecked offsets into [0, N] (the first ray from 0, the
+            last to N), so they never reach outside the arrays. On CUDA the kernels size shared
+            memory by the longest ray (of those clamped offsets), which costs one host sync per
+            call whatever ``check_values``: unlike :func:`sample_pdf`, a packed call cannot be
+            captured in a CUDA graph.
 
     Returns:
         (R, num_samples) samples in the dtype of ``bins``, sorted along each ray, differentiable
         with respect to ``bins`` and ``weights``.
     """
-    num_rays = _validate_packed(bins, weights, offsets, check_values)
+    kernel = use_kernel(backend, check_tensor("bins", bins).device)
+    drawn = kernel and u is None and not deterministic
+    deferred = drawn and check_values and deferred_checks.in_kernel(kernel, bins)
+    num_rays = _validate_packed(bins, weights, offsets, check_values and not deferred)
     check_int("num_samples", num_samples)
     pad = check_weight_padding(weight_padding)
+    if drawn:
+        check_generator(generator, bins)
+        keep = _needs_grad(bins, weights)
+        samples, _, invalid = _SAMPLE_PDF_PACKED_STRATIFIED(
+            bins, weights, offsets, num_samples, generator, pad, keep
+        )
+        if deferred:
+            deferred_checks.watch(invalid, "sample_pdf_packed", PACKED_INVALID_INPUT)
+        return samples
     positions = sample_positions(
         "bins", bins, num_samples, deterministic, u, generator, check_values, num_rays
     )
-    if not use_kernel(backend, bins.device):
+    if not kernel:
         return sample_pdf_packed_reference(bins, weights, offsets, positions, pad)
     return _SAMPLE_PDF_PACKED(bins, weights, offsets, positions, pad)
 
@@ -172,8 +217,25 @@ def _validate_packed(
         first_edges = offsets[1:-1] + torch.arange(1, max(num_rays, 1), device=offsets.device)
         descending[first_edges - 1] = False
         if bool(descending.any()):
-            raise ValueError("bins must be sorted (non-decreasing) within each ray")
+            raise ValueError(PACKED_SORTED_MESSAGE)
     return num_rays
+
+
+PACKED_SORTED_MESSAGE = "bins must be sorted (non-decreasing) within each ray"
+
+INVALID_INPUT = {1: nonnegative_message("weights"), 2: sorted_message("bins")}
+"""The stratified kernels' ``invalid`` bits (``InvalidInput`` in csrc/sample_pdf.h) and what each says."""
+
+PACKED_INVALID_INPUT = {
+    1: nonnegative_message("weights"),
+    2: PACKED_SORTED_MESSAGE,
+    16: "offsets must start at 0, end at N (the number of bins) and be non-decreasing",
+}
+
+
+def _needs_grad(bins: torch.Tensor, weights: torch.Tensor) -> bool:
+    """Whether the call records a backward, which reads the positions drawn."""
+    return torch.is_grad_enabled() and (bins.requires_grad or weights.requires_grad)
 
 
 def check_weight_padding(weight_padding: float) -> float:
@@ -236,7 +298,37 @@ def _sample_pdf_bwd_fake(grad_samples, bins, weights, *offsets_u_and_padding):
     return torch.empty_like(bins), torch.empty_like(weights)
 
 
+def _stratified_fwd_fake(bins, weights, *offsets_and_draw):
+    *offsets, num_samples, _generator, _weight_padding, keep_positions = offsets_and_draw
+    num_rays = offsets[0].shape[0] - 1 if offsets else bins.shape[0]
+    acc = accumulation_dtype(bins.dtype)
+    return (bins.new_empty(num_rays, num_samples),
+            bins.new_empty(num_rays, num_samples if keep_positions else 0, dtype=acc),
+            bins.new_empty(1, dtype=torch.int32))
+
+
+class _Stratified(KernelOp):
+    """A ``*_stratified_fwd`` op: inputs ``(*pdf, num_samples, generator, weight_padding,
+    keep_positions)``, outputs (samples, the positions drawn, invalid). Its backward is the
+    given-positions op's, on the positions drawn (kept: the caller passes keep_positions=True when
+    a backward is recorded) in place of ``num_samples`` and ``generator``."""
+
+    def save(self, ctx, inputs: tuple, outputs: tuple) -> None:
+        *pdf, _num_samples, _generator, weight_padding, _keep_positions = inputs
+        super().save(ctx, (*pdf, outputs[1], weight_padding), outputs)
+
+    def backward(self, ctx, *grads) -> tuple:
+        # The positions' slot stood for num_samples and generator, and keep_positions has none.
+        return *super().backward(ctx, *grads), None, None
+
+
 _SAMPLE_PDF = KernelOp("sample_pdf_fwd", _sample_pdf_fwd_fake, "sample_pdf_bwd", _sample_pdf_bwd_fake)
 _SAMPLE_PDF_PACKED = KernelOp(
     "sample_pdf_packed_fwd", _sample_pdf_packed_fwd_fake, "sample_pdf_packed_bwd", _sample_pdf_bwd_fake
+)
+_SAMPLE_PDF_STRATIFIED = _Stratified(
+    "sample_pdf_stratified_fwd", _stratified_fwd_fake, "sample_pdf_bwd", aux_outputs=2
+)
+_SAMPLE_PDF_PACKED_STRATIFIED = _Stratified(
+    "sample_pdf_packed_stratified_fwd", _stratified_fwd_fake, "sample_pdf_packed_bwd", aux_outputs=2
 )

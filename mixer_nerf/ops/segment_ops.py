@@ -115,7 +115,7 @@ def _ray_scale_bwd_fake(grad_out, features, scale, offsets):
 class _SegmentMean(KernelOp):
     """The backward kernel takes the number of rows, not the values: it spreads each ray's mean."""
 
-    def save(self, ctx, inputs: tuple) -> None:
+    def save(self, ctx, inputs: tuple, outputs: torch.Tensor) -> None:
         values, offsets = inputs
         ctx.save_for_backward(offsets)
         ctx.num_rows = values.shape[0]
