@@ -699,19 +699,22 @@ def test_cuda_stratified_positions_are_drawn_in_the_kernel():
 
 @cuda
 @needs_cuda
-def test_cuda_stratified_sampling_replays_in_a_graph_with_fresh_draws():
+@pytest.mark.parametrize("op, inputs", [(hierarchical_samples, random_coarse), (sample_pdf, random_pdf)],
+                         ids=["hierarchical_samples", "sample_pdf"])
+def test_cuda_stratified_sampling_replays_in_a_graph_with_fresh_draws(op, inputs):
     dev = torch.device("cuda")
-    z, weights = random_coarse(1024, 64, device=dev)
-    hierarchical_samples(z, weights, 128)  # warm-up outside the capture
+    edges, weights = inputs(1024, 64, device=dev)
+    op(edges, weights, 128)  # warm-up outside the capture
     graph, stream = torch.cuda.CUDAGraph(), torch.cuda.Stream()
     with torch.cuda.stream(stream), torch.cuda.graph(graph):
-        out = hierarchical_samples(z, weights, 128)
+        out = op(edges, weights, 128)
     graph.replay()
     first = out.clone()
     graph.replay()
     torch.cuda.synchronize()
     assert not torch.equal(first, out)
-    assert_valid_samples(out, z)
+    assert_valid_samples(out, edges)
+    assert_valid_samples(first, edges)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -1211,24 +1214,6 @@ def test_cuda_stratified_sample_pdf_is_one_launch_without_a_host_sync():
         torch.cuda.set_sync_debug_mode("default")
     assert ops == {"mixer_nerf.sample_pdf_stratified_fwd": 1}
     assert_valid_samples(out, bins)
-
-
-@cuda
-@needs_cuda
-def test_cuda_stratified_sample_pdf_replays_in_a_graph_with_fresh_draws():
-    dev = torch.device("cuda")
-    bins, weights = random_pdf(1024, 63, device=dev)
-    sample_pdf(bins, weights, 128)  # warm-up outside the capture
-    graph, stream = torch.cuda.CUDAGraph(), torch.cuda.Stream()
-    with torch.cuda.stream(stream), torch.cuda.graph(graph):
-        out = sample_pdf(bins, weights, 128)
-    graph.replay()
-    first = out.clone()
-    graph.replay()
-    torch.cuda.synchronize()
-    assert not torch.equal(first, out)
-    assert_valid_samples(out, bins)
-    assert_valid_samples(first, bins)
 
 
 @cuda
