@@ -10,6 +10,7 @@ import dataclasses
 import json
 import math
 import os
+import time
 
 import numpy as np
 import pytest
@@ -283,6 +284,22 @@ def test_time_budget_stops_training(tmp_path):
     assert summary["status"] == "time budget reached"
     assert 0 < summary["step"] < 10_000
     assert load_checkpoint(tmp_path / "checkpoint.pt")["step"] == summary["step"]
+
+
+def test_a_first_use_kernel_build_is_not_training_time(tmp_path, monkeypatch):
+    """The kernels load when the trainer is made: a 1 s build (failing here, so the reference path
+    trains) leaves a 0.5 s budget its steps."""
+    from mixer_nerf import _extension
+
+    def slow_failing_build():
+        time.sleep(1.0)
+        raise _extension.ExtensionUnavailable("no compiler in this test")
+
+    monkeypatch.setattr(_extension, "_state", {})
+    monkeypatch.setattr(_extension, "_load", slow_failing_build)
+    with pytest.warns(RuntimeWarning, match="no compiler in this test"):
+        trainer = Trainer(tiny_config(tmp_path, steps=10_000, time_budget=0.5, backend="auto"), log=quiet)
+    assert trainer.fit()["step"] > 1
 
 
 def test_a_resume_that_does_not_retype_the_time_budget_keeps_the_checkpoints(tmp_path):
