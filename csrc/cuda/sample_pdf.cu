@@ -106,10 +106,11 @@ __device__ acc stratified_position(uint64_t seed, uint64_t offset, int64_t ray, 
 }
 
 // Forward. Tail: sample_pdf: u then samples (N); hierarchical_samples: the coarse depths (S), then
-// u then the fine samples (N). `rows` places sample_pdf's bins (layout.num_bins is the most any
+// u then the fine samples (N). kDrawn: positions drawn by Philox (positions.u is not read), else
+// read from positions.u; a compile-time choice, so that neither path holds the other's registers. `rows` places sample_pdf's bins (layout.num_bins is the most any
 // ray has); hierarchical_samples' rows are (R, S) coarse depths and weights. Unless `invalid` is
 // null, the InvalidInput bits of the values read are OR-ed into it (sample_pdf.h).
-template <typename scalar_t, bool kMerge, typename Rows>
+template <typename scalar_t, bool kMerge, bool kDrawn, typename Rows>
 __global__ void sample_forward_kernel(int64_t rays, WarpLayout layout, Rows rows,
                                       const scalar_t* __restrict__ edges_or_z, const scalar_t* __restrict__ weights,
                                       Positions<acc_t<scalar_t>> positions, int num_samples,
@@ -131,9 +132,9 @@ __global__ void sample_forward_kernel(int64_t rays, WarpLayout layout, Rows rows
   // Every load of the ray in one loop, so they are all in flight together.
   const scalar_t* weights_row = weights + ray_bins.weights;
   const scalar_t* edges_row = edges_or_z + ray_bins.edges;
-  const acc* u_row = positions.u ? positions.u + ray * positions.u_row_stride : nullptr;
+  const acc* u_row = kDrawn ? nullptr : positions.u + ray * positions.u_row_stride;
   uint64_t seed = 0, offset = 0;
-  if (!u_row) {  // std::get, not std::tie: tuple assignment is host-only before C++20
+  if constexpr (kDrawn) {  // std::get, not std::tie: tuple assignment is host-only before C++20
     const auto philox = at::cuda::philox::unpack(positions.philox);
     seed = std::get<0>(philox);
     offset = std::get<1>(philox);
@@ -143,9 +144,13 @@ __global__ void sample_forward_kernel(int64_t rays, WarpLayout layout, Rows rows
     if (i < B) sh.w[i] = PaddedWeights<acc, scalar_t>{weights_row, pad}(i);
     if (kMerge ? i < S : i <= B) (kMerge ? z : sh.edges)[i] = static_cast<acc>(edges_row[i]);
     if (i < N) {
-      const acc un = u_row ? u_row[i] : stratified_position<acc>(seed, offset, ray, i, N);
-      fine[i] = un;
-      if (positions.drawn) positions.drawn[ray * N + i] = un;
+      if constexpr (kDrawn) {
+        const acc un = stratified_position<acc>(seed, offset, ray, i, N);
+        fine[i] = un;
+        if (positions.drawn) positions.drawn[ray * N + i] = un;
+      } else {
+        fine[i] = u_row[i];
+      }
     }
   }
   __syncwarp();
@@ -408,10 +413,11 @@ struct Cuda {
       using acc = acc_t<scalar_t>;
       const Positions<acc> positions{u ? u->data_ptr<acc>() : nullptr, batch.u_row_stride, philox,
                                      drawn ? drawn->data_ptr<acc>() : nullptr};
-      launch_warp_per_ray<acc, acc>(sample_forward_kernel<scalar_t, false, Rows>, WarpLayout{max_bins, num_samples},
-                               batch.rays, rows, bins.data_ptr<scalar_t>(), weights.data_ptr<scalar_t>(),
-                               positions, num_samples, static_cast<acc>(weight_padding),
-                               samples.data_ptr<scalar_t>(), invalid);
+      launch_warp_per_ray<acc, acc>(u ? sample_forward_kernel<scalar_t, false, false, Rows>
+                                      : sample_forward_kernel<scalar_t, false, true, Rows>,
+                                    WarpLayout{max_bins, num_samples}, batch.rays, rows, bins.data_ptr<scalar_t>(),
+                                    weights.data_ptr<scalar_t>(), positions, num_samples,
+                                    static_cast<acc>(weight_padding), samples.data_ptr<scalar_t>(), invalid);
     });
   }
 
@@ -463,7 +469,8 @@ struct Cuda {
     at::Tensor invalid = at::zeros({1}, z_coarse.options().dtype(at::kInt));
     MIXER_NERF_DISPATCH_FLOATING(z_coarse.scalar_type(), "hierarchical_samples_fwd_cuda", [&] {
       using acc = acc_t<scalar_t>;
-      launch_warp_per_ray<acc, acc>(sample_forward_kernel<scalar_t, true, DenseBins>,
+      launch_warp_per_ray<acc, acc>(u ? sample_forward_kernel<scalar_t, true, false, DenseBins>
+                                      : sample_forward_kernel<scalar_t, true, true, DenseBins>,
                                WarpLayout{coarse - 2, coarse + num_samples}, rays, DenseBins{coarse - 2},
                                z_coarse.data_ptr<scalar_t>(), weights.data_ptr<scalar_t>(),
                                Positions<acc>{u ? u->data_ptr<acc>() : nullptr, u_row_stride, philox, nullptr},
