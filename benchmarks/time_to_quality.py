@@ -251,7 +251,8 @@ TRAINER_OPTIONS = (
     "target_samples", "batch_rays", "precision", "lr", "lr_final", "lr_warmup", "lr_hold", "bf16_density_passes",
     "adam_eps", "early_stop_eps", "empty_space_weight", "grid_warmup", "grid_every", "grid_threshold", "step_size",
     "proposal_width", "proposal_samples", "proposal_update_every", "proposal_jitter",
-    "proposal_weight_padding", "val_holdout", "grad_clip", "distortion_weight", "proposal_residual")
+    "proposal_weight_padding", "val_holdout", "grad_clip", "distortion_weight", "proposal_residual",
+    "proposal_intervals")
 """Options of ours passed to TrainConfig only when given: unset, they keep the trainer's defaults."""
 
 
@@ -339,7 +340,8 @@ def main() -> None:
     parser.add_argument("--proposal-weight-padding", type=float,
                         help="ours, proposal sampler: added to each proposal weight before resampling")
     # as `mixer-nerf train` has them (help and types from TrainConfig); unset, the trainer's defaults
-    add_options(parser, ("--distortion-weight", "--adam-eps", "--val-holdout", "--grad-clip", "--proposal-residual"))
+    add_options(parser, ("--distortion-weight", "--adam-eps", "--val-holdout", "--grad-clip", "--proposal-residual",
+                         "--proposal-intervals"))
     parser.add_argument("--early-stop-eps", type=float,
                         help="ours, occupancy sampler: early ray termination (0: off; default: the trainer's)")
     parser.add_argument("--empty-space-weight", type=float,

@@ -34,7 +34,7 @@ def sampler(rounds=(16, 8), samples=6, spacing="linear") -> ProposalSampler:
 @pytest.mark.parametrize("kwargs, match", [
     ({"samples_per_round": ()}, "samples_per_round"), ({"samples_per_round": (4, 0)}, "samples_per_round"),
     ({"num_samples": 0}, "num_samples"), ({"spacing": "log"}, "spacing"), ({"weight_padding": -1.0}, "padding"),
-    ({"jitter": "per_bin"}, "jitter"), ({"residual": "far"}, "residual")])
+    ({"jitter": "per_bin"}, "jitter"), ({"residual": "far"}, "residual"), ({"intervals": "mid"}, "intervals")])
 def test_options_reject_bad_values(kwargs, match):
     with pytest.raises(ValueError, match=match):
         ProposalOptions(**kwargs)
@@ -45,12 +45,16 @@ def test_one_network_per_round():
         ProposalSampler([ProposalNetwork()], ProposalOptions((8, 4)))
 
 
+@pytest.mark.parametrize("intervals", ["drawn", "between"])
 @pytest.mark.parametrize("spacing, near, far", [("linear", 0.0, 1.0), ("disparity", 0.5, 50.0)])
 @pytest.mark.parametrize("stratified", [False, True])
-def test_samples_are_sorted_contiguous_intervals_inside_near_far(spacing, near, far, stratified):
+def test_samples_are_sorted_contiguous_intervals_inside_near_far(spacing, near, far, stratified, intervals):
     gen = torch.Generator().manual_seed(0)
     o, d = rays(32, gen)
-    s = sampler(spacing=spacing).sample(o, d, near, far, stratified=stratified, generator=gen)
+    prop = sampler(spacing=spacing)
+    prop.options = ProposalOptions(prop.options.samples_per_round, prop.options.num_samples, spacing,
+                                   intervals=intervals)
+    s = prop.sample(o, d, near, far, stratified=stratified, generator=gen)
     assert s.t_starts.shape == (32, 6) and s.edges.shape == (32, 7)
     assert (s.t_ends >= s.t_starts).all() and torch.equal(s.t_starts[:, 1:], s.t_ends[:, :-1])
     assert (s.t_starts >= near - 1e-6).all() and (s.t_ends <= far * (1 + 1e-5)).all()
@@ -135,6 +139,29 @@ def test_a_ray_the_proposals_see_as_transparent_is_sampled_along_it_or_at_its_fa
         return (0.5 * (s.t_starts + s.t_ends) >= 5.0).float().mean().item()
 
     assert far_share("drop") < 0.3 and far_share("last") == 1.0
+
+
+@pytest.mark.parametrize("n", [1, 2, 5])
+def test_intervals_between_drawn_positions_reach_both_ends_of_a_uniform_pdf(n):
+    """Deterministic positions (i + 1/2) / n of a uniform PDF on [0.2, 0.6]: edges halfway between
+    them and half a spacing beyond, i.e. the n + 1 quantiles i / n, ends included."""
+    prop = ProposalSampler([Transparent()], ProposalOptions((4,), n, intervals="between"))
+    edges = torch.tensor([[0.2, 0.3, 0.6]])
+    got = prop._intervals(edges, torch.tensor([[1.0, 3.0]]), n, False, None, "auto")
+    torch.testing.assert_close(got, torch.linspace(0.2, 0.6, n + 1)[None])
+    drawn = ProposalSampler([Transparent()], ProposalOptions((4,), n))._intervals(
+        edges, torch.tensor([[1.0, 3.0]]), n, False, None, "auto")
+    assert drawn[0, 0] > 0.2 and drawn[0, -1] < 0.6  # drawn edges stop short of the ends
+
+
+def test_intervals_between_stay_inside_the_previous_span_when_positions_crowd_an_end():
+    gen = torch.Generator().manual_seed(0)
+    prop = ProposalSampler([Transparent()], ProposalOptions((4,), 8, intervals="between"))
+    edges = torch.tensor([[0.0, 0.01, 1.0]]).repeat(64, 1)
+    weights = torch.tensor([[1.0, 1e-6]]).repeat(64, 1)  # nearly all mass in the first 1% of the span
+    got = prop._intervals(edges, weights, 8, True, gen, "auto")
+    assert got.shape == (64, 9) and (got[:, 0] >= 0).all() and (got[:, -1] <= 1).all()
+    assert (got[:, 1:] >= got[:, :-1]).all()
 
 
 def test_a_coarse_round_bounds_fine_intervals_by_the_weight_of_those_it_overlaps():

@@ -120,6 +120,7 @@ def params_of(trainer: Trainer) -> dict[str, torch.Tensor]:
         ("proposal_update_every", 0),
         ("proposal_jitter", "per_bin"),
         ("proposal_residual", "far"),
+        ("proposal_intervals", "mid"),
         ("proposal_weight_padding", -1e-4),
         ("distortion_weight", -1e-3),
         ("distortion_weight", math.nan),
@@ -699,10 +700,10 @@ def test_proposal_sampler_trains_its_networks_and_renders_from_the_checkpoint(tm
     torch.testing.assert_close(run.render(rays_o, rays_d).color, trainer.render_rgb(rays_o, rays_d))
 
 
-def test_proposal_residual_reaches_the_sampler_and_trains(tmp_path):
+def test_proposal_residual_and_intervals_reach_the_sampler_and_train(tmp_path):
     trainer = Trainer(tiny_config(tmp_path, sampler="proposal", proposal_rounds=(12, 8), proposal_samples=6,
-                                  proposal_residual="last", steps=3), log=quiet)
-    assert trainer.fields.proposal.options.residual == "last"
+                                  proposal_residual="last", proposal_intervals="between", steps=3), log=quiet)
+    assert (trainer.fields.proposal.options.residual, trainer.fields.proposal.options.intervals) == ("last", "between")
     trainer.fit()
     assert all(math.isfinite(float(r["loss"])) for r in trainer.train_log.rows())
 

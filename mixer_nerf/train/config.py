@@ -9,7 +9,7 @@ from typing import Any
 
 from ..data import FORMATS
 from ..render.image_renderer import RENDER_SAMPLES
-from ..render.skipping import JITTERS, RESIDUALS, MarchingOptions
+from ..render.skipping import INTERVALS, JITTERS, RESIDUALS, MarchingOptions
 
 PRESETS = ("A", "B", "C", "D")
 PRECISIONS = ("bf16", "tf32", "fp32")
@@ -144,8 +144,11 @@ class TrainConfig:
     # drop: a Fern val screen gave "last" no gain (docs/skipping.md)
     proposal_residual: str = option(
         "drop", "proposal sampler: a ray's transmittance left after its last interval is dropped (each "
-        "round's PDF is its weights normalised) or added to the last interval (nerfacc's estimator), "
+        "round's PDF is its weights normalised, as in nerfacc's estimator) or added to the last interval, "
         "in sampling and in the proposal loss", choices=RESIDUALS)
+    proposal_intervals: str = option(
+        "drawn", "proposal sampler: each round's interval edges are drawn from its PDF, or put halfway "
+        "between drawn positions (nerfacc's estimator)", choices=INTERVALS)
     # Against floaters; off: on Fern's val split it did not help a 600 s run (docs/training.md).
     distortion_weight: float = option(
         0.0, "proposal sampler: weight of mip-NeRF 360's distortion loss on the main field's weights, "
@@ -208,6 +211,7 @@ class TrainConfig:
             raise ValueError(f"proposal_update_every must be positive, got {self.proposal_update_every}")
         _one_of("proposal_jitter", self.proposal_jitter, JITTERS)
         _one_of("proposal_residual", self.proposal_residual, RESIDUALS)
+        _one_of("proposal_intervals", self.proposal_intervals, INTERVALS)
         if not self.proposal_weight_padding >= 0:
             raise ValueError(f"proposal_weight_padding must be >= 0, got {self.proposal_weight_padding}")
         if not (math.isfinite(self.distortion_weight) and self.distortion_weight >= 0):

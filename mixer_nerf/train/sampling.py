@@ -73,7 +73,8 @@ def make_proposal(cfg: TrainConfig, model_cfg: ModelConfig, bounded: bool) -> Pr
                                 contract_space=not bounded, backend=cfg.backend)
                 for _ in cfg.proposal_rounds]
     options = ProposalOptions(cfg.proposal_rounds, cfg.proposal_samples, "linear" if bounded else "disparity",
-                              cfg.proposal_weight_padding, cfg.proposal_jitter, cfg.proposal_residual)
+                              cfg.proposal_weight_padding, cfg.proposal_jitter, cfg.proposal_residual,
+                              cfg.proposal_intervals)
     return ProposalSampler(networks, options)
 
 

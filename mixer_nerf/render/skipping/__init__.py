@@ -25,6 +25,7 @@ from .occupancy_grid import CellShare, OccupancyGrid
 from .occupancy_sampler import GridRefresh, OccupancySampler
 from .proposal import (
     JITTERS,
+    INTERVALS,
     RESIDUALS,
     ProposalOptions,
     ProposalSampler,
@@ -36,6 +37,7 @@ from .sample_budget import SampleBudget
 
 __all__ = [
     "JITTERS",
+    "INTERVALS",
     "RESIDUALS",
     "CellShare",
     "GridRefresh",

@@ -29,6 +29,7 @@ from ..volume import RayBundleResult, composite_samples, query_field
 SPACINGS = ("linear", "disparity")
 JITTERS = ("per_sample", "per_ray")
 RESIDUALS = ("drop", "last")
+INTERVALS = ("drawn", "between")
 UPDATE_RAMP_STEPS = 1000
 """Steps over which :func:`proposal_update_due`'s interval grows from 1 to its final value."""
 
@@ -54,9 +55,15 @@ class ProposalOptions:
         equal steps in ``u``, as nerfacc's sampler; the default) or each by itself (``"per_sample"``).
     residual: what becomes of a ray's transmittance left after its last interval (1 - opacity)
         in each round and in the loss's target: ``"drop"`` it (a round's PDF is its weights
-        normalised; the default) or add it to the last interval's weight (``"last"``: a CDF that
-        ends at 1, as nerfacc's estimator's, so a ray its networks see as still transparent is
-        sampled towards its far end too).
+        normalised; the default, and what nerfacc's estimator does: its positions span the CDF
+        from its first value to its last) or add it to the last interval's weight (``"last"``: a
+        CDF that ends at 1, so a ray its networks see as still transparent is sampled towards its
+        far end too).
+    intervals: how a round's ``n`` intervals come from its PDF: ``"drawn"`` draws their ``n + 1``
+        edges (the default), ``"between"`` draws ``n`` positions and puts the edges halfway between
+        neighbours, the first and last half a spacing beyond, within the previous round's span
+        (nerfacc's estimator): its edges reach the ray's first and last quantile, where drawn
+        edges stop ~1/(n + 1) of the mass short of them.
     """
 
     samples_per_round: tuple[int, ...] = (128, 64)
@@ -65,6 +72,7 @@ class ProposalOptions:
     weight_padding: float = 0.0
     jitter: str = "per_ray"
     residual: str = "drop"
+    intervals: str = "drawn"
 
     def __post_init__(self) -> None:
         if not self.samples_per_round or any(n < 1 for n in self.samples_per_round):
@@ -79,6 +87,8 @@ class ProposalOptions:
             raise ValueError(f"jitter must be one of {JITTERS}, got {self.jitter!r}")
         if self.residual not in RESIDUALS:
             raise ValueError(f"residual must be one of {RESIDUALS}, got {self.residual!r}")
+        if self.intervals not in INTERVALS:
+            raise ValueError(f"intervals must be one of {INTERVALS}, got {self.intervals!r}")
 
 
 class ProposalRound(NamedTuple):
@@ -129,13 +139,13 @@ class ProposalSampler(nn.Module):
         norm = torch.linalg.vector_norm(rays_d, dim=-1, keepdim=True)
         rounds = []
         for net, n in zip(self.networks, opts.samples_per_round, strict=True):
-            edges = self._resample(edges, weights, n + 1, stratified, generator, backend)
+            edges = self._intervals(edges, weights, n, stratified, generator, backend)
             t = self._to_t(edges, near, far)
             mids = 0.5 * (t[:, 1:] + t[:, :-1])
             sigma = net.density(rays_o[:, None, :] + mids[..., None] * rays_d[:, None, :]).float() * norm
             weights = self.target_weights(_weights(sigma, t[:, :-1], t[:, 1:], backend))
             rounds.append(ProposalRound(edges, weights))
-        edges = self._resample(edges, weights, opts.num_samples + 1, stratified, generator, backend)
+        edges = self._intervals(edges, weights, opts.num_samples, stratified, generator, backend)
         t = self._to_t(edges, near, far)
         return ProposalSamples(t[:, :-1], t[:, 1:], edges, tuple(rounds))
 
@@ -149,6 +159,18 @@ class ProposalSampler(nn.Module):
         return torch.cat([weights[:, :-1], weights[:, -1:] + remaining], dim=-1)
 
     @torch.no_grad()
+    def _intervals(self, edges, weights, n, stratified, generator, backend) -> torch.Tensor:
+        """Edges ``(R, n + 1)`` of ``n`` intervals drawn from the PDF of ``weights`` on ``edges``."""
+        if self.options.intervals == "drawn":
+            return self._resample(edges, weights, n + 1, stratified, generator, backend)
+        x = self._resample(edges, weights, n, stratified, generator, backend)
+        lo, hi = edges[:, :1], edges[:, -1:]
+        if n == 1:
+            return torch.cat([lo, hi], dim=-1)
+        first = torch.maximum(1.5 * x[:, :1] - 0.5 * x[:, 1:2], lo)
+        last = torch.minimum(1.5 * x[:, -1:] - 0.5 * x[:, -2:-1], hi)
+        return torch.cat([first, 0.5 * (x[:, 1:] + x[:, :-1]), last], dim=-1)
+
     def _resample(self, edges, weights, count, stratified, generator, backend) -> torch.Tensor:
         u = None
         if stratified and self.options.jitter == "per_ray":
