@@ -458,6 +458,48 @@ def test_cuda_batches_prepared_on_the_side_stream_train_as_those_prepared_in_lin
         torch.testing.assert_close(value, runs[1][0][name], rtol=1e-4, atol=1e-6, msg=name)
 
 
+def test_cuda_graphs_are_refused_on_a_cpu_before_training(tmp_path):
+    with pytest.raises(ValueError, match="--cuda-graphs: it needs a CUDA device"):
+        Trainer(tiny_config(tmp_path, sampler="proposal", cuda_graphs=True), log=quiet)
+
+
+@pytest.mark.parametrize("sampler, several, images, reason", [
+    ("occupancy", False, "cuda", "only the proposal sampler's steps keep their shapes"),
+    ("proposal", True, "cuda", "not with several processes"),
+    ("proposal", False, "cpu", "the training images do not fit on the GPU")])
+def test_cuda_graphs_refusals_name_their_reason(sampler, several, images, reason):
+    from mixer_nerf.train.trainer import _check_graphable
+
+    cfg = TrainConfig(sampler=sampler, cuda_graphs=True)
+    with pytest.raises(ValueError, match=reason):
+        _check_graphable(cfg, torch.device("cuda"), several, torch.device(images))
+    _check_graphable(TrainConfig(sampler="proposal"), torch.device("cuda"), False, torch.device("cuda"))
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU")
+def test_cuda_graphed_proposal_steps_train_as_the_eager_ones(tmp_path):
+    """Replays draw the same rays and samples as eager steps (the generator's offsets advance alike),
+    so the two runs agree step by step, through a checkpoint and a resume."""
+    settings = dict(sampler="proposal", proposal_rounds=(12, 8), proposal_samples=6, device="cuda",
+                    backend="auto", steps=12, ckpt_every=6, val_every=100, log_every=3)
+    losses = {}
+    for graphs in (False, True):
+        out = tmp_path / str(graphs)
+        Trainer(tiny_config(out, cuda_graphs=graphs, **{**settings, "steps": 6}), log=quiet).fit()
+        trainer = Trainer(tiny_config(out, cuda_graphs=graphs, **settings), resume=True, log=quiet)
+        losses[graphs] = [float(trainer.train_step()["loss"]) for _ in range(6)]
+        if graphs:
+            assert trainer.graphs.captured == (True,)  # every step updates the proposal networks this early
+            assert all(p.grad is not None for p in trainer.params)
+        losses[graphs].append(params_of(trainer))
+    *eager, eager_params = losses[False]
+    *graphed, graphed_params = losses[True]
+    torch.testing.assert_close(graphed, eager, rtol=1e-4, atol=1e-6)
+    for name, value in eager_params.items():
+        torch.testing.assert_close(graphed_params[name], value, rtol=1e-4, atol=1e-6, msg=name)
+
+
 def test_existing_run_is_not_overwritten(tmp_path):
     Trainer(tiny_config(tmp_path, steps=1), log=quiet).fit()
     before = (tmp_path / "checkpoint.pt").read_bytes()
@@ -542,6 +584,17 @@ def test_guard_reports_first_bad_step_and_tensor():
     with pytest.raises(NonFiniteError, match=r"step 3: loss_fine; gradient of b\.bias") as info:
         guard.raise_if_bad()
     assert info.value.step == 3
+
+
+def test_guard_takes_the_step_from_a_device_counter_as_a_replayed_graph_gives_it():
+    guard = NonFiniteGuard(["a.weight"], torch.device("cpu"))
+    counter = torch.tensor(0)
+    for loss in (1.0, 1.0, math.nan, math.nan):
+        counter.add_(1)  # what a replay does: the step's number never passes through the host
+        guard.observe_losses(counter, loss_coarse=torch.tensor(loss))
+        guard.observe_grads(counter, [torch.tensor([loss])])
+    with pytest.raises(NonFiniteError, match=r"step 3: loss_coarse; gradient of a\.weight"):
+        guard.raise_if_bad()
 
 
 def test_guard_dispatches_no_op_per_gradient():
@@ -679,7 +732,7 @@ def test_distortion_loss_trains_the_main_field_with_the_proposal_sampler(tmp_pat
 def test_proposal_runs_without_a_distortion_weight_have_no_distortion_loss(tmp_path):
     trainer = Trainer(tiny_config(tmp_path, sampler="proposal", proposal_rounds=(12, 8), proposal_samples=6),
                       log=quiet)
-    assert "loss_distortion" not in trainer._proposal_losses(*trainer.sampler.sample())
+    assert "loss_distortion" not in trainer._proposal_losses(*trainer.sampler.sample(), update=True)
 
 
 def test_proposal_sampler_trains_its_networks_and_renders_from_the_checkpoint(tmp_path):

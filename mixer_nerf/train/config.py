@@ -154,6 +154,9 @@ class TrainConfig:
         0.0, "proposal sampler: weight of mip-NeRF 360's distortion loss on the main field's weights, "
         "which gathers each ray's weight into few short intervals (default 0: off; nerfacto uses 0.002)",
         metavar="W")
+    cuda_graphs: bool = option(
+        False, "proposal sampler on a GPU: replay each training step as a CUDA graph, without the host "
+        "work between its kernels (needs the training images on the GPU and one process)")
     tensorboard: bool = option(
         False, "log losses, PSNR, learning rate, samples per ray, rays/s and validation renders to "
         "<out>/tensorboard (needs .[tensorboard])"

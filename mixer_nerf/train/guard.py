@@ -26,13 +26,14 @@ class NonFiniteGuard:
         self._first_bad: dict[str, torch.Tensor] = {}
         self._zero: torch.Tensor | None = None
 
-    def observe_losses(self, step: int, **losses: torch.Tensor) -> None:
-        """Record ``step`` for each named scalar that is not finite (and not already bad)."""
+    def observe_losses(self, step: int | torch.Tensor, **losses: torch.Tensor) -> None:
+        """Record ``step`` (a number, or a 0-d int64 tensor on the device: a replayed CUDA graph's
+        step) for each named scalar that is not finite (and not already bad)."""
         for name, value in losses.items():
             self._record(name, step, ~torch.isfinite(value.detach()))
 
     @torch.no_grad()  # rather than a detach per gradient: one op per parameter less each step
-    def observe_grads(self, step: int, grads: list[torch.Tensor | None]) -> None:
+    def observe_grads(self, step: int | torch.Tensor, grads: list[torch.Tensor | None]) -> None:
         """Record ``step`` per parameter (ordered as ``param_names``) whose gradient is not finite.
         A missing gradient counts as finite; nothing here copies from the host or synchronises."""
         if self._zero is None:
@@ -58,7 +59,7 @@ class NonFiniteGuard:
                 what.append(name)
         raise NonFiniteError(f"non-finite value at step {step}: {'; '.join(what)}", step)
 
-    def _record(self, name: str, step: int, bad: torch.Tensor) -> None:
+    def _record(self, name: str, step: int | torch.Tensor, bad: torch.Tensor) -> None:
         first = self._first_bad.get(name)
         if first is None:
             first = self._first_bad[name] = torch.full(bad.shape, -1, dtype=torch.int64, device=self.device)

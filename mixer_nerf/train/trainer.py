@@ -30,6 +30,7 @@ from .checkpoint import capture_rng_state, load_checkpoint, restore_rng_state, s
 from .config import TrainConfig
 from .distributed import join, rank_seed, restore_rank_sampler
 from .fields import model_config, model_config_to_dict
+from .graphed_steps import GraphedSteps
 from .guard import NonFiniteError, NonFiniteGuard
 from .logbook import CsvLog, TensorBoardLog, plot_curves
 from .marched_batches import MarchedBatches
@@ -42,7 +43,7 @@ from .sampling import image_renderer, make_fields, occupancy_sampler, resolve_sa
 from .scenes import held_out_split, locate_scene, scene_info, scene_source
 
 RESUMABLE_OVERRIDES = ("steps", "time_budget", "device", "backend", "data", "render_samples", "ckpt_every",
-                       "log_every", "progress")
+                       "log_every", "cuda_graphs", "progress")
 """Settings a resumed run may change: how long it trains (a longer ``steps`` stretches the
 learning-rate schedule to the new end), where it runs, where its scene now is, how much a
 render may hold at once and how often it saves and logs. Any other
@@ -97,6 +98,18 @@ def check_sizes(cfg: TrainConfig, width: int, device: torch.device) -> None:
 def _same(a: Any, b: Any) -> bool:
     """Equal settings, a tuple equal to the list it became in a file."""
     return json.dumps(a, sort_keys=True, default=str) == json.dumps(b, sort_keys=True, default=str)
+
+
+def _check_graphable(cfg: TrainConfig, device: torch.device, several_processes: bool, images: torch.device) -> None:
+    """Refuse ``--cuda-graphs`` where a step cannot be replayed as a graph, saying why."""
+    why = ("it needs a CUDA device" if device.type != "cuda"
+           else f"only the proposal sampler's steps keep their shapes (this run's sampler: {cfg.sampler})"
+           if cfg.sampler != "proposal"
+           else "not with several processes" if several_processes
+           else "the training images do not fit on the GPU (a step would copy its pixels from the host)"
+           if images.type != "cuda" else None)
+    if why:
+        raise ValueError(f"--cuda-graphs: {why}")
 
 
 class TrainingClock:
@@ -183,6 +196,8 @@ class Trainer:
         val_scene, self.val_split = held_out_split(folder, fmt, "val", cfg.downscale, cfg.val_holdout)
         self.val_scene = val_scene.to(self.device)
         self.cfg = cfg = resolve_sampler(cfg, self.train_scene.bbox, self.train_scene.ndc)
+        if cfg.cuda_graphs:
+            _check_graphable(cfg, self.device, self.ranks is not None, self.train_scene.images.device)
         self.scene = scene_info(self.train_scene, folder, fmt, cfg)
         self.background = self.train_scene.background.to(self.device, torch.float32)
 
@@ -198,8 +213,10 @@ class Trainer:
         )
         self.params = [p for p in self.fields.parameters() if p.requires_grad]
         self.param_names = [n for n, p in self.fields.named_parameters() if p.requires_grad]
+        # Replayed steps read the learning rate from the device: a tensor the host refills each step.
+        lr = torch.tensor(cfg.lr, device=self.device) if cfg.cuda_graphs else cfg.lr
         self.optimizer = torch.optim.Adam(
-            self.params, lr=cfg.lr, eps=cfg.adam_eps, fused=self.device.type == "cuda"
+            self.params, lr=lr, eps=cfg.adam_eps, fused=self.device.type == "cuda", capturable=cfg.cuda_graphs
         )
         near, far = self.train_scene.near, self.train_scene.far
         self.renderer = image_renderer(cfg, self.fields, near, far, self.background, step=lambda: self.step)
@@ -226,6 +243,12 @@ class Trainer:
         self.rays_seen = self.samples_seen = self.marched_seen = 0  # marched: before early termination
         if state is not None:
             self._load_state(state)
+        self.graphs = None
+        if cfg.cuda_graphs:
+            for group in self.optimizer.param_groups:  # as built above, whatever the checkpoint held
+                group["lr"], group["capturable"] = torch.tensor(float(group["lr"]), device=self.device), True
+            self._step_counter = torch.tensor(self.step, device=self.device)  # the step a replay is at
+            self.graphs = GraphedSteps(self._graphed_step, self.params, self.sampler.generator)
         if not self.rank:
             write_text_atomic(self.files.config, json.dumps(
                 {"train": cfg.to_dict(), "model": model_config_to_dict(self.model_cfg)}, indent=1))
@@ -238,21 +261,42 @@ class Trainer:
         cfg = self.cfg
         lr = cfg.lr * self._lr_factor()
         for group in self.optimizer.param_groups:
-            group["lr"] = lr
-        if self.batches is not None:
-            losses = self._marched_losses(self.batches.take(self.step))
-        elif self.fields.proposal is not None:
-            rays_o, rays_d, target = self.sampler.sample()
-            self.rays_seen += rays_o.shape[0]
-            losses = self._proposal_losses(rays_o, rays_d, target)
+            if self.graphs is not None:
+                group["lr"].fill_(lr)
+            else:
+                group["lr"] = lr
+        if self.graphs is not None:
+            stats = self.graphs(proposal_update_due(self.step, cfg.proposal_update_every))
+            self.rays_seen += self.sampler.batch_rays
+            self.samples_seen += self.sampler.batch_rays * cfg.proposal_samples
+        elif self.batches is not None:
+            stats = self._learn(self._marched_losses(self.batches.take(self.step)), self.step + 1)
         else:
             rays_o, rays_d, target = self.sampler.sample()
             self.rays_seen += rays_o.shape[0]
-            losses = self._hierarchical_losses(rays_o, rays_d, target)
+            if self.fields.proposal is not None:
+                update = proposal_update_due(self.step, cfg.proposal_update_every)
+                losses = self._proposal_losses(rays_o, rays_d, target, update)
+                self.samples_seen += rays_o.shape[0] * cfg.proposal_samples
+            else:
+                losses = self._hierarchical_losses(rays_o, rays_d, target)
+            stats = self._learn(losses, self.step + 1)
+        self.step += 1
+        return stats
+
+    def _graphed_step(self, update: bool) -> dict[str, torch.Tensor]:
+        """The proposal path's step as :class:`GraphedSteps` replays it: all on the device, the
+        step number included."""
+        self._step_counter.add_(1)
+        rays_o, rays_d, target = self.sampler.sample()
+        return self._learn(self._proposal_losses(rays_o, rays_d, target, update), self._step_counter)
+
+    def _learn(self, losses: dict[str, torch.Tensor], step: int | torch.Tensor) -> dict[str, torch.Tensor]:
+        """Backward and optimizer step of ``losses`` at ``step`` (1-based, the host's or the device's)."""
+        cfg = self.cfg
         loss = sum(losses.values())
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
-        step = self.step + 1
         self.guard.observe_losses(step, **losses)
         mean = self.ranks and self.ranks.start_gradient_mean(self.params)  # overlaps the prefetch
         if self.batches is not None:
@@ -265,7 +309,6 @@ class Trainer:
             # After the ranks' mean and the guard (it names the bad parameter); scaled on the device, no sync
             torch.nn.utils.clip_grad_norm_(self.params, cfg.grad_clip, foreach=True)
         self.optimizer.step()
-        self.step = step
         return {"loss": loss.detach(), "mse": losses.get("loss_fine", losses["loss_coarse"]).detach()}
 
     def _hierarchical_losses(self, rays_o, rays_d, target) -> dict[str, torch.Tensor]:
@@ -293,14 +336,14 @@ class Trainer:
             losses["loss_fine"] = F.mse_loss(out.fine.color, target)
         return losses
 
-    def _proposal_losses(self, rays_o, rays_d, target) -> dict[str, torch.Tensor]:
+    def _proposal_losses(self, rays_o, rays_d, target, update: bool) -> dict[str, torch.Tensor]:
+        """``update``: the proposal networks learn at this step. Host state is left alone (the
+        step may be a CUDA graph's capture)."""
         cfg = self.cfg
-        update = proposal_update_due(self.step, cfg.proposal_update_every)
         out, samples = render_rays_proposal(
             self.coarse_field, self.fields.proposal, rays_o, rays_d, self.train_scene.near, self.train_scene.far,
             stratified=True, background=self.background, generator=self.sampler.generator, backend=cfg.backend,
             train_proposal=update)
-        self.samples_seen += samples.t_starts.numel()
         weights = self.fields.proposal.target_weights(out.weights)
         loss = proposal_loss(samples.rounds, samples.edges, weights) if update else out.color.new_zeros(())
         losses = {"loss_coarse": F.mse_loss(out.color, target),
@@ -502,7 +545,7 @@ class Trainer:
         row = {
             "step": self.step,
             "seconds": round(self.clock.elapsed, 3),
-            "lr": self.optimizer.param_groups[0]["lr"],
+            "lr": float(self.optimizer.param_groups[0]["lr"]),
             "loss": loss,
             "psnr": -10.0 * math.log10(max(mse, 1e-30)),
             "rays_per_s": round(rays_per_s, 1),
