@@ -7,6 +7,7 @@
 ``linear_relu`` has no kernel of ours: its ``"kernel"`` is hand-written passes around cuBLAS(Lt).
 """
 
+from ._dispatch import use_kernel
 from .composite import composite, composite_packed
 from .deferred_checks import check_pending
 from .hierarchical_samples import hierarchical_samples
@@ -32,4 +33,5 @@ __all__ = [
     "sample_pdf",
     "sample_pdf_packed",
     "segment_mean",
+    "use_kernel",
 ]

@@ -15,9 +15,9 @@ from typing import Any
 import torch
 import torch.nn.functional as F
 
-from .. import _extension
 from ..data import load_split
 from ..metrics import psnr
+from ..ops import use_kernel
 from ..render import render_rays
 from ..render.skipping import (
     distortion_loss,
@@ -233,9 +233,8 @@ class Trainer:
                 self.sampler)
             # The empty-space loss is the optical depth of a box diagonal through the mean density.
             self.box_diagonal = float((self.fields.grid.aabb[1] - self.fields.grid.aabb[0]).norm())
-        if cfg.backend != "torch":
-            # A first-use JIT build of the kernels (a minute or more) happens here, not on the training clock.
-            _extension.available()
+        # A first-use JIT build of the kernels (a minute or more) happens here, not on the training clock.
+        use_kernel(cfg.backend, self.device)
         self.guard = NonFiniteGuard(self.param_names, self.device)
         self.check_every = 1 if self.device.type == "cpu" else min(cfg.log_every, 50)
         self.train_log, self.val_log = CsvLog(self.files.train_log), CsvLog(self.files.val_log)
