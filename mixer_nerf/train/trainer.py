@@ -102,14 +102,17 @@ def _same(a: Any, b: Any) -> bool:
 
 def _check_graphable(cfg: TrainConfig, device: torch.device, several_processes: bool, images: torch.device) -> None:
     """Refuse ``--cuda-graphs`` where a step cannot be replayed as a graph, saying why."""
-    why = ("it needs a CUDA device" if device.type != "cuda"
-           else f"only the proposal sampler's steps keep their shapes (this run's sampler: {cfg.sampler})"
-           if cfg.sampler != "proposal"
-           else "not with several processes" if several_processes
-           else "the training images do not fit on the GPU (a step would copy its pixels from the host)"
-           if images.type != "cuda" else None)
-    if why:
-        raise ValueError(f"--cuda-graphs: {why}")
+    if device.type != "cuda":
+        why = "it needs a CUDA device"
+    elif cfg.sampler != "proposal":
+        why = f"only the proposal sampler's steps keep their shapes (this run's sampler: {cfg.sampler})"
+    elif several_processes:
+        why = "not with several processes"
+    elif images.type != "cuda":
+        why = "the training images do not fit on the GPU (a step would copy its pixels from the host)"
+    else:
+        return
+    raise ValueError(f"--cuda-graphs: {why}")
 
 
 class TrainingClock:
@@ -264,22 +267,20 @@ class Trainer:
                 group["lr"].fill_(lr)
             else:
                 group["lr"] = lr
-        if self.graphs is not None:
-            stats = self.graphs(proposal_update_due(self.step, cfg.proposal_update_every))
+        if self.batches is not None:
+            stats = self._learn(self._marched_losses(self.batches.take(self.step)), self.step + 1)
+        elif self.fields.proposal is not None:
+            update = proposal_update_due(self.step, cfg.proposal_update_every)
+            if self.graphs is not None:
+                stats = self.graphs(update)
+            else:
+                stats = self._learn(self._proposal_losses(*self.sampler.sample(), update), self.step + 1)
             self.rays_seen += self.sampler.batch_rays
             self.samples_seen += self.sampler.batch_rays * cfg.proposal_samples
-        elif self.batches is not None:
-            stats = self._learn(self._marched_losses(self.batches.take(self.step)), self.step + 1)
         else:
             rays_o, rays_d, target = self.sampler.sample()
             self.rays_seen += rays_o.shape[0]
-            if self.fields.proposal is not None:
-                update = proposal_update_due(self.step, cfg.proposal_update_every)
-                losses = self._proposal_losses(rays_o, rays_d, target, update)
-                self.samples_seen += rays_o.shape[0] * cfg.proposal_samples
-            else:
-                losses = self._hierarchical_losses(rays_o, rays_d, target)
-            stats = self._learn(losses, self.step + 1)
+            stats = self._learn(self._hierarchical_losses(rays_o, rays_d, target), self.step + 1)
         self.step += 1
         return stats
 
