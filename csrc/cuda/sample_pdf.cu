@@ -106,10 +106,11 @@ __device__ acc stratified_position(uint64_t seed, uint64_t offset, int64_t ray, 
 }
 
 // Forward. Tail: sample_pdf: u then samples (N); hierarchical_samples: the coarse depths (S), then
-// u then the fine samples (N). kDrawn: positions drawn by Philox (positions.u is not read), else
-// read from positions.u; a compile-time choice, so that neither path holds the other's registers. `rows` places sample_pdf's bins (layout.num_bins is the most any
+// u then the fine samples (N). `rows` places sample_pdf's bins (layout.num_bins is the most any
 // ray has); hierarchical_samples' rows are (R, S) coarse depths and weights. Unless `invalid` is
-// null, the InvalidInput bits of the values read are OR-ed into it (sample_pdf.h).
+// null, the InvalidInput bits of the values read are OR-ed into it (sample_pdf.h). kDrawn: the
+// positions are drawn by Philox (positions.u is not read), else read from positions.u; chosen at
+// compile time, so that neither path holds the other's registers.
 template <typename scalar_t, bool kMerge, bool kDrawn, typename Rows>
 __global__ void sample_forward_kernel(int64_t rays, WarpLayout layout, Rows rows,
                                       const scalar_t* __restrict__ edges_or_z, const scalar_t* __restrict__ weights,
