@@ -1,7 +1,8 @@
 """Where a training step's time goes: wall time per step against GPU busy time, and the kernels.
 
     python tools/profile_train_step.py [--data .data/lego_400] [--preset D] [--precision tf32]
-        [--warmup 400] [--steps 30] [--[no-]bf16-density-passes] [--empty-space-weight W] [--out DIR]
+        [--warmup 400] [--steps 30] [--[no-]bf16-density-passes] [--empty-space-weight W] [--cuda-graphs]
+        [--out DIR]
 
 Trains ``--warmup`` steps (past the occupancy grid's dense warm-up, so the batch has its steady
 size), then profiles ``--steps`` steps with torch.profiler. Prints ms per step (wall), the GPU's
@@ -49,14 +50,17 @@ def main() -> None:
     parser.add_argument("--bf16-density-passes", action=argparse.BooleanOptionalAction, default=None,
                         help="default: the trainer's (on CUDA)")
     parser.add_argument("--empty-space-weight", type=float, default=None, help="default: the trainer's")
+    parser.add_argument("--cuda-graphs", action="store_true",
+                        help="replay each step as a CUDA graph (the proposal sampler: e.g. --data .data/fern_8)")
     parser.add_argument("--out", default=str(RESULTS / "train_step"),
-                        help="write the tables to DIR/<device>_<preset>_<precision>[_bf16pass]_step<N>.txt "
+                        help="write the tables to DIR/<device>_<preset>_<precision>[_bf16pass][_graphs]_step<N>.txt "
                              "('' for none)")
     args = parser.parse_args()
 
     cfg = TrainConfig(data=args.data, preset=args.preset, precision=args.precision, device="cuda",
                       val_every=10**9, ckpt_every=10**9, log_every=10**9, progress=False,
                       bf16_density_passes=args.bf16_density_passes, out=tempfile.mkdtemp(prefix="profile_"),
+                      cuda_graphs=args.cuda_graphs,
                       **({} if args.empty_space_weight is None else {"empty_space_weight": args.empty_space_weight}))
     trainer = Trainer(cfg, log=lambda _: None)
     trainer.fields.train()
@@ -92,7 +96,8 @@ def main() -> None:
     print(table)
     passes = "_bf16pass" * trainer.cfg.bf16_density_passes
     # named by the step profiled, before the host profile's steps
-    name = f"{device_tag('cuda')}_{args.preset}_{args.precision}{passes}_step{trainer.step}.txt"
+    graphs = "_graphs" * args.cuda_graphs
+    name = f"{device_tag('cuda')}_{args.preset}_{args.precision}{passes}{graphs}_step{trainer.step}.txt"
     host = host_profile(trainer.train_step, args.steps, top=35)
     syncs = _sync_sites(trainer, args.steps)
     print(syncs)
