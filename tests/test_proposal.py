@@ -51,7 +51,8 @@ def test_one_network_per_round():
 def test_samples_are_sorted_contiguous_intervals_inside_near_far(spacing, near, far, stratified, intervals):
     gen = torch.Generator().manual_seed(0)
     o, d = rays(32, gen)
-    s = sampler(spacing=spacing, intervals=intervals).sample(o, d, near, far, stratified=stratified, generator=gen)
+    prop = sampler(spacing=spacing, intervals=intervals)
+    s = prop.sample(o, d, near, far, stratified=stratified, generator=gen)
     assert s.t_starts.shape == (32, 6) and s.edges.shape == (32, 7)
     assert (s.t_ends >= s.t_starts).all() and torch.equal(s.t_starts[:, 1:], s.t_ends[:, :-1])
     assert (s.t_starts >= near - 1e-6).all() and (s.t_ends <= far * (1 + 1e-5)).all()
