@@ -297,6 +297,30 @@ def test_packed_offsets_equal_ray_indices_in_forward_and_density(backend):
     torch.testing.assert_close(model.density(x, offsets=offsets), by_indices[0])
 
 
+@pytest.mark.skipif(not _extension.available(), reason="kernels not built")
+@pytest.mark.parametrize("preset", ["A", "D"])
+def test_kernel_backend_field_equals_the_reference_path(preset):
+    """backend="kernel": the trunk's fused linear_relu layers (with the PE, MLCA and SE kernels) give
+    the reference path's outputs and gradients."""
+    reference = randomize_(small_model(preset)).double()
+    fused = small_model(preset, backend="kernel").double()
+    fused.load_state_dict(reference.state_dict())
+    x, d = random_rays(4, 5, torch.float64)
+    grads = []
+    for model in (reference, fused):
+        sigma, rgb = model(x, d)
+        (sigma.sum() + (rgb * torch.linspace(-1, 1, 3, dtype=rgb.dtype)).sum()).backward()
+        grads.append((sigma, rgb, [p.grad for p in model.parameters()]))
+    (sigma_ref, rgb_ref, grads_ref), (sigma_fused, rgb_fused, grads_fused) = grads
+    torch.testing.assert_close(sigma_fused, sigma_ref)
+    torch.testing.assert_close(rgb_fused, rgb_ref)
+    for got, want in zip(grads_fused, grads_ref):
+        torch.testing.assert_close(got, want)
+    with dispatched_ops() as ops:
+        fused(x, d)
+    assert ops["aten._addmm_activation"] == fused.cfg.depth
+
+
 def test_packed_without_ray_indices_gates_per_point():
     per_ray = randomize_(small_model("D"))
     per_point = small_model("D", se_per_point=True)

@@ -33,7 +33,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from ..ops import positional_encoding
+from ..ops import linear_relu, positional_encoding
 from ..ops._checks import check_floating, check_offsets, check_same_device, check_tensor
 from .config import ModelConfig
 from .mlca import MLCA
@@ -161,7 +161,7 @@ class MixerNeRF(nn.Module):
         for i, layer in enumerate(self.trunk):
             if i in cfg.skips:
                 h = torch.cat([encoded.to(h.dtype), h], dim=-1)
-            h = torch.relu(layer(h))
+            h = linear_relu(h, layer.weight, layer.bias, backend=cfg.backend)
         if self.se is not None:
             h = self.se(h, ray_indices, num_rays, offsets)
         return h
