@@ -53,7 +53,7 @@ def main() -> None:
     parser.add_argument("--cuda-graphs", action="store_true",
                         help="replay each step as a CUDA graph (the proposal sampler: e.g. --data .data/fern_8)")
     parser.add_argument("--out", default=str(RESULTS / "train_step"),
-                        help="write the tables to DIR/<device>_<preset>_<precision>[_bf16pass][_graphs]_step<N>.txt "
+                        help="write the tables to DIR/<device>_<scene>_<preset>_<precision>[_bf16pass][_graphs]_step<N>.txt "
                              "('' for none)")
     args = parser.parse_args()
 
@@ -92,19 +92,21 @@ def main() -> None:
               f"marched and {shaded / rays:.1f} shaded samples, bf16 density passes "
               f"{trainer.cfg.bf16_density_passes}")
     table = events.table(sort_by="self_cuda_time_total", row_limit=30, max_name_column_width=70)
-    print(header)
-    print(table)
     passes = "_bf16pass" * trainer.cfg.bf16_density_passes
     # named by the step profiled, before the host profile's steps
     graphs = "_graphs" * args.cuda_graphs
-    name = f"{device_tag('cuda')}_{args.preset}_{args.precision}{passes}{graphs}_step{trainer.step}.txt"
+    scene = Path(args.data).name.split("_")[0]
+    name = f"{device_tag('cuda')}_{scene}_{args.preset}_{args.precision}{passes}{graphs}_step{trainer.step}.txt"
     host = host_profile(trainer.train_step, args.steps, top=35)
     syncs = _sync_sites(trainer, args.steps)
-    print(syncs)
+    # The file before the prints: a reader that closes the pipe early (`| grep -m1`) must not lose it.
     if args.out:
         path = Path(args.out) / name
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text(header + "\n" + table + "\n" + host + "\n" + syncs + "\n")
+    print(header)
+    print(table)
+    print(syncs)
 
 
 def _sync_sites(trainer: Trainer, steps: int) -> str:
