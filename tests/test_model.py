@@ -321,6 +321,33 @@ def test_kernel_backend_field_equals_the_reference_path(preset):
     assert ops["aten._addmm_activation"] == fused.cfg.depth
 
 
+def test_frequency_window_weights_each_octave_by_the_cosine_ramp():
+    model = small_model("A")  # pos_freqs 4: PE(x) is x, then sin and cos of octaves 0-3, 3 columns each
+    model.set_frequency_window(1.5)
+    ramp = [1.0, (1 - math.cos(math.pi * 0.5)) / 2, 0.0, 0.0]  # octave k: clamp(1.5 - k, 0, 1)
+    expected = torch.tensor([1.0] * 3 + [w for w in ramp for _ in range(6)])
+    torch.testing.assert_close(model.octave_weights, expected)
+    model.set_frequency_window(model.cfg.pos_freqs)
+    assert model.frequency_window is None and bool((model.octave_weights == 1).all())
+    with pytest.raises(ValueError, match="alpha"):
+        model.set_frequency_window(-1.0)
+
+
+def test_a_closed_window_leaves_the_trunk_only_x():
+    """alpha = 0: the trunk's first layer sees no octave of PE(x), so its weights on them get no
+    gradient; an open window gives the full model's outputs."""
+    model = randomize_(small_model("A"))
+    x, d = random_rays(4, 5)
+    full = model(x, d)
+    model.set_frequency_window(0.0)
+    sigma, rgb = model(x, d)
+    (sigma.sum() + rgb.sum()).backward()
+    first = model.trunk[0].weight.grad
+    assert bool((first[:, 3:] == 0).all()) and bool((first[:, :3] != 0).any())
+    model.set_frequency_window(None)
+    torch.testing.assert_close(model(x, d), full)
+
+
 def test_packed_without_ray_indices_gates_per_point():
     per_ray = randomize_(small_model("D"))
     per_point = small_model("D", se_per_point=True)

@@ -53,12 +53,13 @@ def test_trainer_flags_reach_our_trainers_config_and_clip_only_ours(tmp_path, mo
     scene = ensure_procedural_scene(resolution=16, n_train=4, n_val=2, n_test=2)
     monkeypatch.setattr(mixer_nerf.train, "Trainer", trainer)
     argv = ["--device", "cpu", "--data", str(scene), "--out", str(tmp_path), "--grad-clip", "0.5",
-            "--adam-eps", "1e-8", "--proposal-residual", "last", "--proposal-intervals", "between"]
+            "--adam-eps", "1e-8", "--proposal-residual", "last", "--proposal-intervals", "between",
+            "--frequency-anneal", "0.25"]
     with pytest.raises(Built) as built:
         run(monkeypatch, "--method", "ours", *argv)
     (cfg,) = built.value.args
-    assert (cfg.grad_clip, cfg.adam_eps, cfg.proposal_residual, cfg.proposal_intervals) == (0.5, 1e-8, "last",
-                                                                                          "between")
+    assert (cfg.grad_clip, cfg.adam_eps, cfg.proposal_residual, cfg.proposal_intervals, cfg.frequency_anneal) == (
+        0.5, 1e-8, "last", "between", 0.25)
     with pytest.raises(SystemExit):
         run(monkeypatch, "--method", "nerfacc-proposal", *argv)
     assert "--grad-clip needs --method ours" in capsys.readouterr().err

@@ -125,6 +125,9 @@ def params_of(trainer: Trainer) -> dict[str, torch.Tensor]:
         ("distortion_weight", -1e-3),
         ("distortion_weight", math.nan),
         ("distortion_weight", math.inf),
+        ("frequency_anneal", -0.1),
+        ("frequency_anneal", 1.5),
+        ("frequency_anneal", math.nan),
     ],
 )
 def test_config_rejects_bad_values_naming_them(field, value):
@@ -759,6 +762,20 @@ def test_proposal_residual_and_intervals_reach_the_sampler_and_train(tmp_path):
     assert (trainer.fields.proposal.options.residual, trainer.fields.proposal.options.intervals) == ("last", "between")
     trainer.fit()
     assert all(math.isfinite(float(r["loss"])) for r in trainer.train_log.rows())
+
+
+def test_frequency_anneal_opens_the_octaves_over_its_fraction_of_the_run(tmp_path):
+    trainer = Trainer(tiny_config(tmp_path, steps=8, frequency_anneal=0.5), log=quiet)
+    fields = [f for f in (trainer.fields.coarse, trainer.fields.fine) if f is not None]
+    octaves = trainer.model_cfg.pos_freqs
+    windows = []
+    for _ in range(6):
+        trainer.train_step()
+        windows.append([f.frequency_window for f in fields])
+    # before step s the progress is s / 8: alpha = octaves * (s / 8) / 0.5, open from step 4 on
+    assert windows[:4] == [[octaves * s / 4] * len(fields) for s in range(4)]
+    assert windows[4:] == [[None] * len(fields)] * 2
+    assert all(bool((f.octave_weights == 1).all()) for f in fields)
 
 
 def test_val_holdout_trains_without_the_val_views_and_evaluates_on_them(llff_scene, tmp_path):

@@ -29,6 +29,8 @@ ops) or ``ray_indices (N,)`` (rows in any order); without either every point is 
 
 from __future__ import annotations
 
+import math
+
 import torch
 import torch.nn.functional as F
 from torch import nn
@@ -75,6 +77,12 @@ class MixerNeRF(nn.Module):
         with torch.no_grad():
             self.head.weight[0].zero_()  # every seed starts from density softplus(shift) everywhere
         self.register_buffer("scene_center", torch.tensor(cfg.scene_center, dtype=torch.float32))
+        # The coarse-to-fine window over PE(x) (set_frequency_window): each column's octave (-1 for
+        # x itself), and its weight, filled on the device so that moving the window never syncs.
+        octave = torch.arange(cfg.pos_freqs, dtype=torch.float32).repeat_interleave(6)
+        self.register_buffer("octave_of_column", torch.cat([torch.full((3,), -1.0), octave]), persistent=False)
+        self.register_buffer("octave_weights", torch.ones_like(self.octave_of_column), persistent=False)
+        self.frequency_window: float | None = None
 
     def forward(
         self,
@@ -129,6 +137,24 @@ class MixerNeRF(nn.Module):
             F.linear(features, self.head.weight[:1], self.head.bias[:1])[..., 0], x.dtype
         )
 
+    def set_frequency_window(self, alpha: float | None) -> None:
+        """Coarse-to-fine positional encoding of positions (Nerfies' window; FreeNeRF's frequency
+        regularisation on few views): octave k of PE(x) is scaled by ``(1 - cos(pi c)) / 2`` with
+        ``c = clamp(alpha - k, 0, 1)``, so ``alpha = 0`` leaves x alone and ``alpha >= pos_freqs``
+        weights every octave 1. ``None``: the full encoding (the default, and what a loaded model
+        uses). Directions are not windowed."""
+        if alpha is None or alpha >= self.cfg.pos_freqs:
+            if self.frequency_window is not None:
+                self.octave_weights.fill_(1.0)
+            self.frequency_window = None
+            return
+        if not (math.isfinite(alpha) and alpha >= 0):
+            raise ValueError(f"alpha must be finite and >= 0, got {alpha}")
+        with torch.no_grad():
+            opened = (alpha - self.octave_of_column).clamp_(0, 1)
+            self.octave_weights.copy_((1 - torch.cos(math.pi * opened)) / 2)
+        self.frequency_window = float(alpha)
+
     def _check_matches_parameters(self, x: torch.Tensor) -> None:
         """x must live where the weights do, in their dtype unless autocast picks the matmul dtype."""
         weight = self.head.weight
@@ -152,6 +178,8 @@ class MixerNeRF(nn.Module):
         cfg = self.cfg
         normalised = (x - self.scene_center.to(x.dtype)) / cfg.scene_scale
         encoded = positional_encoding(normalised, cfg.pos_freqs, scale=cfg.pe_scale, backend=cfg.backend)
+        if self.frequency_window is not None:
+            encoded = encoded * self.octave_weights.to(encoded.dtype)
         if cfg.mlca_concat_direction:
             if direction is None:
                 raise ValueError("d is required when cfg.mlca_concat_direction (density depends on it)")

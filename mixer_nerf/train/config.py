@@ -154,6 +154,11 @@ class TrainConfig:
         0.0, "proposal sampler: weight of mip-NeRF 360's distortion loss on the main field's weights, "
         "which gathers each ray's weight into few short intervals (default 0: off; nerfacto uses 0.002)",
         metavar="W")
+    # Off until screened: a remedy for overfitting on few views (docs/training.md).
+    frequency_anneal: float = option(
+        0.0, "open the positions' encoding octave by octave over this fraction of the run, coarse to "
+        "fine (Nerfies' window; FreeNeRF's frequency regularisation against overfitting on few views; "
+        "default 0: every octave from the start)", metavar="FRACTION")
     cuda_graphs: bool = option(
         False, "proposal sampler on a GPU: replay each training step as a CUDA graph, without the host "
         "work between its kernels (needs the training images on the GPU and one process)")
@@ -195,6 +200,8 @@ class TrainConfig:
             raise ValueError(f"downscale must be >= 1, got {self.downscale}")
         if not (isinstance(self.val_holdout, int) and self.val_holdout >= 0):
             raise ValueError(f"val_holdout must be an integer >= 0, got {self.val_holdout!r}")
+        if not 0 <= self.frequency_anneal <= 1:
+            raise ValueError(f"frequency_anneal must be in [0, 1], got {self.frequency_anneal}")
         if self.lr_hold is not None and not 0 <= self.lr_hold < 1:
             raise ValueError(f"lr_hold must be in [0, 1), got {self.lr_hold}")
         if self.lr_warmup is not None and self.lr_warmup < 0:

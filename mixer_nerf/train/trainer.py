@@ -262,6 +262,7 @@ class Trainer:
         ``loss`` (coarse + fine MSE, or the marched pass's MSE) and ``mse`` (of the final colours)."""
         cfg = self.cfg
         lr = cfg.lr * self._lr_factor()
+        self._open_frequency_window()
         for group in self.optimizer.param_groups:
             if self.graphs is not None:
                 group["lr"].fill_(lr)
@@ -367,18 +368,34 @@ class Trainer:
             losses["loss_empty"] = cfg.empty_space_weight * depth
         return losses
 
+    def _progress(self) -> float:
+        """How far the run is: the step over ``cfg.steps`` or, with a time budget, the training time
+        over the budget when that is further along (so schedules end within the budget)."""
+        progress = self.step / self.cfg.steps
+        if self.cfg.time_budget is not None:
+            progress = max(progress, self._training_time() / self.cfg.time_budget)
+        return progress
+
     def _lr_factor(self) -> float:
         """lr / cfg.lr for the coming step: a linear warm-up over ``cfg.lr_warmup`` steps, ``cfg.lr``
-        for the first ``cfg.lr_hold`` of the run, then an exponential decay to ``cfg.lr_final`` at
-        its end. Progress is the step over ``cfg.steps`` or, with a time budget, the training time
-        over the budget when that is further along (so the decay happens within the budget)."""
+        for the first ``cfg.lr_hold`` of the run (:meth:`_progress`), then an exponential decay to
+        ``cfg.lr_final`` at its end."""
         cfg = self.cfg
-        progress = self.step / cfg.steps
-        if cfg.time_budget is not None:
-            progress = max(progress, self._training_time() / cfg.time_budget)
+        progress = self._progress()
         decay = min(1.0, max(0.0, (progress - cfg.lr_hold) / (1.0 - cfg.lr_hold)))
         warmup = min(1.0, (self.step + 1) / cfg.lr_warmup) if cfg.lr_warmup else 1.0
         return warmup * (cfg.lr_final / cfg.lr) ** decay
+
+    def _open_frequency_window(self) -> None:
+        """With ``cfg.frequency_anneal``: the fields' octaves of PE(x) open linearly in the run's
+        progress, all of them from that fraction of the run on."""
+        fraction = self.cfg.frequency_anneal
+        if not fraction:
+            return
+        alpha = self.model_cfg.pos_freqs * self._progress() / fraction
+        for field in (self.fields.coarse, self.fields.fine):
+            if field is not None:
+                field.set_frequency_window(alpha)
 
     def render_rgb(self, rays_o: torch.Tensor, rays_d: torch.Tensor) -> torch.Tensor:
         """Final colours (R, 3) of arbitrary rays with the current fields (deterministic samples)."""
