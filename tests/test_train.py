@@ -481,11 +481,14 @@ def test_cuda_graphs_refusals_name_their_reason(sampler, several, images, reason
 
 @pytest.mark.cuda
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU")
-def test_cuda_graphed_proposal_steps_train_as_the_eager_ones(tmp_path):
+@pytest.mark.parametrize("frequency_anneal", [0.0, 1.0])
+def test_cuda_graphed_proposal_steps_train_as_the_eager_ones(tmp_path, frequency_anneal):
     """Replays draw the same rays and samples as eager steps (the generator's offsets advance alike),
-    so the two runs agree step by step, through a checkpoint and a resume."""
+    so the two runs agree step by step, through a checkpoint and a resume; a frequency window that
+    moves every step reaches the replays through its device buffer."""
     settings = dict(sampler="proposal", proposal_rounds=(12, 8), proposal_samples=6, device="cuda",
-                    backend="auto", steps=12, ckpt_every=6, val_every=100, log_every=3)
+                    backend="auto", steps=12, ckpt_every=6, val_every=100, log_every=3,
+                    frequency_anneal=frequency_anneal)
     losses = {}
     for graphs in (False, True):
         out = tmp_path / str(graphs)
