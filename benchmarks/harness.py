@@ -67,6 +67,12 @@ def device_tag(device: torch.device | str) -> str:
     return "".join(words[: model + 1]) or "cuda"
 
 
+def scene_tag(data: str) -> str:
+    """Short scene name for result file names: a scene folder's name up to its first "_" (lego for
+    .data/lego_400)."""
+    return Path(data).name.split("_")[0]
+
+
 def _flatten(value: Any) -> list[torch.Tensor]:
     if isinstance(value, torch.Tensor):
         return [value]

@@ -36,7 +36,7 @@ from pathlib import Path
 import torch
 import torch.nn.functional as F
 
-from benchmarks.harness import RESULTS, device_tag
+from benchmarks.harness import RESULTS, device_tag, scene_tag
 from benchmarks.skip_report import skip_report
 from benchmarks.validation import validate
 from mixer_nerf.ablation import parse_model_overrides
@@ -392,7 +392,7 @@ def main() -> None:
     method = METHODS[args.method](args, train, val, device)
     trainer = method.trainer
 
-    scene = args.scene or Path(args.data).name.split("_")[0]
+    scene = args.scene or scene_tag(args.data)
     path = Path(args.out) / f"{scene}_{device_tag(device)}.json"
     path.parent.mkdir(parents=True, exist_ok=True)
     record = {"label": label, "method": args.method, "data": args.data, "device": torch.cuda.get_device_name() if device.type == "cuda" else "cpu",

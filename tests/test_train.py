@@ -383,13 +383,13 @@ def test_lr_warms_up_linearly_then_decays_exponentially(tmp_path):
 def test_lr_is_held_then_decays_by_steps_or_by_the_time_budget_whichever_is_further(tmp_path):
     cfg = tiny_config(tmp_path, steps=100, lr=1e-3, lr_final=1e-4, lr_warmup=0, lr_hold=0.5, time_budget=1000.0)
     trainer = Trainer(cfg, log=quiet)
-    assert trainer._lr_factor() == 1.0
+    assert trainer._lr_factor(trainer._progress()) == 1.0
     trainer.step = 75  # three quarters of the steps: half-way through the decay
-    assert trainer._lr_factor() == pytest.approx(0.1**0.5)
+    assert trainer._lr_factor(trainer._progress()) == pytest.approx(0.1**0.5)
     trainer.step, trainer.clock.elapsed = 10, 900.0  # nine tenths of the budget
-    assert trainer._lr_factor() == pytest.approx(0.1**0.8)
+    assert trainer._lr_factor(trainer._progress()) == pytest.approx(0.1**0.8)
     trainer.clock.elapsed = 5000.0
-    assert trainer._lr_factor() == pytest.approx(0.1)
+    assert trainer._lr_factor(trainer._progress()) == pytest.approx(0.1)
 
 
 def test_bf16_density_passes_decide_the_skipping_under_autocast(tmp_path):

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import torch
 
-from benchmarks.harness import RESULTS, device_tag, host_profile
+from benchmarks.harness import RESULTS, device_tag, host_profile, scene_tag
 from mixer_nerf.train import TrainConfig, Trainer
 
 
@@ -95,8 +95,7 @@ def main() -> None:
     passes = "_bf16pass" * trainer.cfg.bf16_density_passes
     # named by the step profiled, before the host profile's steps
     graphs = "_graphs" * args.cuda_graphs
-    scene = Path(args.data).name.split("_")[0]
-    name = f"{device_tag('cuda')}_{scene}_{args.preset}_{args.precision}{passes}{graphs}_step{trainer.step}.txt"
+    name = f"{device_tag('cuda')}_{scene_tag(args.data)}_{args.preset}_{args.precision}{passes}{graphs}_step{trainer.step}.txt"
     host = host_profile(trainer.train_step, args.steps, top=35)
     syncs = _sync_sites(trainer, args.steps)
     # The file before the prints: a reader that closes the pipe early (`| grep -m1`) must not lose it.

@@ -261,8 +261,9 @@ class Trainer:
         """One optimisation step on a fresh random batch. Returns device scalars (no sync):
         ``loss`` (coarse + fine MSE, or the marched pass's MSE) and ``mse`` (of the final colours)."""
         cfg = self.cfg
-        lr = cfg.lr * self._lr_factor()
-        self._open_frequency_window()
+        progress = self._progress()
+        lr = cfg.lr * self._lr_factor(progress)
+        self._open_frequency_window(progress)
         for group in self.optimizer.param_groups:
             if self.graphs is not None:
                 group["lr"].fill_(lr)
@@ -376,23 +377,22 @@ class Trainer:
             progress = max(progress, self._training_time() / self.cfg.time_budget)
         return progress
 
-    def _lr_factor(self) -> float:
-        """lr / cfg.lr for the coming step: a linear warm-up over ``cfg.lr_warmup`` steps, ``cfg.lr``
-        for the first ``cfg.lr_hold`` of the run (:meth:`_progress`), then an exponential decay to
-        ``cfg.lr_final`` at its end."""
+    def _lr_factor(self, progress: float) -> float:
+        """lr / cfg.lr for the coming step at ``progress`` (:meth:`_progress`): a linear warm-up over
+        ``cfg.lr_warmup`` steps, ``cfg.lr`` for the first ``cfg.lr_hold`` of the run, then an
+        exponential decay to ``cfg.lr_final`` at its end."""
         cfg = self.cfg
-        progress = self._progress()
         decay = min(1.0, max(0.0, (progress - cfg.lr_hold) / (1.0 - cfg.lr_hold)))
         warmup = min(1.0, (self.step + 1) / cfg.lr_warmup) if cfg.lr_warmup else 1.0
         return warmup * (cfg.lr_final / cfg.lr) ** decay
 
-    def _open_frequency_window(self) -> None:
+    def _open_frequency_window(self, progress: float) -> None:
         """With ``cfg.frequency_anneal``: the fields' octaves of PE(x) open linearly in the run's
-        progress, all of them from that fraction of the run on."""
+        ``progress``, all of them from that fraction of the run on."""
         fraction = self.cfg.frequency_anneal
         if not fraction:
             return
-        alpha = self.model_cfg.pos_freqs * self._progress() / fraction
+        alpha = self.model_cfg.pos_freqs * progress / fraction
         for field in (self.fields.coarse, self.fields.fine):
             if field is not None:
                 field.set_frequency_window(alpha)
