@@ -10,6 +10,7 @@
 # A line per job as it ends. What comes back (a call returns at most 8 files): the .tgz files the jobs
 # wrote, moved up into $OUT; every job's log and folder in $OUT/job_logs.tgz; and the paths of $PACK
 # (e.g. PACK="runs/ablate_x runs/ttq_out") in $OUT/records.tgz, without checkpoints and images.
+# A GPU named twice in GPUS runs two jobs at a time (runs timed by steps, not by seconds).
 source tools/gpu_env.sh >/dev/null
 OUT=${OUT:-/tmp/gpu_jobs}; mkdir -p "$OUT/jobs"
 DONE=${DONE:-runs/gpu_jobs.done}; mkdir -p "$(dirname "$DONE")"; touch "$DONE"
