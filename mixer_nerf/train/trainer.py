@@ -217,7 +217,7 @@ class Trainer:
         self.params = [p for p in self.fields.parameters() if p.requires_grad]
         self.param_names = [n for n, p in self.fields.named_parameters() if p.requires_grad]
         self.optimizer = torch.optim.Adam(
-            self.params, lr=cfg.lr, eps=cfg.adam_eps, fused=self.device.type == "cuda", capturable=cfg.cuda_graphs
+            self.params, lr=cfg.lr, eps=cfg.adam_eps, fused=self.device.type == "cuda"
         )
         near, far = self.train_scene.near, self.train_scene.far
         self.renderer = image_renderer(cfg, self.fields, near, far, self.background, step=lambda: self.step)
@@ -245,8 +245,9 @@ class Trainer:
             self._load_state(state)
         self.graphs = None
         if cfg.cuda_graphs:
-            # Replayed steps read the learning rate from the device: a tensor the host refills each
-            # step (set after the checkpoint's groups are loaded, whatever those held).
+            # Replayed steps read the learning rate from the device (a tensor the host refills each
+            # step) and Adam keeps its step counts there: both set here, after the checkpoint's
+            # groups are loaded, whatever those held.
             for group in self.optimizer.param_groups:
                 group["lr"], group["capturable"] = torch.tensor(float(group["lr"]), device=self.device), True
             self._step_counter = torch.tensor(self.step, device=self.device)  # the step a replay is at
