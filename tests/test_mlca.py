@@ -323,6 +323,7 @@ CUDA_SHAPES = [
     ((1,), 21, 8, 3),
     ((65536 + 77,), 21, 8, 3),
     ((1000,), 9, 8, 3),
+    ((300,), 20, 8, 3),  # the model's C and D in the T = 21 bucket: the run-time-size kernels
     ((333,), 30, 16, 3),
     ((129,), 32, 4, 3),
     ((50,), 5, 3, 3),
@@ -371,6 +372,27 @@ def test_cuda_half_precision(dtype, gen):
     want_out, want_grads = truth(inputs, grad)
     assert_close(out, want_out, REL[dtype], "cuda half out")
     assert_close(grads, want_grads, REL[dtype], "cuda half grads")
+
+
+@pytest.mark.cuda
+@pytest.mark.profiler
+@on_cuda
+@needs_kernels
+@pytest.mark.parametrize("T, dtype, channels", [(21, torch.float32, 8), (9, torch.float32, 8), (20, torch.float32, 0),
+                                                 (21, torch.float64, 0)])
+def test_cuda_the_models_sizes_run_the_exact_size_kernels(T, dtype, channels, gen):
+    """float32 at the model's sizes (T = 21 or 9, C = 8, D = 3) runs the kernels compiled for them
+    (channels 8 in their name); other sizes and dtypes the run-time-size ones (channels 0)."""
+    inputs = make_inputs((500,), T, 8, 3, gen, dtype, device="cuda")
+    grad = random_grad(inputs, 8, gen)
+    with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CUDA]) as prof:
+        forward_backward(inputs, grad, "kernel")
+        torch.cuda.synchronize()
+    names = {e.name for e in prof.events() if "mlca_" in e.name}
+    bucket = 21 if T > 9 else 9
+    for kernel in ("mlca_forward", "mlca_backward"):
+        assert any(f"{kernel}<{'float' if dtype == torch.float32 else 'double'}, {bucket}, {channels}>" in n
+                   for n in names), names
 
 
 @pytest.mark.cuda

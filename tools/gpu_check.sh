@@ -65,10 +65,10 @@ for stage in "${stages[@]}"; do
     memcheck) step memcheck 420 compute-sanitizer --tool memcheck --error-exitcode 1 python -m pytest -q \
       -p no:cacheprovider ${MEMCHECK_TESTS:-tests/test_sample_pdf.py tests/test_composite.py \
       tests/test_positional_encoding.py tests/test_ray_marching.py tests/test_segment_ops.py tests/test_mlca.py} \
-      -m cuda -k "not opcheck and not 32_bit" & ;;
+      -m "cuda and not profiler" -k "not opcheck and not 32_bit" & ;;
     racecheck) step racecheck 420 compute-sanitizer --tool racecheck --error-exitcode 1 python -m pytest -q \
       -p no:cacheprovider ${RACECHECK_TESTS:-tests/test_sample_pdf.py tests/test_positional_encoding.py \
-      tests/test_segment_ops.py tests/test_mlca.py} -m cuda \
+      tests/test_segment_ops.py tests/test_mlca.py} -m "cuda and not profiler" \
       -k "not opcheck and not 65536 and not 32_bit and not training_sized" & ;;
     error_budget) step error_budget 150 python -m benchmarks.error_budget --device cuda \
       --out "$OUT/results/error_budget" ;;

@@ -46,8 +46,27 @@ constexpr int kDefaultSharedBytes = 48 * 1024;
 struct Problem {
   int64_t points;  // N
   int T, C, D;
-  int tile;  // P, points per tile
+  int tile;     // P, points per tile
+  int threads;  // per block: a kernel's constant, set in the kernel (folds like the sizes below)
 };
+
+// The model's sizes (T = kT, C = 8, D = 3; positions and directions) as compile-time constants:
+// every shared-memory stride and loop bound then folds into the instructions instead of being
+// computed at run time. Other sizes take the run-time path (kExactChannels = 0).
+constexpr int kExactChannels = 8, kExactTokenDim = 3;
+
+// This kernel's problem: pr with the block size, and with the exact sizes where kC says so.
+template <int kT, int kC, int kThreads>
+__device__ __forceinline__ Problem fixed(Problem pr) {
+  pr.threads = kThreads;
+  if constexpr (kC > 0) {
+    pr.T = kT;
+    pr.C = kC;
+    pr.D = kExactTokenDim;
+    pr.tile = kThreads / kC;
+  }
+  return pr;
+}
 
 // Register blocks of the backward's weight-gradient sums (rows x columns of sums per thread, see
 // BlockSums): W_t's take most of the work, and kT = 32 has the fewest registers to spare.
@@ -115,19 +134,19 @@ __device__ acc* shared_memory() {
 // Weights into shared memory, W_t zero-padded to kT x kT (padded tokens then stay exactly zero).
 template <int kT, typename scalar_t, typename acc>
 __device__ void load_weights(acc* sm, const Layout& l, const Weights<scalar_t>& w, const Problem& pr) {
-  const int T = pr.T, C = pr.C, D = pr.D;
-  for (int i = threadIdx.x; i < kT * l.token_stride; i += blockDim.x) {
+  const int T = pr.T, C = pr.C, D = pr.D, threads = pr.threads;
+  for (int i = threadIdx.x; i < kT * l.token_stride; i += threads) {
     const int t = i / l.token_stride, s = i - t * l.token_stride;
     sm[l.token + i] = t < T && s < T ? static_cast<acc>(w.token_weight[t * T + s]) : acc(0);
   }
-  for (int i = threadIdx.x; i < kT; i += blockDim.x) {
+  for (int i = threadIdx.x; i < kT; i += threads) {
     sm[l.token_bias + i] = i < T ? static_cast<acc>(w.token_bias[i]) : acc(0);
   }
-  for (int i = threadIdx.x; i < C * C; i += blockDim.x) {
+  for (int i = threadIdx.x; i < C * C; i += threads) {
     sm[l.channel + i / C * l.channel_stride + i % C] = static_cast<acc>(w.channel_weight[i]);
   }
-  for (int i = threadIdx.x; i < C; i += blockDim.x) sm[l.channel_bias + i] = static_cast<acc>(w.channel_bias[i]);
-  for (int i = threadIdx.x; i < C * D; i += blockDim.x) {
+  for (int i = threadIdx.x; i < C; i += threads) sm[l.channel_bias + i] = static_cast<acc>(w.channel_bias[i]);
+  for (int i = threadIdx.x; i < C * D; i += threads) {
     sm[l.lift + i / D * l.lift_stride + i % D] = static_cast<acc>(w.lift[i]);
   }
 }
@@ -166,20 +185,21 @@ __device__ acc channel_pre(const acc* sm, const Layout& l, int c, const acc* y, 
   return pre;
 }
 
-template <typename scalar_t, int kT>
+template <typename scalar_t, int kT, int kC>
 __global__ void __launch_bounds__(kForwardThreads) mlca_forward(const scalar_t* __restrict__ encoded,
                                                                 Weights<scalar_t> w, scalar_t* __restrict__ out,
-                                                                Problem pr) {
+                                                                Problem problem) {
   using acc = acc_t<scalar_t>;
   acc* sm = shared_memory<acc>();
-  const Layout l = make_layout(kT, pr, blockDim.x, false);
+  const Problem pr = fixed<kT, kC, kForwardThreads>(problem);
+  const Layout l = make_layout(kT, pr, pr.threads, false);
   const int T = pr.T, C = pr.C, D = pr.D;
   const int64_t first = static_cast<int64_t>(blockIdx.x) * pr.tile;
   const int points = static_cast<int>(pr.points - first < pr.tile ? pr.points - first : pr.tile);
   load_weights<kT>(sm, l, w, pr);
   acc* xs = sm + l.x;
   acc* ys = sm + l.a;  // (P, T, C): Y, then Z
-  for (int j = threadIdx.x; j < points * T * D; j += blockDim.x) xs[j] = static_cast<acc>(encoded[first * T * D + j]);
+  for (int j = threadIdx.x; j < points * T * D; j += pr.threads) xs[j] = static_cast<acc>(encoded[first * T * D + j]);
   __syncthreads();
 
   const int p = threadIdx.x / C, c = threadIdx.x - p * C;
@@ -209,7 +229,7 @@ __global__ void __launch_bounds__(kForwardThreads) mlca_forward(const scalar_t* 
     }
   }
   __syncthreads();
-  for (int j = threadIdx.x; j < points * T * C; j += blockDim.x) out[first * T * C + j] = static_cast<scalar_t>(ys[j]);
+  for (int j = threadIdx.x; j < points * T * C; j += pr.threads) out[first * T * C + j] = static_cast<scalar_t>(ys[j]);
 }
 
 // One set of a block's weight-gradient sums: S[a][b] = sum over m < terms of A(m, a) B(m, b) for
@@ -219,6 +239,7 @@ struct Sums {
   int b_at, b_row, b_term;
   int rows, cols, terms;
   bool interleave;  // slice s takes terms s, s + slices, ... instead of a contiguous range
+  int threads;      // of the block
 };
 
 // How a block's threads share a set of sums in kA x kB register blocks: thread slice * groups +
@@ -228,11 +249,11 @@ struct Sums {
 template <int kA, int kB>
 struct Split {
   int row_groups, col_groups, groups, slices;
-  __device__ Split(int rows, int cols)
+  __device__ Split(int rows, int cols, int threads)
       : row_groups((rows + kA - 1) / kA),
         col_groups((cols + kB - 1) / kB),
         groups(row_groups * col_groups),
-        slices(static_cast<int>(blockDim.x) > groups ? static_cast<int>(blockDim.x) / groups : 1) {}
+        slices(threads > groups ? threads / groups : 1) {}
 };
 
 // This thread's kA x kB block of a set of sums, in registers across all the tiles of the block: each
@@ -252,7 +273,7 @@ struct BlockSums {
 
   // Adds this tile's terms of this thread's slice.
   __device__ void add(const acc* sm, const Sums& d) {
-    const Split<kA, kB> sp(d.rows, d.cols);
+    const Split<kA, kB> sp(d.rows, d.cols, d.threads);
     const int tid = threadIdx.x;
     if (tid >= sp.groups * sp.slices) return;
     const int slice = tid / sp.groups, group = tid - slice * sp.groups;
@@ -283,7 +304,7 @@ struct BlockSums {
   // thread tid at (i kB + j) owners + tid), then each entry's slices added in order.
   template <typename Index>
   __device__ void write_totals(acc* dump, const Sums& d, acc* row, Index index) const {
-    const Split<kA, kB> sp(d.rows, d.cols);
+    const Split<kA, kB> sp(d.rows, d.cols, d.threads);
     const int tid = threadIdx.x, owners = sp.groups * sp.slices;
     if (tid < owners) {
 #pragma unroll
@@ -293,7 +314,7 @@ struct BlockSums {
       }
     }
     __syncthreads();
-    for (int e = tid; e < d.rows * d.cols; e += blockDim.x) {
+    for (int e = tid; e < d.rows * d.cols; e += d.threads) {
       const int a = e / d.cols, b = e - a * d.cols;
       const int i = a / sp.row_groups, j = b / sp.col_groups;
       const acc* slot = dump + (i * kB + j) * owners + (b - j * sp.col_groups) * sp.row_groups + a - i * sp.row_groups;
@@ -314,13 +335,14 @@ static_assert(blocks_cover(token_block_rows(9), token_block_cols(9), 9, 10) &&
               blocks_cover(token_block_rows(32), token_block_cols(32), 32, 33) &&
               blocks_cover(kChannelBlockRows, kChannelBlockCols, 32, 33));
 
-template <typename scalar_t, int kT>
+template <typename scalar_t, int kT, int kC>
 __global__ void __launch_bounds__(kBackwardThreads) mlca_backward(
     const scalar_t* __restrict__ grad_out, const scalar_t* __restrict__ encoded, Weights<scalar_t> w,
-    scalar_t* __restrict__ grad_encoded, acc_t<scalar_t>* __restrict__ partials, Problem pr) {
+    scalar_t* __restrict__ grad_encoded, acc_t<scalar_t>* __restrict__ partials, Problem problem) {
   using acc = acc_t<scalar_t>;
   acc* sm = shared_memory<acc>();
-  const Layout l = make_layout(kT, pr, blockDim.x, true);
+  const Problem pr = fixed<kT, kC, kBackwardThreads>(problem);
+  const Layout l = make_layout(kT, pr, pr.threads, true);
   const int T = pr.T, C = pr.C, D = pr.D, P = pr.tile, K = P * C, Kp = l.k_stride;
   const int Cy = l.y_stride, Cg = l.grad_stride;
   load_weights<kT>(sm, l, w, pr);
@@ -330,36 +352,36 @@ __global__ void __launch_bounds__(kBackwardThreads) mlca_backward(
   acc* bs = sm + l.b;     // (T + 1, Kp): L and ones
   const acc* channel = sm + l.channel;
   const acc* lift = sm + l.lift;
-  for (int k = threadIdx.x; k < K; k += blockDim.x) bs[T * Kp + k] = 1;  // never overwritten
+  for (int k = threadIdx.x; k < K; k += pr.threads) bs[T * Kp + k] = 1;  // never overwritten
 
   // dW_t | db_t = gP [L; 1]^T over the tile's (point, channel) columns k, dW_c | db_c = gQ^T [Y, 1]
   // and dlift = dL^T X over its (point, token) rows m (interleaved slices: the rows' odd strides
   // put consecutive slices on different banks).
-  const Sums token{l.a, Kp, 1, l.b, Kp, 1, T, T + 1, K, false};
-  const Sums channel_sums{l.grad, 1, Cg, l.a, 1, Cy, C, C + 1, P * T, true};
-  const Sums lift_sums{l.grad, 1, Cg, l.x, 1, D, C, D, P * T, true};
+  const Sums token{l.a, Kp, 1, l.b, Kp, 1, T, T + 1, K, false, pr.threads};
+  const Sums channel_sums{l.grad, 1, Cg, l.a, 1, Cy, C, C + 1, P * T, true, pr.threads};
+  const Sums lift_sums{l.grad, 1, Cg, l.x, 1, D, C, D, P * T, true, pr.threads};
   BlockSums<token_block_rows(kT), token_block_cols(kT), acc> d_token;
   BlockSums<kChannelBlockRows, kChannelBlockCols, acc> d_channel, d_lift;
 
   const int p = threadIdx.x / C, c = threadIdx.x - p * C, k = threadIdx.x;  // k = p C + c
   const bool active = p < P;  // rows past the last point are zero: they add nothing to the sums
   // G moves to rows of stride Cg: element j = m C + e of the tile, tracked without dividing by C.
-  const int m_step = blockDim.x / C, e_step = blockDim.x - m_step * C;
+  const int m_step = pr.threads / C, e_step = pr.threads - m_step * C;
   const int64_t tiles = (pr.points + P - 1) / P;
   for (int64_t tile = blockIdx.x; tile < tiles; tile += gridDim.x) {
     const int64_t first = tile * P;
     const int points = static_cast<int>(pr.points - first < P ? pr.points - first : P);
-    for (int j = threadIdx.x; j < P * T * D; j += blockDim.x) {
+    for (int j = threadIdx.x; j < P * T * D; j += pr.threads) {
       xs[j] = j < points * T * D ? static_cast<acc>(encoded[first * T * D + j]) : acc(0);
     }
-    for (int j = threadIdx.x, m = p, e = c; j < P * T * C; j += blockDim.x, m += m_step, e += e_step) {
+    for (int j = threadIdx.x, m = p, e = c; j < P * T * C; j += pr.threads, m += m_step, e += e_step) {
       if (e >= C) {
         e -= C;
         ++m;
       }
       gs[m * Cg + e] = j < points * T * C ? static_cast<acc>(grad_out[first * T * C + j]) : acc(0);
     }
-    for (int m = threadIdx.x; m < P * T; m += blockDim.x) as[m * Cy + C] = 1;
+    for (int m = threadIdx.x; m < P * T; m += pr.threads) as[m * Cy + C] = 1;
     __syncthreads();
 
     // Recompute L (kept in bs for dW_t), Y (into as) and GELU'(P).
@@ -441,7 +463,7 @@ __global__ void __launch_bounds__(kBackwardThreads) mlca_backward(
     d_token.add(sm, token);
     d_lift.add(sm, lift_sums);
     if (grad_encoded != nullptr) {  // dX = dL lift, element j of the tile's contiguous rows
-      for (int j = threadIdx.x; j < points * T * D; j += blockDim.x) {
+      for (int j = threadIdx.x; j < points * T * D; j += pr.threads) {
         const int m = j / D, e = j - m * D;
         acc sum = 0;
         for (int i = 0; i < C; ++i) sum += gs[m * Cg + i] * lift[i * l.lift_stride + e];
@@ -491,6 +513,19 @@ std::pair<int, size_t> choose_tile(Problem& pr, int kT, int threads, bool backwa
   return {0, 0};
 }
 
+// of(kC): the kernel for channels kC, for pr: the exact-size one (kC = 8) for float and the model's
+// sizes when its tile is the whole block (it is wherever the shared memory fits), else the
+// run-time-size one (kC = 0).
+template <typename scalar_t, int kT, typename Of>
+auto pick_kernel(const Problem& pr, int threads, Of of) {
+  if constexpr (std::is_same_v<scalar_t, float> && kT != 32) {
+    if (pr.T == kT && pr.C == kExactChannels && pr.D == kExactTokenDim && pr.tile == threads / kExactChannels) {
+      return of(std::integral_constant<int, kExactChannels>{});
+    }
+  }
+  return of(std::integral_constant<int, 0>{});
+}
+
 template <typename Kernel>
 void allow_shared_bytes(Kernel kernel, size_t bytes) {
   if (bytes > kDefaultSharedBytes) {
@@ -525,9 +560,10 @@ at::Tensor mlca_fwd_cuda(const at::Tensor& encoded, const at::Tensor& lift, cons
     const auto w = weights_of<scalar_t>(lift, token_weight, token_bias, channel_weight, channel_bias);
     dispatch_tokens(s.T, [&](auto bucket) {
       constexpr int kT = decltype(bucket)::value;
-      const auto kernel = mlca_forward<scalar_t, kT>;
       const auto [tile, bytes] =
           choose_tile(pr, kT, kForwardThreads, false, sizeof(acc_t<scalar_t>), encoded.device().index());
+      const auto kernel = pick_kernel<scalar_t, kT>(
+          pr, kForwardThreads, [](auto kC) { return mlca_forward<scalar_t, kT, decltype(kC)::value>; });
       allow_shared_bytes(kernel, bytes);
       const auto blocks = static_cast<unsigned>((pr.points + tile - 1) / tile);
       kernel<<<blocks, kForwardThreads, bytes, stream>>>(encoded.const_data_ptr<scalar_t>(), w,
@@ -560,8 +596,9 @@ mm::Grads mlca_bwd_cuda(const at::Tensor& grad_out, const at::Tensor& encoded, c
     const auto w = weights_of<scalar_t>(lift, token_weight, token_bias, channel_weight, channel_bias);
     dispatch_tokens(s.T, [&](auto bucket) {
       constexpr int kT = decltype(bucket)::value;
-      const auto kernel = mlca_backward<scalar_t, kT>;
       const auto [tile, bytes] = choose_tile(pr, kT, kBackwardThreads, true, sizeof(acc), device);
+      const auto kernel = pick_kernel<scalar_t, kT>(
+          pr, kBackwardThreads, [](auto kC) { return mlca_backward<scalar_t, kT, decltype(kC)::value>; });
       allow_shared_bytes(kernel, bytes);
       int per_sm = 0;
       C10_CUDA_CHECK(cudaOccupancyMaxActiveBlocksPerMultiprocessor(&per_sm, kernel, kBackwardThreads, bytes));
