@@ -9,13 +9,16 @@
 //   dlift = sum dL^T X, dX = dL lift              (sums over points, and tokens or channels)
 // Work is split into fixed chunks of points, each accumulating its weight gradients into its own
 // row of a (chunks, P) buffer; the rows are then summed in order, so the result does not depend on
-// the number of threads. Rows of L/Y are C contiguous values: the inner loops run over channels.
+// the number of threads. A chunk runs the stages one after another over all its points (Batch
+// below); token mixing as (W_t X) lift^T + b_t, which mixes D < C values per token.
 #include <torch/library.h>
 
 #include <ATen/ATen.h>
+#include <ATen/CPUFunctions.h>
 #include <ATen/Parallel.h>
 
 #include <algorithm>
+#include <type_traits>
 #include <vector>
 
 #include "common.h"
@@ -27,7 +30,11 @@ namespace {
 namespace mm = mlca;
 using mm::Sizes;
 
-constexpr int64_t kChunkPoints = 256;  // points per weight-gradient partial (and per parallel task)
+// Points per chunk: a parallel task's unit, a row of weight-gradient partials, and one pass of the
+// stages (Batch below), whose buffers stay in L2. Chunks start at fixed points: no result depends on
+// the thread count.
+constexpr int64_t kChunkPoints = 256;
+constexpr int64_t kMaxChannels = 32;  // a row of C on the stack (row_times); mlca() refuses C > 32 first
 
 // The weights in the accumulation type, in the layouts the per-point loops read contiguously.
 template <typename acc>
@@ -69,146 +76,240 @@ Weights<acc_t<scalar_t>> weights_of(const Sizes& s, const at::Tensor& lift, cons
   return w;
 }
 
-// Per-point buffers of one task, (T, C) each.
-template <typename acc>
-struct Workspace {
-  std::vector<acc> x, lifted, pre, mixed, grad;
-  explicit Workspace(const Sizes& s)
-      : x(s.T * s.D), lifted(s.T * s.C), pre(s.T * s.C), mixed(s.T * s.C), grad(s.T * s.C) {}
+// A chunk of n points through the three stages in token-major buffers: row m = t n + p holds token t
+// of point p (C values; D for x). Token mixing is then, per pair of tokens, one long contiguous
+// multiply-add over the chunk's points, and the row-wise stages (lift, channel mixing) run over C
+// contiguous values; `omp simd` lets the compiler vectorise both, reductions included (in a fixed
+// order). The GELUs of a whole chunk go to ATen's vectorised CPU kernels, the ones F.gelu runs,
+// instead of a scalar erf per value. kC > 0: C = kC (the model's 8) as a compile-time constant.
+template <typename acc, int kC>
+struct Batch {
+  int64_t T, C, D, capacity, n = 0;
+  std::vector<acc> x, mixed_x, lifted, pre, mixed, chan, tmp, grad;  // mixed_x = W_t X, (T, n, D)
+  Batch(const Sizes& s, int64_t points, bool backward)
+      : T(s.T), C(kC > 0 ? kC : s.C), D(s.D), capacity(points), x(points * s.T * s.D), mixed_x(x.size()),
+        lifted(points * s.T * C), pre(lifted.size()), mixed(lifted.size()), chan(lifted.size()), tmp(lifted.size()),
+        grad(backward ? lifted.size() : 0) {}
+
+  int64_t channels() const { return kC > 0 ? kC : C; }
+
+  // out = v M (+ bias) for a row v of K values and M (K, C) row-major: C-wide multiply-adds.
+  void row_times(const acc* v, int64_t K, const acc* M, const acc* bias, acc* out) const {
+    const int64_t C = channels();
+    acc sum[kC > 0 ? kC : kMaxChannels];
+#pragma omp simd
+    for (int64_t c = 0; c < C; ++c) sum[c] = bias ? bias[c] : acc(0);
+    for (int64_t k = 0; k < K; ++k) {
+      const acc vk = v[k];
+      const acc* row = M + k * C;
+#pragma omp simd
+      for (int64_t c = 0; c < C; ++c) sum[c] += vk * row[c];
+    }
+    std::copy(sum, sum + C, out);
+  }
+
+  // The first n T C values of a buffer as a tensor, for ATen's CPU kernels.
+  at::Tensor view(std::vector<acc>& v) {
+    return at::from_blob(v.data(), {n * T * channels()},
+                         at::TensorOptions().dtype(c10::CppTypeToScalarType<acc>::value));
+  }
+
+  // Token t of point p of a (points, T, W) array as row t n + p of dst (W values each).
+  template <typename src_t>
+  void gather(const src_t* src, int64_t W, acc* dst) const {
+    for (int64_t p = 0; p < n; ++p) {
+      for (int64_t t = 0; t < T; ++t) {
+        const src_t* from = src + (p * T + t) * W;
+        acc* to = dst + (t * n + p) * W;
+        for (int64_t k = 0; k < W; ++k) to[k] = static_cast<acc>(from[k]);
+      }
+    }
+  }
+
+  // For points [first, first + points) of encoded: x, lifted = L = X lift^T, pre = P = W_t L + b_t,
+  // mixed = Y = L + GELU(P), chan = Q = Y W_c^T + b_c.
+  template <typename scalar_t>
+  void forward(const scalar_t* encoded, int64_t first, int64_t points, const Weights<acc>& w) {
+    n = points;
+    const int64_t C = channels(), rows = n * T;
+    gather(encoded + first * T * D, D, x.data());
+    for (int64_t m = 0; m < rows; ++m) row_times(&x[m * D], D, w.lift_t.data(), nullptr, &lifted[m * C]);
+    // P = W_t X lift^T + b_t as (W_t X) lift^T: D < C values per token to mix, not C.
+    const int64_t x_width = n * D;
+    for (int64_t t = 0; t < T; ++t) {
+      acc* v = &mixed_x[t * x_width];
+#pragma omp simd
+      for (int64_t j = 0; j < x_width; ++j) v[j] = 0;
+      for (int64_t u = 0; u < T; ++u) {
+        const acc wtu = w.token[t * T + u];
+        const acc* xu = &x[u * x_width];
+#pragma omp simd
+        for (int64_t j = 0; j < x_width; ++j) v[j] += wtu * xu[j];
+      }
+    }
+    for (int64_t m = 0; m < rows; ++m) {
+      acc* q = &pre[m * C];
+      row_times(&mixed_x[m * D], D, w.lift_t.data(), nullptr, q);
+      const acc bias = w.token_bias[m / n];
+#pragma omp simd
+      for (int64_t c = 0; c < C; ++c) q[c] += bias;
+    }
+    at::Tensor gelu = view(tmp);
+    at::cpu::gelu_out(gelu, view(pre));
+#pragma omp simd
+    for (int64_t j = 0; j < rows * C; ++j) mixed[j] = lifted[j] + tmp[j];
+    for (int64_t m = 0; m < rows; ++m) {
+      row_times(&mixed[m * C], C, w.channel_t.data(), w.channel_bias.data(), &chan[m * C]);
+    }
+  }
+
+  // Row t n + p of src (W values) to token t of point p of a (points, T, W) array.
+  template <typename dst_t>
+  void scatter(const acc* src, int64_t W, dst_t* dst) const {
+    for (int64_t p = 0; p < n; ++p) {
+      for (int64_t t = 0; t < T; ++t) {
+        const acc* from = src + (t * n + p) * W;
+        dst_t* to = dst + (p * T + t) * W;
+        for (int64_t k = 0; k < W; ++k) to[k] = static_cast<dst_t>(from[k]);
+      }
+    }
+  }
 };
 
-// lifted = X lift^T; mixed = Y = lifted + GELU(P), with pre = P (the token-mixing pre-activation).
-template <typename scalar_t, typename acc>
-void lift_and_mix_tokens(const scalar_t* row, const Sizes& s, const Weights<acc>& w, Workspace<acc>& ws) {
-  const int64_t T = s.T, C = s.C, D = s.D;
-  for (int64_t j = 0; j < T * D; ++j) ws.x[j] = static_cast<acc>(row[j]);
-  std::fill(ws.lifted.begin(), ws.lifted.end(), acc(0));
-  for (int64_t t = 0; t < T; ++t) {
-    for (int64_t k = 0; k < D; ++k) {
-      const acc xk = ws.x[t * D + k];
-      for (int64_t c = 0; c < C; ++c) ws.lifted[t * C + c] += xk * w.lift_t[k * C + c];
-    }
-  }
-  for (int64_t t = 0; t < T; ++t) {
-    acc* pre = &ws.pre[t * C];
-    std::fill(pre, pre + C, w.token_bias[t]);
-    for (int64_t u = 0; u < T; ++u) {
-      const acc wtu = w.token[t * T + u];
-      for (int64_t c = 0; c < C; ++c) pre[c] += wtu * ws.lifted[u * C + c];
-    }
-    for (int64_t c = 0; c < C; ++c) ws.mixed[t * C + c] = ws.lifted[t * C + c] + mm::gelu(pre[c]);
+constexpr int kExactChannels = 8;     // the model's C
+
+// f(std::integral_constant<int, kC>): kC = C where C is the model's, else 0 (run-time C).
+template <typename F>
+void with_channels(int64_t C, F f) {
+  if (C == kExactChannels) {
+    f(std::integral_constant<int, kExactChannels>{});
+  } else {
+    f(std::integral_constant<int, 0>{});
   }
 }
 
-// q = Q[t] = Y[t] W_c^T + b_c, the channel-mixing pre-activation of token t.
-template <typename acc>
-void channel_pre(const acc* y, const Sizes& s, const Weights<acc>& w, acc* q) {
-  const int64_t C = s.C;
-  std::copy(w.channel_bias.begin(), w.channel_bias.end(), q);
-  for (int64_t e = 0; e < C; ++e) {
-    const acc ye = y[e];
-    for (int64_t c = 0; c < C; ++c) q[c] += ye * w.channel_t[e * C + c];
-  }
-}
-
-template <typename scalar_t>
-void forward_points(const scalar_t* encoded, scalar_t* out, int64_t begin, int64_t end, const Sizes& s,
-                    const Weights<acc_t<scalar_t>>& w) {
+// The points of chunks [first_chunk, last_chunk) of n, into out.
+template <int kC, typename scalar_t>
+void forward_chunks(const scalar_t* encoded, scalar_t* out, int64_t n, int64_t first_chunk, int64_t last_chunk,
+                    const Sizes& s, const Weights<acc_t<scalar_t>>& w) {
   using acc = acc_t<scalar_t>;
-  const int64_t T = s.T, C = s.C, D = s.D;
-  Workspace<acc> ws(s);
-  std::vector<acc> q(C);
-  for (int64_t n = begin; n < end; ++n) {
-    lift_and_mix_tokens(encoded + n * T * D, s, w, ws);
-    scalar_t* row = out + n * T * C;
-    for (int64_t t = 0; t < T; ++t) {
-      const acc* y = &ws.mixed[t * C];
-      channel_pre(y, s, w, q.data());
-      for (int64_t c = 0; c < C; ++c) row[t * C + c] = static_cast<scalar_t>(y[c] + mm::gelu(q[c]));
-    }
+  Batch<acc, kC> b(s, std::min(kChunkPoints, n), false);
+  for (int64_t k = first_chunk; k < last_chunk; ++k) {
+    const int64_t first = k * kChunkPoints;
+    b.forward(encoded, first, std::min(kChunkPoints, n - first), w);
+    at::Tensor gelu = b.view(b.tmp);
+    at::cpu::gelu_out(gelu, b.view(b.chan));
+    const int64_t size = b.n * s.T * b.channels();
+#pragma omp simd
+    for (int64_t j = 0; j < size; ++j) b.tmp[j] += b.mixed[j];  // Z = Y + GELU(Q)
+    b.scatter(b.tmp.data(), b.channels(), out + first * s.T * b.channels());
   }
 }
 
-// Adds the weight gradients of points [begin, end) to `partial` (a row of Sizes::params()) and,
-// with grad_encoded, writes their input gradients.
-template <typename scalar_t>
-void backward_points(const scalar_t* grad_out, const scalar_t* encoded, scalar_t* grad_encoded, int64_t begin,
-                     int64_t end, const Sizes& s, const Weights<acc_t<scalar_t>>& w, acc_t<scalar_t>* partial) {
+// For chunks [first_chunk, last_chunk) of n points: adds chunk k's weight gradients to row k of
+// `partials` (rows of Sizes::params()) and, with grad_encoded, writes its points' input gradients.
+template <int kC, typename scalar_t>
+void backward_chunks(const scalar_t* grad_out, const scalar_t* encoded, scalar_t* grad_encoded, int64_t n,
+                     int64_t first_chunk, int64_t last_chunk, const Sizes& s, const Weights<acc_t<scalar_t>>& w,
+                     acc_t<scalar_t>* partials) {
   using acc = acc_t<scalar_t>;
-  const int64_t T = s.T, C = s.C, D = s.D;
-  acc* d_token = partial;
-  acc* d_token_bias = partial + s.token_bias();
-  acc* d_channel = partial + s.channel_weight();
-  acc* d_channel_bias = partial + s.channel_bias();
-  acc* d_lift = partial + s.lift();
-  Workspace<acc> ws(s);
-  std::vector<acc> q(C), gq(C);
-  for (int64_t n = begin; n < end; ++n) {
-    lift_and_mix_tokens(encoded + n * T * D, s, w, ws);
-    const scalar_t* g = grad_out + n * T * C;
-    // Channel mixing: ws.grad = dY, and ws.pre becomes gP = dY * GELU'(P).
-    for (int64_t t = 0; t < T; ++t) {
-      const acc* y = &ws.mixed[t * C];
-      acc* dy = &ws.grad[t * C];
-      channel_pre(y, s, w, q.data());
-      for (int64_t c = 0; c < C; ++c) {
-        dy[c] = static_cast<acc>(g[t * C + c]);
-        gq[c] = dy[c] * mm::gelu_grad(q[c]);
+  const int64_t T = s.T, C = kC > 0 ? kC : s.C, D = s.D;
+  Batch<acc, kC> b(s, std::min(kChunkPoints, n), true);
+  std::vector<acc> dx(grad_encoded != nullptr ? b.capacity * T * D : 0);
+  for (int64_t chunk = first_chunk; chunk < last_chunk; ++chunk) {
+    acc* d_token = partials + chunk * s.params();
+    acc* d_token_bias = d_token + s.token_bias();
+    acc* d_channel = d_token + s.channel_weight();
+    acc* d_channel_bias = d_token + s.channel_bias();
+    acc* d_lift = d_token + s.lift();
+    const int64_t first = chunk * kChunkPoints;
+    b.forward(encoded, first, std::min(kChunkPoints, n - first), w);
+    const int64_t n = b.n, rows = n * T, width = n * C;
+    b.gather(grad_out + first * T * C, C, b.grad.data());  // G = dZ
+    // Channel mixing: tmp = gQ = G * GELU'(Q), then grad = dY = G + gQ W_c.
+    at::Tensor gq = b.view(b.tmp);
+    at::cpu::gelu_backward_out(gq, b.view(b.grad), b.view(b.chan));
+    for (int64_t m = 0; m < rows; ++m) {
+      const acc* q = &b.tmp[m * C];
+      const acc* y = &b.mixed[m * C];
+      acc* dy = &b.grad[m * C];
+#pragma omp simd
+      for (int64_t e = 0; e < C; ++e) {
+        acc sum = 0;
+        for (int64_t c = 0; c < C; ++c) sum += q[c] * w.channel[c * C + e];
+        dy[e] += sum;
       }
       for (int64_t c = 0; c < C; ++c) {
-        const acc gqc = gq[c];
+        const acc gqc = q[c];
         d_channel_bias[c] += gqc;
-        for (int64_t e = 0; e < C; ++e) {
-          dy[e] += gqc * w.channel[c * C + e];
-          d_channel[c * C + e] += gqc * y[e];
-        }
+        acc* dwc = &d_channel[c * C];
+#pragma omp simd
+        for (int64_t e = 0; e < C; ++e) dwc[e] += gqc * y[e];
       }
-      for (int64_t c = 0; c < C; ++c) ws.pre[t * C + c] = dy[c] * mm::gelu_grad(ws.pre[t * C + c]);
     }
-    // Token mixing: ws.grad becomes dL = dY + W_t^T gP.
+    // Token mixing: tmp = gP = dY * GELU'(P), then grad = dL = dY + W_t^T gP.
+    at::Tensor gp = b.view(b.tmp);
+    at::cpu::gelu_backward_out(gp, b.view(b.grad), b.view(b.pre));
     for (int64_t t = 0; t < T; ++t) {
-      const acc* gp = &ws.pre[t * C];
+      const acc* gpt = &b.tmp[t * width];
       acc bias = 0;
-      for (int64_t c = 0; c < C; ++c) bias += gp[c];
+#pragma omp simd reduction(+ : bias)
+      for (int64_t j = 0; j < width; ++j) bias += gpt[j];
       d_token_bias[t] += bias;
       for (int64_t u = 0; u < T; ++u) {
-        const acc* l = &ws.lifted[u * C];
+        const acc* lu = &b.lifted[u * width];
         acc dot = 0;
-        for (int64_t c = 0; c < C; ++c) dot += gp[c] * l[c];
+#pragma omp simd reduction(+ : dot)
+        for (int64_t j = 0; j < width; ++j) dot += gpt[j] * lu[j];
         d_token[t * T + u] += dot;
         const acc wtu = w.token[t * T + u];
-        acc* dl = &ws.grad[u * C];
-        for (int64_t c = 0; c < C; ++c) dl[c] += wtu * gp[c];
+        acc* dlu = &b.grad[u * width];
+#pragma omp simd
+        for (int64_t j = 0; j < width; ++j) dlu[j] += wtu * gpt[j];
       }
     }
-    // Lift.
-    for (int64_t t = 0; t < T; ++t) {
-      const acc* dl = &ws.grad[t * C];
+    // Lift: dlift += dL^T X, dX = dL lift.
+    for (int64_t m = 0; m < rows; ++m) {
+      const acc* dl = &b.grad[m * C];
+      const acc* xm = &b.x[m * D];
       for (int64_t c = 0; c < C; ++c) {
-        for (int64_t k = 0; k < D; ++k) d_lift[c * D + k] += dl[c] * ws.x[t * D + k];
+        for (int64_t k = 0; k < D; ++k) d_lift[c * D + k] += dl[c] * xm[k];
       }
       if (grad_encoded != nullptr) {
         for (int64_t k = 0; k < D; ++k) {
-          acc dx = 0;
-          for (int64_t c = 0; c < C; ++c) dx += dl[c] * w.lift_t[k * C + c];
-          grad_encoded[n * T * D + t * D + k] = static_cast<scalar_t>(dx);
+          acc sum = 0;
+#pragma omp simd reduction(+ : sum)
+          for (int64_t c = 0; c < C; ++c) sum += dl[c] * w.lift_t[k * C + c];
+          dx[m * D + k] = sum;
         }
       }
     }
+    if (grad_encoded != nullptr) b.scatter(dx.data(), D, grad_encoded + first * T * D);
   }
+}
+
+Sizes check_cpu_args(const at::Tensor& encoded, const at::Tensor& lift, const at::Tensor& token_weight,
+                     const at::Tensor& token_bias, const at::Tensor& channel_weight, const at::Tensor& channel_bias) {
+  const Sizes s = mm::check_args(encoded, lift, token_weight, token_bias, channel_weight, channel_bias, at::kCPU);
+  MIXER_NERF_CHECK(s.C <= kMaxChannels, "mlca: the CPU kernel takes C <= ", kMaxChannels, ", got C=", s.C);
+  return s;
 }
 
 at::Tensor mlca_fwd_cpu(const at::Tensor& encoded, const at::Tensor& lift, const at::Tensor& token_weight,
                         const at::Tensor& token_bias, const at::Tensor& channel_weight,
                         const at::Tensor& channel_bias) {
-  const Sizes s = mm::check_args(encoded, lift, token_weight, token_bias, channel_weight, channel_bias, at::kCPU);
+  const Sizes s = check_cpu_args(encoded, lift, token_weight, token_bias, channel_weight, channel_bias);
   const int64_t n = encoded.size(0);
   at::Tensor out = at::empty({n, s.T * s.C}, encoded.options());
   MIXER_NERF_DISPATCH_FLOATING(encoded.scalar_type(), "mlca_fwd_cpu", [&] {
     const auto w = weights_of<scalar_t>(s, lift, token_weight, token_bias, channel_weight, channel_bias);
     const scalar_t* ep = encoded.const_data_ptr<scalar_t>();
     scalar_t* op = out.mutable_data_ptr<scalar_t>();
-    at::parallel_for(0, n, kChunkPoints, [&](int64_t begin, int64_t end) { forward_points(ep, op, begin, end, s, w); });
+    with_channels(s.C, [&](auto kC) {
+      at::parallel_for(0, (n + kChunkPoints - 1) / kChunkPoints, 1, [&](int64_t first, int64_t last) {
+        forward_chunks<decltype(kC)::value>(ep, op, n, first, last, s, w);
+      });
+    });
   });
   return out;
 }
@@ -217,7 +318,7 @@ mm::Grads mlca_bwd_cpu(
     const at::Tensor& grad_out, const at::Tensor& encoded, const at::Tensor& lift, const at::Tensor& token_weight,
     const at::Tensor& token_bias, const at::Tensor& channel_weight, const at::Tensor& channel_bias,
     bool input_grad) {
-  const Sizes s = mm::check_args(encoded, lift, token_weight, token_bias, channel_weight, channel_bias, at::kCPU);
+  const Sizes s = check_cpu_args(encoded, lift, token_weight, token_bias, channel_weight, channel_bias);
   mm::check_grad_out(grad_out, encoded, s);
   const int64_t n = encoded.size(0);
   at::Tensor grad_encoded = input_grad ? at::empty_like(encoded) : at::Tensor();
@@ -232,11 +333,10 @@ mm::Grads mlca_bwd_cpu(
     const scalar_t* ep = encoded.const_data_ptr<scalar_t>();
     scalar_t* gep = input_grad ? grad_encoded.mutable_data_ptr<scalar_t>() : nullptr;
     acc* pp = partials.mutable_data_ptr<acc>();
-    at::parallel_for(0, chunks, 1, [&](int64_t first, int64_t last) {
-      for (int64_t k = first; k < last; ++k) {
-        backward_points(gp, ep, gep, k * kChunkPoints, std::min(n, (k + 1) * kChunkPoints), s, w,
-                        pp + k * s.params());
-      }
+    with_channels(s.C, [&](auto kC) {
+      at::parallel_for(0, chunks, 1, [&](int64_t first, int64_t last) {
+        backward_chunks<decltype(kC)::value>(gp, ep, gep, n, first, last, s, w, pp);
+      });
     });
     for (int64_t k = 1; k < chunks; ++k) {  // in chunk order: independent of the thread count
       for (int64_t j = 0; j < s.params(); ++j) pp[j] += pp[k * s.params() + j];

@@ -131,6 +131,32 @@ def test_weight_grads_without_input_grad(gen):
 
 
 @needs_kernels
+@pytest.mark.parametrize("C", [8, 5])  # the compile-time channel count and a run-time one
+def test_cpu_results_do_not_depend_on_the_thread_count(C, gen):
+    inputs = make_inputs((1000,), 21, C, 3, gen)  # several chunks of points, the last one partial
+    grad = random_grad(inputs, C, gen)
+    threads = torch.get_num_threads()
+    try:
+        runs = []
+        for n in (1, 2):
+            torch.set_num_threads(n)
+            runs.append(forward_backward(inputs, grad, "kernel"))
+    finally:
+        torch.set_num_threads(threads)
+    (out_1, grads_1), (out_2, grads_2) = runs
+    assert torch.equal(out_1, out_2)
+    assert all(torch.equal(a, b) for a, b in zip(grads_1, grads_2, strict=True))
+
+
+@needs_kernels
+def test_cpu_op_refuses_more_channels_than_it_holds(gen):
+    """The op's own check (mlca() refuses C > 32 before it): the kernel keeps a row of C in registers."""
+    inputs = make_inputs((2,), 3, 33, 2, gen)
+    with pytest.raises(RuntimeError, match="C <= 32"):
+        torch.ops.mixer_nerf.mlca_fwd(*inputs)
+
+
+@needs_kernels
 @pytest.mark.parametrize(
     "magnitude, weight_scale", [(1e4, 1.0), (0.0, 1.0), (1.0, 30.0), (1e4, 30.0), (1e-30, 1.0)]
 )
