@@ -114,17 +114,23 @@ struct Batch {
                          at::TensorOptions().dtype(c10::CppTypeToScalarType<acc>::value));
   }
 
-  // Token t of point p of a (points, T, W) array as row t n + p of dst (W values each).
-  template <typename src_t>
-  void gather(const src_t* src, int64_t W, acc* dst) const {
+  // Rows of W values between a (points, T, W) array and token-major buffers: token t of point p is
+  // row p T + t there and row t n + p here. kToTokens: into the buffer (gather), else out (scatter).
+  template <bool kToTokens, typename from_t, typename to_t>
+  void reorder(const from_t* src, int64_t W, to_t* dst) const {
     for (int64_t p = 0; p < n; ++p) {
       for (int64_t t = 0; t < T; ++t) {
-        const src_t* from = src + (p * T + t) * W;
-        acc* to = dst + (t * n + p) * W;
-        for (int64_t k = 0; k < W; ++k) to[k] = static_cast<acc>(from[k]);
+        const int64_t point_row = p * T + t, token_row = t * n + p;
+        const from_t* from = src + (kToTokens ? point_row : token_row) * W;
+        to_t* to = dst + (kToTokens ? token_row : point_row) * W;
+        for (int64_t k = 0; k < W; ++k) to[k] = static_cast<to_t>(from[k]);
       }
     }
   }
+  template <typename src_t>
+  void gather(const src_t* src, int64_t W, acc* dst) const { reorder<true>(src, W, dst); }
+  template <typename dst_t>
+  void scatter(const acc* src, int64_t W, dst_t* dst) const { reorder<false>(src, W, dst); }
 
   // For points [first, first + points) of encoded: x, lifted = L = X lift^T, pre = P = W_t L + b_t,
   // mixed = Y = L + GELU(P), chan = Q = Y W_c^T + b_c.
@@ -162,21 +168,9 @@ struct Batch {
       row_times(&mixed[m * C], C, w.channel_t.data(), w.channel_bias.data(), &chan[m * C]);
     }
   }
-
-  // Row t n + p of src (W values) to token t of point p of a (points, T, W) array.
-  template <typename dst_t>
-  void scatter(const acc* src, int64_t W, dst_t* dst) const {
-    for (int64_t p = 0; p < n; ++p) {
-      for (int64_t t = 0; t < T; ++t) {
-        const acc* from = src + (t * n + p) * W;
-        dst_t* to = dst + (p * T + t) * W;
-        for (int64_t k = 0; k < W; ++k) to[k] = static_cast<dst_t>(from[k]);
-      }
-    }
-  }
 };
 
-constexpr int kExactChannels = 8;     // the model's C
+constexpr int kExactChannels = 8;  // the model's C
 
 // f(std::integral_constant<int, kC>): kC = C where C is the model's, else 0 (run-time C).
 template <typename F>
