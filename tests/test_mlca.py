@@ -150,7 +150,7 @@ def test_cpu_results_do_not_depend_on_the_thread_count(C, gen):
 
 @needs_kernels
 def test_cpu_op_refuses_more_channels_than_it_holds(gen):
-    """The op's own check (mlca() refuses C > 32 before it): the kernel keeps a row of C in registers."""
+    """The op's own check (mlca() refuses C > 32 before it): the kernel keeps a row of C on the stack."""
     inputs = make_inputs((2,), 3, 33, 2, gen)
     with pytest.raises(RuntimeError, match="C <= 32"):
         torch.ops.mixer_nerf.mlca_fwd(*inputs)
