@@ -218,7 +218,7 @@ void backward_chunks(const scalar_t* grad_out, const scalar_t* encoded, scalar_t
     acc* d_lift = d_token + s.lift();
     const int64_t first = chunk * kChunkPoints;
     b.forward(encoded, first, std::min(kChunkPoints, n - first), w);
-    const int64_t n = b.n, rows = n * T, width = n * C;
+    const int64_t rows = b.n * T, width = b.n * C;  // b.n: this chunk's points
     b.gather(grad_out + first * T * C, C, b.grad.data());  // G = dZ
     // Channel mixing: tmp = gQ = G * GELU'(Q), then grad = dY = G + gQ W_c.
     at::Tensor gq = b.view(b.tmp);
