@@ -170,13 +170,11 @@ struct Batch {
   }
 };
 
-constexpr int kExactChannels = 8;  // the model's C
-
 // f(std::integral_constant<int, kC>): kC = C where C is the model's, else 0 (run-time C).
 template <typename F>
 void with_channels(int64_t C, F f) {
-  if (C == kExactChannels) {
-    f(std::integral_constant<int, kExactChannels>{});
+  if (C == mm::kExactChannels) {
+    f(std::integral_constant<int, mm::kExactChannels>{});
   } else {
     f(std::integral_constant<int, 0>{});
   }

@@ -52,8 +52,8 @@ struct Problem {
 
 // The model's sizes (T = kT, C = 8, D = 3; positions and directions) as compile-time constants:
 // every shared-memory stride and loop bound then folds into the instructions instead of being
-// computed at run time. Other sizes take the run-time path (kExactChannels = 0).
-constexpr int kExactChannels = 8, kExactTokenDim = 3;
+// computed at run time. Other sizes take the run-time path (kC = 0).
+using mm::kExactChannels, mm::kExactTokenDim;
 
 // This kernel's problem: pr with the block size, and with the exact sizes where kC says so.
 template <int kT, int kC, int kThreads>
