@@ -94,6 +94,8 @@ SHAPES = [
     (5, 33, 1),
     (3, 40, 4),
     (2, 9, 7),
+    (2, 8300, 3),  # a ray longer than the CPU kernel's scan group (8192 samples)
+    (150, 61, 3),  # groups that end between rays
 ]
 BACKGROUNDS = ["none", "shared", "per_ray"]
 
@@ -542,12 +544,13 @@ COUNTS = {
     "no rays": [],
     "ragged": [3, 0, 7, 1, 0, 12, 33],
     "many": "random",
+    "a ray longer than a scan group": [3, 8300, 0, 5],
 }
 
 
 def counts_named(name, gen):
     return (
-        random_counts(40, 40, gen)
+        random_counts(300, 60, gen)  # ~9,000 samples: several of the CPU kernel's scan groups
         if COUNTS[name] == "random"
         else torch.tensor(COUNTS[name], dtype=torch.int64)
     )
@@ -568,6 +571,29 @@ def test_packed_cpu_kernel_matches_reference(gen, counts, background):
         assert all(o.dtype == dtype for o in out)
         assert_close(out, want_out, rel, f"{dtype} outputs")
         assert_close(grads, want_grads, rel, f"{dtype} grads")
+
+
+@needs_kernels
+@pytest.mark.parametrize("packed", [False, True], ids=["dense", "packed"])
+def test_cpu_kernel_results_do_not_depend_on_the_thread_count(gen, packed):
+    """Threads split the rays, and so the CPU kernel's scan groups, differently: bit-identical."""
+    if packed:
+        counts = random_counts(300, 60, gen)
+        inputs, offsets = make_packed(counts, 3, gen, "per_ray", dtype=torch.float32)
+        fn, upstream = packed_fn(offsets), random_upstream(inputs, gen, num_rays=counts.numel())
+    else:
+        inputs = make_inputs(300, 50, 3, gen, "per_ray", dtype=torch.float32)
+        fn, upstream = composite, random_upstream(inputs, gen)
+    threads = torch.get_num_threads()
+    try:
+        runs = []
+        for n in (1, 2):
+            torch.set_num_threads(n)
+            runs.append(run(inputs, upstream, fn, backend="kernel"))
+    finally:
+        torch.set_num_threads(threads)
+    for got, want in zip(*(out + grads for out, grads in runs), strict=True):
+        assert (got is None and want is None) or torch.equal(got, want)
 
 
 @needs_kernels
