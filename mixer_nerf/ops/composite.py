@@ -26,6 +26,7 @@ from ._checks import (
     check_same_dtype,
     check_shape,
     check_tensor,
+    has_descent,
     nonnegative_message,
 )
 from . import deferred_checks
@@ -176,7 +177,7 @@ def _check_samples(sigmas, rgbs, t_starts, t_ends, background, num_rays: int, ch
     check_same_dtype(sigmas=sigmas, rgbs=rgbs, t_starts=t_starts, t_ends=t_ends, background=background)
     if check_values:
         check_nonnegative("sigmas", sigmas)
-        if t_ends.numel() and bool((t_ends < t_starts).any()):
+        if has_descent(t_starts, t_ends):
             raise ValueError(INTERVALS_MESSAGE)
 
 
