@@ -3,6 +3,8 @@ same verdict as the comparison on every input, NaNs, infinities, zeros and subno
 
 from __future__ import annotations
 
+import warnings
+
 import pytest
 import torch
 
@@ -72,3 +74,11 @@ def test_has_descent_sees_a_subnormal_gap_flushed_to_zero():
         assert float((high - low).amin()) == 0 and has_descent(low, high)
     finally:
         torch.set_flush_denormal(False)
+
+
+def test_tensors_that_require_grad_are_checked_without_a_warning():
+    """Op inputs usually require grad: reading their min must not warn about it."""
+    t = torch.rand(5, requires_grad=True)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert not has_negative(t) and not has_descent(t, t + 1)

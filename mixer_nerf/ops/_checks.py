@@ -82,7 +82,7 @@ def has_negative(t: torch.Tensor) -> bool:
     """Whether an entry of t is < 0 (a NaN entry is not)."""
     if not t.numel():
         return False
-    low = float(t.amin())
+    low = float(t.detach().amin())
     return low < 0 or (math.isnan(low) and bool((t < 0).any()))
 
 
@@ -95,7 +95,7 @@ def has_descent(low: torch.Tensor, high: torch.Tensor) -> bool:
         return False
     if not high.is_floating_point():
         return bool((high < low).any())
-    gap = float((high - low).amin())
+    gap = float((high.detach() - low.detach()).amin())
     return gap < 0 or (not gap > 0 and bool((high < low).any()))
 
 
