@@ -2,8 +2,8 @@
 
 Forward: one GEMM whose epilogue adds the bias and applies the ReLU (``torch._addmm_activation``,
 cuBLASLt on CUDA), instead of a GEMM, a bias pass and a ReLU pass. Backward: the ReLU mask applied
-once to the upstream gradient ``g``, then ``dx = g W``, ``dW = g^T x`` and the bias gradient as
-the matrix-vector product ``g^T 1`` (cuBLAS), instead of a column reduction. Saves what the
+once to the upstream gradient ``g`` (ATen's ReLU backward), then ``dx = g W``, ``dW = g^T x`` and
+the bias gradient as the matrix-vector product ``g^T 1`` (cuBLAS), instead of a column reduction. Saves what the
 eager path saves (``x`` and the output, whose sign is the mask). The reference is
 :func:`~mixer_nerf.ops.linear_relu_reference.linear_relu_reference`.
 """
@@ -51,7 +51,9 @@ class _LinearReLU(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad: torch.Tensor):
         x, weight, out = ctx.saved_tensors
-        g = torch.where(out > 0, grad, 0)  # relu' at 0 is 0, as torch.relu's backward
+        # relu's own backward, one vectorised pass (a comparison and a where with a scalar were two,
+        # the second unvectorised): no gradient where the output is 0, as for torch.relu
+        g = torch.ops.aten.threshold_backward(grad, out, 0)
         grad_x = g @ weight if ctx.needs_input_grad[0] else None
         grad_weight = g.t() @ x if ctx.needs_input_grad[1] else None
         grad_bias = torch.mv(g.t(), g.new_ones(g.shape[0])) if ctx.needs_input_grad[2] else None
