@@ -7,8 +7,9 @@
 Trains ``--warmup`` steps (past the occupancy grid's dense warm-up, so the batch has its steady
 size), then profiles ``--steps`` steps with torch.profiler. Prints ms per step (wall), the GPU's
 busy ms per step (sum of kernel times; and the time any kernel runs, overlapping streams counted
-once, against the profiled wall time: the GPU idle), and the kernels sorted by CUDA time; a wall time well
-above the busy time means the step waits on the host (Python, launches, synchronisations). The
+once, against the profiled wall time: the GPU idle), the kernels sorted by CUDA time and the ops by
+the GPU time of the kernels they launched; a wall time well above the busy time means the step
+waits on the host (Python, launches, synchronisations). The
 file in ``--out`` also lists the Python functions by their own host time (cProfile, ``--steps``
 more steps) and the host ms per step when the GPU has nothing left to do: the step's host cost,
 then every call of ``--steps`` more steps that makes the host wait for the GPU, by its line.
@@ -22,6 +23,7 @@ import time
 from pathlib import Path
 
 import torch
+from torch.autograd import DeviceType
 
 from benchmarks.harness import RESULTS, device_tag, host_profile, scene_tag
 from mixer_nerf.train import TrainConfig, Trainer
@@ -92,6 +94,7 @@ def main() -> None:
               f"marched and {shaded / rays:.1f} shaded samples, bf16 density passes "
               f"{trainer.cfg.bf16_density_passes}")
     table = events.table(sort_by="self_cuda_time_total", row_limit=30, max_name_column_width=70)
+    table += "\n" + _kernels_by_op(trainer, args.steps)
     passes = "_bf16pass" * trainer.cfg.bf16_density_passes
     # named by the step profiled, before the host profile's steps
     graphs = "_graphs" * args.cuda_graphs
@@ -106,6 +109,23 @@ def main() -> None:
     print(header)
     print(table)
     print(syncs)
+
+
+def _kernels_by_op(trainer: Trainer, steps: int, top: int = 30) -> str:
+    """The GPU time of `steps` more steps by the op that launched each kernel (its self GPU time),
+    which names what the kernel table cannot (an unvectorised elementwise kernel: which op's?).
+    Profiling the host's ops slows the steps, so this runs apart from the timed ones."""
+    activities = [torch.profiler.ProfilerActivity.CPU, torch.profiler.ProfilerActivity.CUDA]
+    with torch.profiler.profile(activities=activities) as prof:
+        for _ in range(steps):
+            trainer.train_step()
+        torch.cuda.synchronize()
+    ops = [e for e in prof.key_averages() if e.device_type == DeviceType.CPU and e.self_device_time_total > 0]
+    ops.sort(key=lambda e: e.self_device_time_total, reverse=True)
+    rows = [f"{'op (self GPU time: the kernels it launched itself)':<60} {'calls/step':>10} {'GPU ms/step':>12}"]
+    rows += [f"{e.key[:60]:<60} {e.count / steps:>10.1f} {e.self_device_time_total / 1e3 / steps:>12.3f}"
+             for e in ops[:top]]
+    return "\n".join(rows) + "\n"
 
 
 def _sync_sites(trainer: Trainer, steps: int) -> str:
