@@ -12,6 +12,15 @@
 
 namespace mixer_nerf {
 
+// CPU loops built twice, for AVX2 and for the x86-64 baseline the extension is compiled for, the
+// clone picked at load time by the CPU: twice the vector lanes of SSE2 where a loop vectorises.
+// AVX2 without FMA, so every clone rounds every operation the same way.
+#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__) && !defined(__CUDACC__)
+#define MIXER_NERF_CPU_CLONES __attribute__((target_clones("avx2", "default")))
+#else
+#define MIXER_NERF_CPU_CLONES
+#endif
+
 // Accumulation type: float for half/bfloat16/float, double for double.
 template <typename scalar_t>
 using acc_t = at::opmath_type<scalar_t>;
