@@ -37,7 +37,8 @@ struct Encoding {
 };
 
 template <typename scalar_t>
-MIXER_NERF_CPU_CLONES void encode_points(const scalar_t* x, scalar_t* out, int64_t begin, int64_t end, const Encoding& enc) {
+MIXER_NERF_CPU_CLONES void encode_points(const scalar_t* x, scalar_t* out, int64_t begin, int64_t end,
+                                         const Encoding& enc) {
   using acc = acc_t<scalar_t>;
   const int64_t D = enc.dims, W = enc.width(), P = enc.tile_points();
   const pem::HalfTurns c = pem::half_turns(enc.scale);
@@ -71,8 +72,8 @@ MIXER_NERF_CPU_CLONES void encode_points(const scalar_t* x, scalar_t* out, int64
 // grad_x = grad[x block] + sum_k scale 2^k (grad[sin_k] cos - grad[cos_k] sin), with sin/cos
 // recomputed from x rather than stored.
 template <typename scalar_t>
-MIXER_NERF_CPU_CLONES void encode_points_backward(const scalar_t* grad, const scalar_t* x, scalar_t* grad_x, int64_t begin,
-                            int64_t end, const Encoding& enc) {
+MIXER_NERF_CPU_CLONES void encode_points_backward(const scalar_t* grad, const scalar_t* x, scalar_t* grad_x,
+                                                  int64_t begin, int64_t end, const Encoding& enc) {
   using acc = acc_t<scalar_t>;
   const int64_t D = enc.dims, W = enc.width(), P = enc.tile_points();
   const pem::HalfTurns c = pem::half_turns(enc.scale);

@@ -122,7 +122,8 @@ def _kernels_by_op(trainer: Trainer, steps: int, top: int = 30) -> str:
         torch.cuda.synchronize()
     ops = [e for e in prof.key_averages() if e.device_type == DeviceType.CPU and e.self_device_time_total > 0]
     ops.sort(key=lambda e: e.self_device_time_total, reverse=True)
-    rows = [f"{'op (self GPU time: the kernels it launched itself)':<60} {'calls/step':>10} {'GPU ms/step':>12}"]
+    title = "op (self GPU time: the kernels it launched itself)"
+    rows = [f"{title:<60} {'calls/step':>10} {'GPU ms/step':>12}"]
     rows += [f"{e.key[:60]:<60} {e.count / steps:>10.1f} {e.self_device_time_total / 1e3 / steps:>12.3f}"
              for e in ops[:top]]
     return "\n".join(rows) + "\n"

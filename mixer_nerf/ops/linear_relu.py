@@ -3,8 +3,8 @@
 Forward: one GEMM whose epilogue adds the bias and applies the ReLU (``torch._addmm_activation``,
 cuBLASLt on CUDA), instead of a GEMM, a bias pass and a ReLU pass. Backward: the ReLU mask applied
 once to the upstream gradient ``g`` (ATen's ReLU backward), then ``dx = g W``, ``dW = g^T x`` and
-the bias gradient as the matrix-vector product ``g^T 1`` (cuBLAS), instead of a column reduction. Saves what the
-eager path saves (``x`` and the output, whose sign is the mask). The reference is
+the bias gradient as the matrix-vector product ``g^T 1`` (cuBLAS), instead of a column reduction.
+Saves what the eager path saves (``x`` and the output, whose sign is the mask). The reference is
 :func:`~mixer_nerf.ops.linear_relu_reference.linear_relu_reference`.
 """
 
