@@ -1,8 +1,15 @@
 # Source on the GPU machine: nerfacc 0.5.3 from the carried wheel, sm_90 builds, unbuffered output,
-# the JIT cache in the carried .gpu_cache (a build from an earlier call is reused).
+# the JIT cache seeded from the carried .gpu_cache (a build from an earlier call is reused).
 set -o pipefail
 export PYTHONUNBUFFERED=1 TORCH_CUDA_ARCH_LIST=9.0 MAX_JOBS=16
-export MIXER_NERF_CACHE=${MIXER_NERF_CACHE:-$PWD/.gpu_cache}
+# The JIT cache lives outside the tree, seeded (missing files only) from a carried .gpu_cache: a
+# call that carries an older .gpu_cache replaces that folder, and with it lost the warm machine's
+# builds of earlier calls, so every job of the call rebuilt them.
+if [ -z "${MIXER_NERF_CACHE:-}" ]; then
+  export MIXER_NERF_CACHE=/tmp/mixer_nerf_cache
+  mkdir -p "$MIXER_NERF_CACHE"
+  [ -d .gpu_cache ] && cp -rn .gpu_cache/. "$MIXER_NERF_CACHE"/
+fi
 if compgen -G ".whl/*.whl" >/dev/null; then
   # Installed once per set of wheels and machine (a warm machine keeps /tmp/site; a wheel added
   # since is installed at the next call): scripts that source this file may source it again.
