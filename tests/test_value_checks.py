@@ -8,7 +8,7 @@ import warnings
 import pytest
 import torch
 
-from mixer_nerf.ops._checks import has_descent, has_negative
+from mixer_nerf.ops._checks import check_in_range, has_descent, has_negative
 
 FLOATS = [torch.float16, torch.bfloat16, torch.float32, torch.float64]
 SPECIALS = [float("nan"), float("inf"), -float("inf"), 0.0, -0.0]
@@ -57,6 +57,7 @@ def test_has_descent_cases():
     t = torch.tensor
     assert not has_descent(t([]), t([]))
     assert not has_descent(t([1.0, 2.0]), t([1.0, 2.0]))  # equal: a zero gap, not a descent
+    assert not has_descent(t([0.0, 1.0]), t([-0.0, 1.0]))  # a -0 gap, and -0 is not below +0
     assert has_descent(t([nan, 2.0]), t([nan, 1.0]))  # the NaN pair hides nothing
     assert not has_descent(t([nan, 1.0]), t([0.0, 2.0]))
     assert not has_descent(t([inf, -inf]), t([inf, -inf]))  # inf - inf is NaN, and no descent
@@ -82,3 +83,20 @@ def test_tensors_that_require_grad_are_checked_without_a_warning():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         assert not has_negative(t) and not has_descent(t, t + 1)
+
+
+@pytest.mark.parametrize("dtype", FLOATS)
+def test_check_in_range_agrees_with_the_comparison(gen, dtype):
+    """[0, 1] by the min and max; a NaN anywhere fails, as the elementwise test did."""
+    for trial in range(200):
+        picks = torch.randint(0, 5, (trial % 3,), generator=gen)
+        specials = [[float("nan"), 1.0, 0.0, -0.0, float("inf")][i] for i in picks]
+        t = spiced(int(torch.randint(1, 40, (), generator=gen)), dtype, gen, specials)
+        t = t.abs().clamp(max=1) if trial % 2 else t
+        inside = bool(((t >= 0) & (t <= 1)).all())
+        try:
+            check_in_range("u", t, 0.0, 1.0)
+            refused = False
+        except ValueError:
+            refused = True
+        assert refused is not inside, t

@@ -75,7 +75,7 @@ def in_range_message(name: str, low: float, high: float) -> str:
 
 
 # Value checks reduce with one min: on CPUs a comparison's bool tensor and its any() cost about ten
-# times more. The exact comparison decides only where the min cannot (a NaN, a zero difference).
+# times more. The exact comparison decides only where the min cannot (a NaN, a -0 difference).
 
 
 def has_negative(t: torch.Tensor) -> bool:
@@ -89,14 +89,20 @@ def has_negative(t: torch.Tensor) -> bool:
 def has_descent(low: torch.Tensor, high: torch.Tensor) -> bool:
     """Whether an entry of ``high`` is below the same entry of ``low`` (a pair with a NaN is not).
 
-    For floats the sign of ``high - low`` says so (rounding never flips it); a minimum of 0 (a flushed
-    subnormal difference) or NaN is settled by the comparison itself."""
+    For floats the sign of ``high - low`` says so (rounding never flips it). Equal neighbours give
+    +0; a -0 (a negative gap flushed to zero under flush-to-zero, or -0 - +0) or a NaN is settled by
+    the comparison itself."""
     if not high.numel():
         return False
     if not high.is_floating_point():
         return bool((high < low).any())
-    gap = float((high.detach() - low.detach()).amin())
-    return gap < 0 or (not gap > 0 and bool((high < low).any()))
+    gaps = high.detach() - low.detach()
+    gap = float(gaps.amin())
+    if gap < 0:
+        return True
+    if gap > 0 or (gap == 0 and float(torch.copysign(gaps.new_ones(()), gaps).amin()) > 0):
+        return False
+    return bool((high < low).any())
 
 
 def check_sorted(name: str, t: torch.Tensor) -> None:
@@ -111,8 +117,11 @@ def check_nonnegative(name: str, t: torch.Tensor) -> None:
 
 
 def check_in_range(name: str, t: torch.Tensor, low: float, high: float) -> None:
-    """Every entry in [low, high] (NaN fails)."""
-    if t.numel() and not bool(((t >= low) & (t <= high)).all()):
+    """Every entry in [low, high] (NaN fails: the min and max of a tensor with a NaN are NaN)."""
+    if not t.numel():
+        return
+    smallest, largest = torch.stack(torch.aminmax(t.detach())).tolist()
+    if not (smallest >= low and largest <= high):
         raise ValueError(in_range_message(name, low, high))
 
 
