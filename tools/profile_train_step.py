@@ -94,11 +94,11 @@ def main() -> None:
               f"marched and {shaded / rays:.1f} shaded samples, bf16 density passes "
               f"{trainer.cfg.bf16_density_passes}")
     table = events.table(sort_by="self_cuda_time_total", row_limit=30, max_name_column_width=70)
-    table += "\n" + _kernels_by_op(trainer, args.steps)
     passes = "_bf16pass" * trainer.cfg.bf16_density_passes
     # named by the step profiled, before the host profile's steps
     graphs = "_graphs" * args.cuda_graphs
     name = f"{device_tag('cuda')}_{scene_tag(args.data)}_{args.preset}_{args.precision}{passes}{graphs}_step{trainer.step}.txt"
+    table += "\n" + _kernels_by_op(trainer, args.steps)
     host = host_profile(trainer.train_step, args.steps, top=35)
     syncs = _sync_sites(trainer, args.steps)
     # The file before the prints: a reader that closes the pipe early (`| grep -m1`) must not lose it.
