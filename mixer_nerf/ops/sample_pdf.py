@@ -55,6 +55,7 @@ from ._checks import (
     check_shape,
     check_sorted,
     check_tensor,
+    has_descent,
     nonnegative_message,
     sorted_message,
 )
@@ -212,11 +213,12 @@ def _validate_packed(
     check_shape("bins", bins, (num_bins + num_rays,), " (N + R: one more edge than bins per ray)")
     if check_values:
         check_nonnegative("weights", weights)
-        # Sorted within rays: the steps from one ray's last edge to the next ray's first are free.
-        descending = bins[1:] < bins[:-1]
+        # Sorted within rays: the steps from one ray's last edge to the next ray's first are free
+        # (that last edge compared as -inf).
+        previous = bins[:-1].clone()
         first_edges = offsets[1:-1] + torch.arange(1, max(num_rays, 1), device=offsets.device)
-        descending[first_edges - 1] = False
-        if bool(descending.any()):
+        previous[first_edges - 1] = -math.inf
+        if has_descent(previous, bins[1:]):
             raise ValueError(PACKED_SORTED_MESSAGE)
     return num_rays
 
