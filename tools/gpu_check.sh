@@ -45,21 +45,22 @@ for stage in "${stages[@]}"; do
   case $stage in
     # Each xdist worker would otherwise start as many CPU threads as the machine has cores.
     # -v names each finished test, so a run cut by its limit says which tests never finished
-    # (and a process list taken 20 s before the limit says what they were doing).
-    pytest*) paths=${stage#pytest}; limit=$(( ${PYTEST_LIMIT:-360} < ${DEADLINE:-570} - SECONDS ? ${PYTEST_LIMIT:-360} : ${DEADLINE:-570} - SECONDS ))
+    # (and a process list taken 20 s before the limit says what they were doing). One log per stage.
+    pytest*) paths=${stage#pytest}; log=pytest${paths:+_$(basename "${paths#:}" .py)}
+      limit=$(( ${PYTEST_LIMIT:-360} < ${DEADLINE:-570} - SECONDS ? ${PYTEST_LIMIT:-360} : ${DEADLINE:-570} - SECONDS ))
       ( sleep $((limit - 20)); ps -eo pid,ppid,etime,pcpu,rss,args --sort=-pcpu | cut -c1-300 | head -60 \
-          >"$LOGS/pytest_ps.txt" ) & watcher=$!
+          >"$LOGS/${log}_ps.txt" ) & watcher=$!
       ( [ -n "$PYTEST_WORKERS" ] && export OMP_NUM_THREADS=${PYTEST_THREADS:-2}
-        step pytest "$limit" python -m pytest -v -p no:cacheprovider -rs --durations=25 \
+        step "$log" "$limit" python -m pytest -v -p no:cacheprovider -rs --durations=25 \
           ${PYTEST_WORKERS:+-n $PYTEST_WORKERS} ${paths#:} )
       kill $watcher 2>/dev/null
-      python -m pytest --collect-only -q -p no:cacheprovider ${paths#:} 2>/dev/null | grep '::' | LC_ALL=C sort >"$LOGS/collected.txt"
+      python -m pytest --collect-only -q -p no:cacheprovider ${paths#:} 2>/dev/null | grep '::' | LC_ALL=C sort >"$LOGS/${log}_collected.txt"
       # A test id runs to the end of its line (parameter ids may hold spaces); xdist puts it after the outcome.
       outcome='(PASSED|FAILED|SKIPPED|ERROR|XFAIL|XPASS)'
       sed -nE -e "s/^\[gw[0-9]+\] \[ *[0-9]+%\] $outcome (tests\/.*[^ ]) *\$/\2/p" \
-        -e "s/^(tests\/.*::.*[^ ]) $outcome +\[ *[0-9]+%\]\$/\1/p" "$LOGS/pytest.log" | LC_ALL=C sort -u >"$LOGS/finished.txt"
-      comm -23 "$LOGS/collected.txt" "$LOGS/finished.txt" >"$LOGS/unfinished.txt"
-      echo "pytest: $(wc -l <"$LOGS/finished.txt") of $(wc -l <"$LOGS/collected.txt") finished; unfinished: $(head -c 3000 "$LOGS/unfinished.txt" | tr '\n' ' ')" >>"$summary" ;;
+        -e "s/^(tests\/.*::.*[^ ]) $outcome +\[ *[0-9]+%\]\$/\1/p" "$LOGS/$log.log" | LC_ALL=C sort -u >"$LOGS/${log}_finished.txt"
+      comm -23 "$LOGS/${log}_collected.txt" "$LOGS/${log}_finished.txt" >"$LOGS/${log}_unfinished.txt"
+      echo "$log: $(wc -l <"$LOGS/${log}_finished.txt") of $(wc -l <"$LOGS/${log}_collected.txt") finished; unfinished: $(head -c 3000 "$LOGS/${log}_unfinished.txt" | tr '\n' ' ')" >>"$summary" ;;
     # memcheck: every op's CUDA tests. racecheck (shared-memory hazards, ~10x slower): the
     # kernels with shared memory, without the largest cases (more blocks, no new hazards).
     memcheck) step memcheck 420 compute-sanitizer --tool memcheck --error-exitcode 1 python -m pytest -q \
