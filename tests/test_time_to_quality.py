@@ -55,12 +55,12 @@ def test_trainer_flags_reach_our_trainers_config_and_clip_only_ours(tmp_path, mo
     monkeypatch.setattr(mixer_nerf.train, "Trainer", trainer)
     argv = ["--device", "cpu", "--data", str(scene), "--out", str(tmp_path), "--grad-clip", "0.5",
             "--adam-eps", "1e-8", "--proposal-residual", "last", "--proposal-intervals", "between",
-            "--frequency-anneal", "0.25"]
+            "--frequency-anneal", "0.25", "--mlca-weight-decay", "2"]
     with pytest.raises(Built) as built:
         run(monkeypatch, "--method", "ours", *argv)
     (cfg,) = built.value.args
-    assert (cfg.grad_clip, cfg.adam_eps, cfg.proposal_residual, cfg.proposal_intervals, cfg.frequency_anneal) == (
-        0.5, 1e-8, "last", "between", 0.25)
+    assert (cfg.grad_clip, cfg.adam_eps, cfg.proposal_residual, cfg.proposal_intervals, cfg.frequency_anneal,
+            cfg.mlca_weight_decay) == (0.5, 1e-8, "last", "between", 0.25, 2.0)
     with pytest.raises(SystemExit):
         run(monkeypatch, "--method", "nerfacc-proposal", *argv)
     assert "--grad-clip needs --method ours" in capsys.readouterr().err

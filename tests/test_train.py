@@ -128,6 +128,9 @@ def params_of(trainer: Trainer) -> dict[str, torch.Tensor]:
         ("frequency_anneal", -0.1),
         ("frequency_anneal", 1.5),
         ("frequency_anneal", math.nan),
+        ("mlca_weight_decay", -0.1),
+        ("mlca_weight_decay", math.nan),
+        ("mlca_weight_decay", math.inf),
     ],
 )
 def test_config_rejects_bad_values_naming_them(field, value):
@@ -481,14 +484,15 @@ def test_cuda_graphs_refusals_name_their_reason(sampler, several, images, reason
 
 @pytest.mark.cuda
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU")
-@pytest.mark.parametrize("frequency_anneal", [0.0, 1.0])
-def test_cuda_graphed_proposal_steps_train_as_the_eager_ones(tmp_path, frequency_anneal):
+@pytest.mark.parametrize("options", [{}, {"frequency_anneal": 1.0, "mlca_weight_decay": 50.0}],
+                         ids=["defaults", "window and decay"])
+def test_cuda_graphed_proposal_steps_train_as_the_eager_ones(tmp_path, options):
     """Replays draw the same rays and samples as eager steps (the generator's offsets advance alike),
     so the two runs agree step by step, through a checkpoint and a resume; a frequency window that
-    moves every step reaches the replays through its device buffer."""
+    moves every step reaches the replays through its device buffer, and the mixing's decay reads
+    the replayed step's learning rate."""
     settings = dict(sampler="proposal", proposal_rounds=(12, 8), proposal_samples=6, device="cuda",
-                    backend="auto", steps=12, ckpt_every=6, val_every=100, log_every=3,
-                    frequency_anneal=frequency_anneal)
+                    backend="auto", steps=12, ckpt_every=6, val_every=100, log_every=3, **options)
     losses = {}
     for graphs in (False, True):
         out = tmp_path / str(graphs)
@@ -779,6 +783,33 @@ def test_frequency_anneal_opens_the_octaves_over_its_fraction_of_the_run(tmp_pat
     assert windows[:4] == [[octaves * s / 4] * len(fields) for s in range(4)]
     assert windows[4:] == [[None] * len(fields)] * 2
     assert all(bool((f.octave_weights == 1).all()) for f in fields)
+
+
+@pytest.mark.parametrize("sampler", ["hierarchical", "proposal"])
+def test_mlca_weight_decay_scales_only_the_mixing_after_each_step(tmp_path, sampler):
+    """Decoupled decay: the same step as without it, then MLCA's mixing matrices times 1 - lr * W."""
+    decay = 100.0
+    params, lrs = {}, {}
+    for W in (0.0, decay):
+        trainer = Trainer(tiny_config(tmp_path / str(W), sampler=sampler, lr_warmup=0, mlca_weight_decay=W),
+                          log=quiet)
+        lrs[W] = trainer.cfg.lr
+        trainer.train_step()
+        params[W] = params_of(trainer)
+    mixing = [name for name in params[0.0] if name.endswith(("token_weight", "channel_weight"))]
+    assert len(mixing) == 4 * (2 if sampler == "hierarchical" else 1)  # two mixers per MLP
+    for name, value in params[0.0].items():
+        want = value * (1 - lrs[decay] * decay) if name in mixing else value
+        torch.testing.assert_close(params[decay][name], want, rtol=1e-6, atol=0, msg=name)
+    assert all(params[0.0][name].abs().max() > 0 for name in mixing)  # the step moved them
+
+
+def test_mlca_weight_decay_leaves_presets_without_mlca_alone_and_refuses_a_scale_below_zero(tmp_path):
+    trainer = Trainer(tiny_config(tmp_path / "A", preset="A", mlca_weight_decay=10.0), log=quiet)
+    assert trainer.decayed == []
+    trainer.train_step()
+    with pytest.raises(ValueError, match="mlca_weight_decay"):
+        Trainer(tiny_config(tmp_path / "D", lr=1e-2, mlca_weight_decay=100.0), log=quiet)
 
 
 def test_val_holdout_trains_without_the_val_views_and_evaluates_on_them(llff_scene, tmp_path):

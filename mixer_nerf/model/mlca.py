@@ -66,6 +66,11 @@ class MLCA(nn.Module):
     def out_features(self) -> int:
         return self.num_tokens * self.channels
 
+    def mixing_weights(self) -> tuple[nn.Parameter, nn.Parameter]:
+        """The token- and channel-mixing matrices: at zero the module is the identity (the lift
+        copies the coordinates), so shrinking them pulls it toward the NeRF it extends."""
+        return self.token_weight, self.channel_weight
+
     def forward(self, encoded: torch.Tensor) -> torch.Tensor:
         if encoded.shape[-1] != self.num_tokens * self.token_dim:
             raise ValueError(

@@ -159,6 +159,11 @@ class TrainConfig:
         0.0, "open the positions' encoding octave by octave over this fraction of the run, coarse to "
         "fine (Nerfies' window; FreeNeRF's frequency regularisation against overfitting on few views; "
         "default 0: every octave from the start)", metavar="FRACTION")
+    # Off until screened: against preset D's late decline on few views (docs/training.md).
+    mlca_weight_decay: float = option(
+        0.0, "decoupled weight decay of MLCA's token- and channel-mixing matrices (presets C and D): "
+        "after each step they are scaled by 1 - lr * W, which pulls the mixing toward the identity, "
+        "the NeRF it extends (default 0: off)", metavar="W")
     cuda_graphs: bool = option(
         False, "proposal sampler on a GPU: replay each training step as a CUDA graph, without the host "
         "work between its kernels (needs the training images on the GPU and one process)")
@@ -200,6 +205,8 @@ class TrainConfig:
             raise ValueError(f"downscale must be >= 1, got {self.downscale}")
         if not (isinstance(self.val_holdout, int) and self.val_holdout >= 0):
             raise ValueError(f"val_holdout must be an integer >= 0, got {self.val_holdout!r}")
+        if not (math.isfinite(self.mlca_weight_decay) and self.mlca_weight_decay >= 0):
+            raise ValueError(f"mlca_weight_decay must be finite and >= 0, got {self.mlca_weight_decay}")
         if not 0 <= self.frequency_anneal <= 1:
             raise ValueError(f"frequency_anneal must be in [0, 1], got {self.frequency_anneal}")
         if self.lr_hold is not None and not 0 <= self.lr_hold < 1:

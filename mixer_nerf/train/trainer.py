@@ -17,6 +17,7 @@ import torch.nn.functional as F
 
 from ..data import load_split
 from ..metrics import psnr
+from ..model.mlca import MLCA
 from ..ops import use_kernel
 from ..render import render_rays
 from ..render.skipping import (
@@ -219,6 +220,10 @@ class Trainer:
         self.optimizer = torch.optim.Adam(
             self.params, lr=cfg.lr, eps=cfg.adam_eps, fused=self.device.type == "cuda"
         )
+        self.decayed = [w for m in self.fields.modules() if isinstance(m, MLCA) for w in m.mixing_weights()]
+        if cfg.mlca_weight_decay > 0 and cfg.lr * cfg.mlca_weight_decay >= 1:
+            raise ValueError(f"mlca_weight_decay {cfg.mlca_weight_decay} times lr {cfg.lr} must be below 1 "
+                             "(each step scales the mixing by 1 - lr * W)")
         near, far = self.train_scene.near, self.train_scene.far
         self.renderer = image_renderer(cfg, self.fields, near, far, self.background, step=lambda: self.step)
         self.sampler = RaySampler(self.train_scene, cfg.batch_rays, rank_seed(cfg.seed, self.rank))
@@ -312,6 +317,8 @@ class Trainer:
             # After the ranks' mean and the guard (it names the bad parameter); scaled on the device, no sync
             torch.nn.utils.clip_grad_norm_(self.params, cfg.grad_clip, foreach=True)
         self.optimizer.step()
+        if cfg.mlca_weight_decay > 0:
+            self._decay_mixing()
         return {"loss": loss.detach(), "mse": losses.get("loss_fine", losses["loss_coarse"]).detach()}
 
     def _hierarchical_losses(self, rays_o, rays_d, target) -> dict[str, torch.Tensor]:
@@ -377,6 +384,14 @@ class Trainer:
         if self.cfg.time_budget is not None:
             progress = max(progress, self._training_time() / self.cfg.time_budget)
         return progress
+
+    @torch.no_grad()
+    def _decay_mixing(self) -> None:
+        """AdamW's decoupled decay on MLCA's mixing matrices, at the step's learning rate (a device
+        tensor in replayed steps)."""
+        scale = 1 - self.optimizer.param_groups[0]["lr"] * self.cfg.mlca_weight_decay
+        for weight in self.decayed:
+            weight.mul_(scale)
 
     def _lr_factor(self, progress: float) -> float:
         """lr / cfg.lr for the coming step at ``progress`` (:meth:`_progress`): a linear warm-up over
