@@ -48,12 +48,14 @@ for stage in "${stages[@]}"; do
     # (and a process list taken 20 s before the limit says what they were doing). One log per stage.
     pytest*) paths=${stage#pytest}; log=pytest${paths:+_$(basename "${paths#:}" .py)}
       limit=$(( ${PYTEST_LIMIT:-360} < ${DEADLINE:-570} - SECONDS ? ${PYTEST_LIMIT:-360} : ${DEADLINE:-570} - SECONDS ))
+      # Detached from stdout: a caller's pipe (`gpu_check.sh | tail`) would otherwise stay open, and
+      # wait, until the watcher's sleep ended (~300 s lost in one call).
       ( sleep $((limit - 20)); ps -eo pid,ppid,etime,pcpu,rss,args --sort=-pcpu | cut -c1-300 | head -60 \
-          >"$LOGS/${log}_ps.txt" ) & watcher=$!
+          >"$LOGS/${log}_ps.txt" ) </dev/null >/dev/null 2>&1 & watcher=$!
       ( [ -n "$PYTEST_WORKERS" ] && export OMP_NUM_THREADS=${PYTEST_THREADS:-2}
         step "$log" "$limit" python -m pytest -v -p no:cacheprovider -rs --durations=25 \
           ${PYTEST_WORKERS:+-n $PYTEST_WORKERS} ${paths#:} )
-      kill $watcher 2>/dev/null
+      pkill -P $watcher 2>/dev/null; kill $watcher 2>/dev/null
       python -m pytest --collect-only -q -p no:cacheprovider ${paths#:} 2>/dev/null | grep '::' | LC_ALL=C sort >"$LOGS/${log}_collected.txt"
       # A test id runs to the end of its line (parameter ids may hold spaces); xdist puts it after the outcome.
       outcome='(PASSED|FAILED|SKIPPED|ERROR|XFAIL|XPASS)'
