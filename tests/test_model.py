@@ -297,6 +297,52 @@ def test_packed_offsets_equal_ray_indices_in_forward_and_density(backend):
     torch.testing.assert_close(model.density(x, offsets=offsets), by_indices[0])
 
 
+def outputs_and_grads(model, x, **kwargs):
+    sigma, rgb = model(x, **kwargs)
+    loss = (sigma * torch.linspace(0.1, 1, sigma.numel(), dtype=sigma.dtype)).sum() + (rgb * rgb).sum()
+    params = [p for p in model.parameters() if p.requires_grad]
+    return [sigma, rgb, *torch.autograd.grad(loss, params, allow_unused=True)]
+
+
+@pytest.mark.parametrize("preset", "ABCD")
+@pytest.mark.parametrize("eq7", [False, True], ids=["default", "eq7"])
+@pytest.mark.parametrize("layout", ["offsets", "ray_indices", "both"])
+def test_ray_directions_give_what_per_sample_directions_give(preset, eq7, layout):
+    """The view branch once per ray, spread to the samples, is the per-sample one: outputs and every
+    parameter's gradient, with empty rays and (Eq. 7) the directions in the trunk too."""
+    model = randomize_(small_model(preset, mlca_concat_direction=eq7)).double()
+    ray_indices, offsets = ragged_layout([6, 0, 3, 11, 1, 0])
+    N, R = ray_indices.numel(), 6
+    x = torch.rand(N, 3, dtype=torch.float64) * 3 - 1.5
+    rays = F.normalize(torch.randn(R, 3, dtype=torch.float64), dim=-1)
+    given = {"offsets": {"offsets": offsets}, "ray_indices": {"ray_indices": ray_indices, "num_rays": R},
+             "both": {"offsets": offsets, "ray_indices": ray_indices}}[layout]
+    want = outputs_and_grads(model, x, d=rays[ray_indices], **given)
+    got = outputs_and_grads(model, x, d=None, ray_directions=rays, **given)
+    for a, b in zip(got, want, strict=True):
+        assert (a is None and b is None) or torch.allclose(a, b, rtol=1e-10, atol=1e-12)
+    if eq7:
+        torch.testing.assert_close(model.density(x, ray_directions=rays, **given),
+                                   model.density(x, d=rays[ray_indices], **given))
+
+
+def test_ray_directions_without_samples():
+    model = small_model("D")
+    sigma, rgb = model(torch.zeros(0, 3), None, offsets=torch.zeros(3, dtype=torch.int64),
+                       ray_directions=torch.zeros(2, 3))
+    assert sigma.shape == (0,) and rgb.shape == (0, 3)
+
+
+def test_spread_to_samples_gradcheck():
+    from mixer_nerf.model.ray_rows import spread_to_samples
+
+    ray_indices, offsets = ragged_layout([2, 0, 3, 1])
+    values = torch.randn(4, 5, dtype=torch.float64, requires_grad=True)
+    for kwargs in ({"offsets": offsets}, {"ray_indices": ray_indices}):
+        assert torch.autograd.gradcheck(lambda v: spread_to_samples(v, 6, **kwargs), (values,))
+        torch.testing.assert_close(spread_to_samples(values, 6, **kwargs), values[ray_indices])
+
+
 @pytest.mark.skipif(not _extension.available(), reason="kernels not built")
 @pytest.mark.parametrize("preset", ["A", "D"])
 def test_kernel_backend_field_equals_the_reference_path(preset):
@@ -416,6 +462,20 @@ def test_bf16_autocast_keeps_outputs_float32_and_close():
     (sigma_bf.sum() + rgb_bf.sum()).backward()
 
 
+def test_ray_directions_under_bf16_autocast():
+    """bf16 rows spread to the samples; their gradient summed per ray in float32, handed back in bf16."""
+    model = randomize_(small_model("D"))
+    ray_indices, offsets = ragged_layout([6, 0, 3, 11, 1])
+    x = torch.rand(ray_indices.numel(), 3) * 3 - 1.5
+    rays = F.normalize(torch.randn(5, 3), dim=-1)
+    runs = []
+    for kwargs in ({"d": rays[ray_indices]}, {"d": None, "ray_directions": rays}):
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            runs.append(outputs_and_grads(model, x, offsets=offsets, **kwargs))
+    for a, b in zip(*runs, strict=True):
+        torch.testing.assert_close(a, b, rtol=0.05, atol=0.05)
+
+
 def test_empty_and_single_inputs():
     model = small_model("D")
     for R, S in ((0, 4), (1, 1), (3, 0)):
@@ -476,6 +536,20 @@ def test_kernel_positional_encoding_backend_matches_reference():
             ValueError,
             "offsets on meta",
         ),
+        (torch.zeros(5, 3), None, {}, ValueError, "d is required"),
+        # ray_directions: packed only, instead of d, with a layout, one row per ray
+        (torch.zeros(2, 4, 3), None, {"ray_directions": torch.zeros(2, 3)}, ValueError, "only for packed"),
+        (torch.zeros(5, 3), torch.zeros(5, 3), {"ray_directions": torch.zeros(1, 3), "offsets": torch.tensor([0, 5])},
+         ValueError, "instead of d"),
+        (torch.zeros(5, 3), None, {"ray_directions": torch.zeros(1, 3)}, ValueError, "needs offsets or ray_indices"),
+        (torch.zeros(5, 3), None, {"ray_directions": torch.zeros(2, 3), "offsets": torch.tensor([0, 5])},
+         ValueError, r"ray_directions must have shape \(1, 3\)"),
+        (torch.zeros(5, 3), None, {"ray_directions": torch.zeros(1, 2), "ray_indices": torch.zeros(5, dtype=torch.long)},
+         ValueError, r"ray_directions must have shape \(R, 3\)"),
+        (torch.zeros(5, 3), None, {"ray_directions": torch.zeros(1, 3), "ray_indices": torch.zeros(5, dtype=torch.long),
+                                   "num_rays": 2}, ValueError, r"\(2, 3\)"),
+        (torch.zeros(5, 3), None, {"ray_directions": torch.zeros(1, 3, dtype=torch.int32),
+                                   "offsets": torch.tensor([0, 5])}, TypeError, "ray_directions must"),
     ],
 )
 def test_bad_inputs_name_the_argument(x, d, kwargs, error, match):

@@ -153,10 +153,12 @@ class IndicesOnly(nn.Module):
 
 
 @pytest.mark.parametrize("backend", ["torch", "auto"])
-def test_model_renders_the_same_through_offsets_and_ray_indices(backend):
-    """MixerNeRF's SE takes the fused ops given offsets, index_add and a gather given ray_indices."""
+@pytest.mark.parametrize("preset", ["B", "D"])
+def test_model_renders_the_same_through_offsets_and_ray_indices(backend, preset):
+    """MixerNeRF's SE takes the fused ops given offsets, index_add and a gather given ray_indices;
+    its view branch runs once per ray on ray_directions, or per sample on d."""
     torch.manual_seed(0)
-    cfg = preset_config("B", depth=3, width=32, skips=(2,), view_width=16, pos_freqs=4, dir_freqs=2,
+    cfg = preset_config(preset, depth=3, width=32, skips=(2,), view_width=16, pos_freqs=4, dir_freqs=2,
                         se_reduction=4, backend=backend)
     field = MixerNeRF(cfg)
     rays_o, rays_d = rays_towards_ball(64)
@@ -164,8 +166,8 @@ def test_model_renders_the_same_through_offsets_and_ray_indices(backend):
     for f in (field, IndicesOnly(field)):
         out = render_rays_marched(f, rays_o, rays_d, ball_grid(16), stratified=False,
                                   background=torch.ones(3), backend=backend)
-        (grad,) = torch.autograd.grad(out.color.sum(), field.se.reduce.weight)
-        images.append((out.color, grad))
+        grads = torch.autograd.grad(out.color.sum(), [field.se.reduce.weight, field.view_direction.weight])
+        images.append((out.color, *grads))
     torch.testing.assert_close(images[0], images[1], rtol=1e-5, atol=1e-6)
 
 

@@ -25,6 +25,8 @@ Layouts: dense samples ``x (R, S, 3)`` with ``d (R, S, 3)`` or per-ray ``(R, 1, 
 the view branch's direction term is computed once per ray), or packed ``x (N, 3)`` with ``d (N, 3)``
 and, for the SE squeeze, optional CSR ``offsets (R+1,)`` (rows of a ray contiguous: the fused SE
 ops) or ``ray_indices (N,)`` (rows in any order); without either every point is its own ray.
+Packed samples with a layout may give ``ray_directions (R, 3)`` instead of ``d``: the view branch
+then runs once per ray too (:mod:`mixer_nerf.model.ray_rows` spreads its rows to the samples).
 """
 
 from __future__ import annotations
@@ -39,14 +41,16 @@ from ..ops import linear_relu, positional_encoding
 from ..ops._checks import check_floating, check_offsets, check_same_device, check_tensor
 from .config import ModelConfig
 from .mlca import MLCA
+from .ray_rows import spread_to_samples
 from .squeeze_excitation import SqueezeExcitation
 
 
 class MixerNeRF(nn.Module):
     """Radiance field ``f(x, d) -> (sigma, rgb)``; see the module docstring for the architecture."""
 
-    # Packed samples' layout the renderers pass (mixer_nerf.render.skipping): SE squeezes per ray.
-    packed_layout = ("ray_indices", "offsets")
+    # Packed samples' layout the renderers pass (mixer_nerf.render.skipping): SE squeezes per ray,
+    # and the view branch runs once per ray on the rays' directions.
+    packed_layout = ("ray_indices", "offsets", "ray_directions")
 
     def __init__(self, cfg: ModelConfig | None = None) -> None:
         super().__init__()
@@ -91,29 +95,39 @@ class MixerNeRF(nn.Module):
         ray_indices: torch.Tensor | None = None,
         num_rays: int | None = None,
         offsets: torch.Tensor | None = None,
+        ray_directions: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Density and colour at sample points.
 
         Args:
             x: positions ``(R, S, 3)``, or packed ``(N, 3)``.
-            d: unit view directions ``(R, S, 3)`` or ``(R, 1, 3)``; ``(N, 3)`` when packed.
+            d: unit view directions ``(R, S, 3)`` or ``(R, 1, 3)``; ``(N, 3)`` when packed, or None
+                with ``ray_directions``.
             ray_indices: packed layout only, ``(N,)`` int64 ray of each sample (SE's squeeze).
-            num_rays: number of rays ``ray_indices`` index (default: its max + 1, a GPU sync).
+            num_rays: number of rays ``ray_indices`` index (default: its max + 1, a GPU sync;
+                ``ray_directions``' length when given).
             offsets: packed layout only, ``(R+1,)`` int64 CSR offsets: ray r owns samples
                 ``offsets[r]:offsets[r+1]`` (SE's squeeze by the fused ops; used instead of
                 ``ray_indices`` when both are given). Values are not checked (a GPU sync).
+            ray_directions: packed layout only, instead of ``d``: ``(R, 3)`` unit direction of each
+                ray, with ``offsets`` or ``ray_indices``; the view branch then runs once per ray
+                and is spread to the ray's samples.
 
         Returns:
             sigma ``x.shape[:-1]`` non-negative, rgb ``(*x.shape[:-1], 3)`` in [0, 1], in ``x``'s dtype
             (float32 under autocast, whose low precision stays inside the MLP).
         """
-        d = _check_inputs(x, d, ray_indices, offsets)
+        d = _check_inputs(x, d, ray_indices, offsets, ray_directions, num_rays)
+        if d is None and ray_directions is None:
+            raise ValueError("d is required (or ray_directions, for packed samples with a layout)")
         self._check_matches_parameters(x)
-        direction = self._encode_direction(d)
-        features = self._trunk_features(x, direction, ray_indices, num_rays, offsets)
+        direction, trunk_direction, spread = self._directions(x, d, ray_indices, offsets, ray_directions)
+        if ray_directions is not None:
+            num_rays = ray_directions.shape[0]
+        features = self._trunk_features(x, trunk_direction, ray_indices, num_rays, offsets)
         out = self.head(features)
         sigma = self._activate_density(out[..., 0], x.dtype)
-        view_term = self.view_direction(self.direction_mixer(direction))  # per ray when d is
+        view_term = spread(self.view_direction(self.direction_mixer(direction)))  # per ray when d is
         hidden = torch.relu(self.view_feature(out[..., 1:]) + view_term)
         rgb = torch.sigmoid(self.rgb(hidden).to(x.dtype))
         return sigma, rgb
@@ -125,14 +139,19 @@ class MixerNeRF(nn.Module):
         ray_indices: torch.Tensor | None = None,
         num_rays: int | None = None,
         offsets: torch.Tensor | None = None,
+        ray_directions: torch.Tensor | None = None,
     ) -> torch.Tensor:
-        """Only ``sigma`` (skips the colour branch), e.g. for occupancy-grid updates. ``d`` is needed
-        only when ``cfg.mlca_concat_direction`` makes the density view-dependent; the other
-        arguments are those of :meth:`forward`."""
-        d = _check_inputs(x, d, ray_indices, offsets)
+        """Only ``sigma`` (skips the colour branch), e.g. for occupancy-grid updates. ``d`` (or
+        ``ray_directions``) is needed only when ``cfg.mlca_concat_direction`` makes the density
+        view-dependent; the other arguments are those of :meth:`forward`."""
+        d = _check_inputs(x, d, ray_indices, offsets, ray_directions, num_rays)
         self._check_matches_parameters(x)
-        direction = None if d is None else self._encode_direction(d)
-        features = self._trunk_features(x, direction, ray_indices, num_rays, offsets)
+        trunk_direction = None
+        if self.cfg.mlca_concat_direction:
+            _, trunk_direction, _ = self._directions(x, d, ray_indices, offsets, ray_directions)
+        if ray_directions is not None:
+            num_rays = ray_directions.shape[0]
+        features = self._trunk_features(x, trunk_direction, ray_indices, num_rays, offsets)
         return self._activate_density(
             F.linear(features, self.head.weight[:1], self.head.bias[:1])[..., 0], x.dtype
         )
@@ -166,6 +185,20 @@ class MixerNeRF(nn.Module):
 
     def _encode_direction(self, d: torch.Tensor) -> torch.Tensor:
         return positional_encoding(d, self.cfg.dir_freqs, scale=self.cfg.pe_scale, backend=self.cfg.backend)
+
+    def _directions(self, x, d, ray_indices, offsets, ray_directions):
+        """PE of the directions for the view branch, the same per sample for the trunk (Eq. 7 only;
+        else None), and what takes the view branch's rows to the samples (per-ray rows of
+        ``ray_directions`` spread, or nothing to do)."""
+        if ray_directions is None:
+            direction = None if d is None else self._encode_direction(d)
+            return direction, direction if self.cfg.mlca_concat_direction else None, lambda rows: rows
+
+        def spread(rows: torch.Tensor) -> torch.Tensor:
+            return spread_to_samples(rows, x.shape[0], offsets, ray_indices)
+
+        direction = self._encode_direction(ray_directions)
+        return direction, spread(direction) if self.cfg.mlca_concat_direction else None, spread
 
     def _trunk_features(
         self,
@@ -216,6 +249,8 @@ def _check_inputs(
     d: torch.Tensor | None,
     ray_indices: torch.Tensor | None,
     offsets: torch.Tensor | None,
+    ray_directions: torch.Tensor | None = None,
+    num_rays: int | None = None,
 ) -> torch.Tensor | None:
     """Validate the layouts (ValueError/TypeError naming the argument); returns ``d``, with an
     expanded per-ray view ``(R, S, 3)`` (stride 0 along S) narrowed to ``(R, 1, 3)``."""
@@ -237,6 +272,8 @@ def _check_inputs(
         if x.dim() != 2:
             raise ValueError("offsets is only for packed samples x (N, 3)")
         check_offsets("offsets", offsets, x.shape[0], check_values=False)
+    if ray_directions is not None:
+        _check_ray_directions(x, d, ray_indices, offsets, ray_directions, num_rays)
     if d is None:
         return None
     check_floating("d", d)
@@ -249,3 +286,19 @@ def _check_inputs(
     if d.dim() != 3 or d.shape[0] != R or d.shape[1] not in (1, S) or d.shape[2] != 3:
         raise ValueError(f"d must have shape {(R, S, 3)} or {(R, 1, 3)}, got {tuple(d.shape)}")
     return d[:, :1] if d.shape[1] > 1 and d.stride(1) == 0 else d
+
+
+def _check_ray_directions(x, d, ray_indices, offsets, ray_directions, num_rays) -> None:
+    """``ray_directions (R, 3)``: packed samples only, instead of ``d``, with a layout that maps
+    samples to rays and R rays (offsets' R, or ``num_rays``)."""
+    check_floating("ray_directions", ray_directions)
+    check_same_device(x=x, ray_directions=ray_directions)
+    if x.dim() != 2 or d is not None:
+        raise ValueError("ray_directions is only for packed samples x (N, 3), instead of d (pass d=None)")
+    if offsets is None and ray_indices is None:
+        raise ValueError("ray_directions needs offsets or ray_indices (which samples belong to which ray)")
+    rays = offsets.shape[0] - 1 if offsets is not None else num_rays
+    if ray_directions.dim() != 2 or ray_directions.shape[1] != 3 or (
+            rays is not None and ray_directions.shape[0] != rays):
+        want = "(R, 3)" if rays is None else str((rays, 3))
+        raise ValueError(f"ray_directions must have shape {want}, one row per ray, got {tuple(ray_directions.shape)}")

@@ -13,7 +13,7 @@ class MixedPrecisionField(nn.Module):
     outputs are cast back before they reach them.
     """
 
-    packed_layout = ("ray_indices", "offsets")
+    packed_layout = ("ray_indices", "offsets", "ray_directions")
 
     def __init__(self, field: nn.Module, device_type: str, dtype: torch.dtype | None) -> None:
         super().__init__()
@@ -31,11 +31,13 @@ class MixedPrecisionField(nn.Module):
         ray_indices: torch.Tensor | None = None,
         num_rays: int | None = None,
         offsets: torch.Tensor | None = None,
+        ray_directions: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """The field's ``(sigma, rgb)`` in float32; packed-layout arguments as for
         :meth:`~mixer_nerf.model.MixerNeRF.forward`."""
         with self._autocast():
-            sigma, rgb = self.field(x, d, ray_indices=ray_indices, num_rays=num_rays, offsets=offsets)
+            sigma, rgb = self.field(x, d, ray_indices=ray_indices, num_rays=num_rays, offsets=offsets,
+                                    ray_directions=ray_directions)
         return sigma.float(), rgb.float()
 
     def density(
@@ -44,9 +46,11 @@ class MixedPrecisionField(nn.Module):
         ray_indices: torch.Tensor | None = None,
         num_rays: int | None = None,
         offsets: torch.Tensor | None = None,
+        ray_directions: torch.Tensor | None = None,
     ) -> torch.Tensor:
         with self._autocast():
-            return self.field.density(x, ray_indices=ray_indices, num_rays=num_rays, offsets=offsets).float()
+            return self.field.density(x, ray_indices=ray_indices, num_rays=num_rays, offsets=offsets,
+                                      ray_directions=ray_directions).float()
 
 
 def set_matmul_precision(precision: str) -> None:

@@ -13,8 +13,10 @@ a fully occupied grid (as during warm-up) marches densely through the box.
 
 Fields: ``field(x (N, 3), d (N, 3) unit) -> (sigma (N,), rgb (N, 3))``. A field that also takes the
 samples' packed layout declares it in ``packed_layout``, a tuple of ``"ray_indices"`` (then it
-gets ``ray_indices`` (N,) and ``num_rays``) and ``"offsets"`` (the CSR offsets (R+1,)), as
-:class:`~mixer_nerf.model.MixerNeRF` does for its per-ray squeeze-and-excitation.
+gets ``ray_indices`` (N,) and ``num_rays``), ``"offsets"`` (the CSR offsets (R+1,)) and
+``"ray_directions"`` (then it gets ``d=None`` and the rays' unit directions ``ray_directions``
+(R, 3) instead), as :class:`~mixer_nerf.model.MixerNeRF` does for its per-ray squeeze-and-excitation
+and its view branch, which runs once per ray.
 """
 
 from __future__ import annotations
@@ -78,8 +80,9 @@ class MarchedResult(NamedTuple):
 
 def field_inputs(field: nn.Module, rays_o, rays_d, samples: PackedSamples):
     """What a field call on packed samples needs: the points ``(N, 3)``, their unit view
-    directions ``(N, 3)``, their rays' ``|d|`` ``(N,)`` (densities are per unit t) and the keyword
-    arguments of the layout the field declares in ``packed_layout``."""
+    directions ``(N, 3)`` (None when the field takes ``ray_directions``), their rays' ``|d|``
+    ``(N,)`` (densities are per unit t) and the keyword arguments of the layout the field declares
+    in ``packed_layout``."""
     declared = getattr(field, "packed_layout", ())
     layout = {}
     if "ray_indices" in declared:
@@ -90,7 +93,11 @@ def field_inputs(field: nn.Module, rays_o, rays_d, samples: PackedSamples):
     viewdirs = rays_d / norm.clamp_min(torch.finfo(rays_d.dtype).tiny)[:, None]
     mid = 0.5 * (samples.t_starts + samples.t_ends)
     rays = samples.ray_indices
-    return rays_o[rays] + rays_d[rays] * mid[:, None], viewdirs[rays], norm[rays], layout
+    if "ray_directions" in declared:
+        layout["ray_directions"], viewdirs = viewdirs, None
+    else:
+        viewdirs = viewdirs[rays]
+    return rays_o[rays] + rays_d[rays] * mid[:, None], viewdirs, norm[rays], layout
 
 
 @torch.no_grad()
