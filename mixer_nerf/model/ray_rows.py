@@ -40,7 +40,8 @@ class _Spread(torch.autograd.Function):
         # float32 sums for half/bfloat16 gradients
         acc = torch.promote_types(grad.dtype, torch.float32)
         if offsets is not None:
-            summed = torch.segment_reduce(grad.to(acc), "sum", offsets=offsets, axis=0)
+            # unsafe: no validation of offsets, which reads them back to the host on a GPU
+            summed = torch.segment_reduce(grad.to(acc), "sum", offsets=offsets, axis=0, unsafe=True)
         else:
             summed = grad.new_zeros(ctx.num_rays, grad.shape[1], dtype=acc).index_add_(0, ray_indices, grad.to(acc))
         return summed.to(grad.dtype), None, None
