@@ -326,6 +326,22 @@ def test_ray_directions_give_what_per_sample_directions_give(preset, eq7, layout
                                    model.density(x, d=rays[ray_indices], **given))
 
 
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU")
+@pytest.mark.parametrize("layout", ["offsets", "ray_indices"])
+def test_ray_directions_on_cuda(layout):
+    """torch.segment_reduce (offsets) and index_add (ray_indices) sum each ray's rows on the GPU."""
+    model = randomize_(small_model("D", backend="auto")).cuda()
+    ray_indices, offsets = ragged_layout([6, 0, 3, 11, 1, 0] * 50)
+    x = (torch.rand(ray_indices.numel(), 3) * 3 - 1.5).cuda()
+    rays = F.normalize(torch.randn(300, 3), dim=-1).cuda()
+    given = {"offsets": {"offsets": offsets.cuda()}, "ray_indices": {"ray_indices": ray_indices.cuda(), "num_rays": 300}}[layout]
+    want = outputs_and_grads(model, x, d=rays[ray_indices.cuda()], **given)
+    got = outputs_and_grads(model, x, d=None, ray_directions=rays, **given)
+    for a, b in zip(got, want, strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-5)
+
+
 def test_ray_directions_without_samples():
     model = small_model("D")
     sigma, rgb = model(torch.zeros(0, 3), None, offsets=torch.zeros(3, dtype=torch.int64),
