@@ -805,8 +805,10 @@ def test_mlca_weight_decay_scales_only_the_mixing_after_each_step(tmp_path, samp
 
 
 def test_mlca_weight_decay_leaves_presets_without_mlca_alone_and_refuses_a_scale_below_zero(tmp_path):
-    trainer = Trainer(tiny_config(tmp_path / "A", preset="A", mlca_weight_decay=10.0), log=quiet)
+    lines = []
+    trainer = Trainer(tiny_config(tmp_path / "A", preset="A", mlca_weight_decay=10.0), log=lines.append)
     assert trainer.decayed == []
+    assert any("--mlca-weight-decay does nothing in preset A" in line for line in lines)
     trainer.train_step()
     with pytest.raises(ValueError, match="mlca_weight_decay"):
         Trainer(tiny_config(tmp_path / "D", lr=1e-2, mlca_weight_decay=100.0), log=quiet)

@@ -224,6 +224,8 @@ class Trainer:
         if cfg.mlca_weight_decay > 0 and cfg.lr * cfg.mlca_weight_decay >= 1:
             raise ValueError(f"mlca_weight_decay {cfg.mlca_weight_decay} times lr {cfg.lr} must be below 1 "
                              "(each step scales the mixing by 1 - lr * W)")
+        if cfg.mlca_weight_decay > 0 and not self.decayed:
+            self.log(f"  note: --mlca-weight-decay does nothing in preset {cfg.preset}, which has no MLCA")
         near, far = self.train_scene.near, self.train_scene.far
         self.renderer = image_renderer(cfg, self.fields, near, far, self.background, step=lambda: self.step)
         self.sampler = RaySampler(self.train_scene, cfg.batch_rays, rank_seed(cfg.seed, self.rank))
