@@ -125,6 +125,10 @@ def params_of(trainer: Trainer) -> dict[str, torch.Tensor]:
         ("distortion_weight", -1e-3),
         ("distortion_weight", math.nan),
         ("distortion_weight", math.inf),
+        ("occlusion_weight", -1e-3),
+        ("occlusion_weight", math.nan),
+        ("occlusion_fraction", 0.0),
+        ("occlusion_fraction", 1.0),
         ("frequency_anneal", -0.1),
         ("frequency_anneal", 1.5),
         ("frequency_anneal", math.nan),
@@ -737,6 +741,16 @@ def test_distortion_loss_trains_the_main_field_with_the_proposal_sampler(tmp_pat
     assert out.weights.shape == (32, 6) and samples.edges.shape == (32, 7)  # matching (R, N), (R, N + 1)
     assert samples.edges.min() >= 0 and samples.edges.max() <= 1  # s, not t in [near, far] = [2, 6]
     assert json.loads((tmp_path / "config.json").read_text())["train"]["distortion_weight"] == 0.01
+
+
+def test_occlusion_loss_joins_the_proposal_losses_and_is_refused_elsewhere(tmp_path):
+    trainer = Trainer(tiny_config(tmp_path, sampler="proposal", proposal_rounds=(12, 8), proposal_samples=6,
+                                  occlusion_weight=0.1, occlusion_fraction=0.5), log=quiet)
+    losses = trainer._proposal_losses(*trainer.sampler.sample(), update=True)
+    assert losses["loss_occlusion"].requires_grad and 0 < float(losses["loss_occlusion"].detach()) <= 0.1
+    for sampler in ("occupancy", "hierarchical"):
+        with pytest.raises(ValueError, match="occlusion_weight applies to the proposal sampler only"):
+            TrainConfig(sampler=sampler, occlusion_weight=0.1)
 
 
 def test_proposal_runs_without_a_distortion_weight_have_no_distortion_loss(tmp_path):

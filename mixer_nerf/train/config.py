@@ -154,6 +154,13 @@ class TrainConfig:
         0.0, "proposal sampler: weight of mip-NeRF 360's distortion loss on the main field's weights, "
         "which gathers each ray's weight into few short intervals (default 0: off; nerfacto uses 0.002)",
         metavar="W")
+    # Off until screened: against floaters in front of the cameras (docs/training.md).
+    occlusion_weight: float = option(
+        0.0, "proposal sampler: weight of FreeNeRF's occlusion regularisation, the main field's weight "
+        "in the first --occlusion-fraction of each ray (default 0: off)", metavar="W")
+    occlusion_fraction: float = option(
+        0.1, "proposal sampler: the stretch of each ray, in the sampler's spacing coordinate s in [0, 1], "
+        "that --occlusion-weight penalises", metavar="FRACTION")
     # Off until screened: a remedy for overfitting on few views (docs/training.md).
     frequency_anneal: float = option(
         0.0, "open the positions' encoding octave by octave over this fraction of the run, coarse to "
@@ -231,11 +238,14 @@ class TrainConfig:
         _one_of("proposal_intervals", self.proposal_intervals, INTERVALS)
         if not self.proposal_weight_padding >= 0:
             raise ValueError(f"proposal_weight_padding must be >= 0, got {self.proposal_weight_padding}")
-        if not (math.isfinite(self.distortion_weight) and self.distortion_weight >= 0):
-            raise ValueError(f"distortion_weight must be finite and >= 0, got {self.distortion_weight}")
-        if self.distortion_weight > 0 and self.sampler not in ("auto", "proposal"):
-            raise ValueError(f"distortion_weight applies to the proposal sampler only, not to sampler "
-                             f"{self.sampler!r}")
+        for name in PROPOSAL_REGULARISERS:
+            weight = getattr(self, name)
+            if not (math.isfinite(weight) and weight >= 0):
+                raise ValueError(f"{name} must be finite and >= 0, got {weight}")
+            if weight > 0 and self.sampler not in ("auto", "proposal"):
+                raise ValueError(f"{name} applies to the proposal sampler only, not to sampler {self.sampler!r}")
+        if not 0 < self.occlusion_fraction < 1:
+            raise ValueError(f"occlusion_fraction must be in (0, 1), got {self.occlusion_fraction}")
         if self.adam_eps is not None and not 0 < self.adam_eps < math.inf:
             raise ValueError(f"adam_eps must be positive and finite, got {self.adam_eps}")
         if self.grad_clip is not None and not 0 < self.grad_clip < math.inf:
@@ -290,6 +300,9 @@ class TrainConfig:
             raise ValueError(f"unknown training settings: {unknown}")
         return cls(**values)
 
+
+# Losses on the proposal sampler's main field, each off at weight 0.
+PROPOSAL_REGULARISERS = ("distortion_weight", "occlusion_weight")
 
 SAMPLER_RECIPES: dict[str, dict[str, float]] = {
     # Chosen by time-to-quality screens on Lego; eps 1e-15 is nerfacc's (docs/training.md).

@@ -25,7 +25,7 @@ from ..render.skipping import (
     render_rays_marched,
     render_rays_proposal,
 )
-from .config import TrainConfig
+from .config import PROPOSAL_REGULARISERS, TrainConfig
 from .fields import RadianceFields
 
 
@@ -49,9 +49,10 @@ def resolve_sampler(cfg: TrainConfig, bbox: torch.Tensor | None, ndc: bool) -> T
         raise ValueError("sampler 'occupancy' needs a density without a view direction; "
                          "mlca_concat_direction (Eq. 7) makes it view-dependent: use 'proposal' or 'hierarchical'")
     # only "auto" gets here: TrainConfig refuses the other samplers when named
-    if cfg.distortion_weight > 0 and sampler != "proposal":
-        raise ValueError(f"distortion_weight applies to the proposal sampler only, and sampler 'auto' chose "
-                         f"{sampler!r} for this scene: pass sampler 'proposal' or distortion_weight 0")
+    for name in PROPOSAL_REGULARISERS:
+        if getattr(cfg, name) > 0 and sampler != "proposal":
+            raise ValueError(f"{name} applies to the proposal sampler only, and sampler 'auto' chose "
+                             f"{sampler!r} for this scene: pass sampler 'proposal' or {name} 0")
     cfg = cfg.with_recipe(sampler)
     return dataclasses.replace(cfg, fine_network=cfg.fine_network and sampler == "hierarchical")
 

@@ -22,6 +22,7 @@ from ..ops import use_kernel
 from ..render import render_rays
 from ..render.skipping import (
     distortion_loss,
+    occlusion_loss,
     proposal_loss,
     proposal_update_due,
     render_rays_proposal,
@@ -362,6 +363,9 @@ class Trainer:
                   "loss_proposal": cfg.proposal_loss_weight * loss}
         if cfg.distortion_weight > 0:  # the edges are in s (no gradient): only the main field's weights learn
             losses["loss_distortion"] = cfg.distortion_weight * distortion_loss(out.weights, samples.edges)
+        if cfg.occlusion_weight > 0:
+            losses["loss_occlusion"] = cfg.occlusion_weight * occlusion_loss(
+                out.weights, samples.edges, cfg.occlusion_fraction)
         return losses
 
     def _marched_losses(self, batch: MarchedBatch) -> dict[str, torch.Tensor]:

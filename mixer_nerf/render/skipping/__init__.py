@@ -10,9 +10,11 @@ samples (early ray termination) and rays that miss the scene (box clipping), on 
 - :class:`ProposalSampler`, :func:`render_rays_proposal`, :func:`proposal_loss`,
   :func:`proposal_update_due`: proposal networks for scenes a grid cannot prune (forward-facing, unbounded).
 - :func:`distortion_loss`: mip-NeRF 360's regulariser of the proposal sampler's main field.
+- :func:`occlusion_loss`: FreeNeRF's, against density in front of the cameras.
 """
 
 from .distortion import distortion_loss
+from .occlusion import occlusion_loss
 from .marching import (
     MarchedResult,
     MarchedSamples,
@@ -50,6 +52,7 @@ __all__ = [
     "ProposalSampler",
     "SampleBudget",
     "distortion_loss",
+    "occlusion_loss",
     "march_samples",
     "proposal_loss",
     "proposal_update_due",
