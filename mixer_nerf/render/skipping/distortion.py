@@ -17,6 +17,15 @@ import torch
 import torch.nn.functional as F
 
 
+def interval_midpoints(loss: str, weights: torch.Tensor, edges: torch.Tensor) -> torch.Tensor:
+    """``(R, N)`` midpoints of the intervals of ``edges (R, N + 1)``, after checking that they match
+    ``weights (R, N)`` (shapes only: no device synchronisation); ``loss`` names the caller."""
+    if weights.dim() != 2 or edges.shape != (weights.shape[0], weights.shape[1] + 1):
+        raise ValueError(f"{loss} needs weights (R, N) and edges (R, N + 1), got "
+                         f"{tuple(weights.shape)} and {tuple(edges.shape)}")
+    return 0.5 * (edges[:, 1:] + edges[:, :-1])
+
+
 def distortion_loss(weights: torch.Tensor, edges: torch.Tensor) -> torch.Tensor:
     """Distortion loss of rays, averaged over them.
 
@@ -31,10 +40,7 @@ def distortion_loss(weights: torch.Tensor, edges: torch.Tensor) -> torch.Tensor:
     Raises:
         ValueError: the shapes do not match (checked on shapes only: no device synchronisation).
     """
-    if weights.dim() != 2 or edges.shape != (weights.shape[0], weights.shape[1] + 1):
-        raise ValueError(f"distortion_loss needs weights (R, N) and edges (R, N + 1), got "
-                         f"{tuple(weights.shape)} and {tuple(edges.shape)}")
-    mids = 0.5 * (edges[:, 1:] + edges[:, :-1])
+    mids = interval_midpoints("distortion_loss", weights, edges)
     widths = edges[:, 1:] - edges[:, :-1]
     weighted_mids = weights * mids
     # shifted inclusive sums rather than cumsum - self: exact zeros for the first interval

@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import torch
 
+from .distortion import interval_midpoints
+
 
 def occlusion_loss(weights: torch.Tensor, edges: torch.Tensor, fraction: float) -> torch.Tensor:
     """Mean over rays of the weight of the intervals whose midpoint lies in the first ``fraction``
@@ -20,8 +22,5 @@ def occlusion_loss(weights: torch.Tensor, edges: torch.Tensor, fraction: float) 
     Returns:
         A scalar in [0, 1], differentiable in ``weights``.
     """
-    if weights.dim() != 2 or edges.shape != (weights.shape[0], weights.shape[1] + 1):
-        raise ValueError(f"occlusion_loss needs weights (R, N) and edges (R, N + 1), got "
-                         f"{tuple(weights.shape)} and {tuple(edges.shape)}")
-    near = 0.5 * (edges[:, 1:] + edges[:, :-1]) < fraction
+    near = interval_midpoints("occlusion_loss", weights, edges) < fraction
     return (weights * near).sum(dim=-1).mean()
