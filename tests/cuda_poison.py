@@ -17,7 +17,10 @@ def poison_allocator(like, max_copies=64):
     inside segments that live tensors keep, and the allocator may hand one of those out instead
     (seen on an H100 after the segment-op and mlca tests). So each size is allocated until the
     allocator has to reserve new memory, which proves no cached free block of that size was left
-    unpoisoned. The mechanism itself is asserted."""
+    unpoisoned. Freed poisoned blocks can still merge with stale fragments too small to hold a
+    size, and the merged block may start in stale bytes: so finally the sizes are allocated in order, all alive at once as the op's outputs will
+    be, and filled, which poisons exactly the blocks the allocator hands out next. The mechanism
+    itself is asserted by allocating that sequence again."""
     nbytes = [t.numel() * t.element_size() for t in like if t.numel()]
     if not nbytes:
         return
@@ -32,5 +35,7 @@ def poison_allocator(like, max_copies=64):
             if copy >= 1 and torch.cuda.memory_reserved() > reserved:
                 break
     del blocks
-    probe = torch.empty(nbytes[0], dtype=torch.uint8, device="cuda")
-    assert (probe == 255).all(), "poisoning did not reach the allocator"
+    in_order = [torch.empty(n, dtype=torch.uint8, device="cuda").fill_(255) for n in nbytes]
+    del in_order
+    probes = [torch.empty(n, dtype=torch.uint8, device="cuda") for n in nbytes]
+    assert all(bool((p == 255).all()) for p in probes), "poisoning did not reach the allocator"

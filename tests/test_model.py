@@ -299,7 +299,7 @@ def test_packed_offsets_equal_ray_indices_in_forward_and_density(backend):
 
 def outputs_and_grads(model, x, **kwargs):
     sigma, rgb = model(x, **kwargs)
-    loss = (sigma * torch.linspace(0.1, 1, sigma.numel(), dtype=sigma.dtype)).sum() + (rgb * rgb).sum()
+    loss = (sigma * torch.linspace(0.1, 1, sigma.numel(), dtype=sigma.dtype, device=sigma.device)).sum() + (rgb * rgb).sum()
     params = [p for p in model.parameters() if p.requires_grad]
     return [sigma, rgb, *torch.autograd.grad(loss, params, allow_unused=True)]
 
