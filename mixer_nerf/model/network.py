@@ -117,13 +117,11 @@ class MixerNeRF(nn.Module):
             sigma ``x.shape[:-1]`` non-negative, rgb ``(*x.shape[:-1], 3)`` in [0, 1], in ``x``'s dtype
             (float32 under autocast, whose low precision stays inside the MLP).
         """
-        d = _check_inputs(x, d, ray_indices, offsets, ray_directions, num_rays)
+        d, num_rays = _check_inputs(x, d, ray_indices, offsets, ray_directions, num_rays)
         if d is None and ray_directions is None:
             raise ValueError("d is required (or ray_directions, for packed samples with a layout)")
         self._check_matches_parameters(x)
         direction, trunk_direction, spread = self._directions(x, d, ray_indices, offsets, ray_directions)
-        if ray_directions is not None:
-            num_rays = ray_directions.shape[0]
         features = self._trunk_features(x, trunk_direction, ray_indices, num_rays, offsets)
         out = self.head(features)
         sigma = self._activate_density(out[..., 0], x.dtype)
@@ -144,13 +142,11 @@ class MixerNeRF(nn.Module):
         """Only ``sigma`` (skips the colour branch), e.g. for occupancy-grid updates. ``d`` (or
         ``ray_directions``) is needed only when ``cfg.mlca_concat_direction`` makes the density
         view-dependent; the other arguments are those of :meth:`forward`."""
-        d = _check_inputs(x, d, ray_indices, offsets, ray_directions, num_rays)
+        d, num_rays = _check_inputs(x, d, ray_indices, offsets, ray_directions, num_rays)
         self._check_matches_parameters(x)
         trunk_direction = None
         if self.cfg.mlca_concat_direction:
             _, trunk_direction, _ = self._directions(x, d, ray_indices, offsets, ray_directions)
-        if ray_directions is not None:
-            num_rays = ray_directions.shape[0]
         features = self._trunk_features(x, trunk_direction, ray_indices, num_rays, offsets)
         return self._activate_density(
             F.linear(features, self.head.weight[:1], self.head.bias[:1])[..., 0], x.dtype
@@ -251,9 +247,10 @@ def _check_inputs(
     offsets: torch.Tensor | None,
     ray_directions: torch.Tensor | None = None,
     num_rays: int | None = None,
-) -> torch.Tensor | None:
+) -> tuple[torch.Tensor | None, int | None]:
     """Validate the layouts (ValueError/TypeError naming the argument); returns ``d``, with an
-    expanded per-ray view ``(R, S, 3)`` (stride 0 along S) narrowed to ``(R, 1, 3)``."""
+    expanded per-ray view ``(R, S, 3)`` (stride 0 along S) narrowed to ``(R, 1, 3)``, and the
+    number of rays (``ray_directions``' length when given, else ``num_rays``)."""
     check_floating("x", x)
     if x.dim() not in (2, 3) or x.shape[-1] != 3:
         raise ValueError(f"x must have shape (R, S, 3) or (N, 3), got {tuple(x.shape)}")
@@ -274,18 +271,19 @@ def _check_inputs(
         check_offsets("offsets", offsets, x.shape[0], check_values=False)
     if ray_directions is not None:
         _check_ray_directions(x, d, ray_indices, offsets, ray_directions, num_rays)
+        num_rays = ray_directions.shape[0]
     if d is None:
-        return None
+        return None, num_rays
     check_floating("d", d)
     check_same_device(x=x, d=d)
     if x.dim() == 2:
         if d.shape != x.shape:
             raise ValueError(f"d must have shape {tuple(x.shape)} like x, got {tuple(d.shape)}")
-        return d
+        return d, num_rays
     R, S, _ = x.shape
     if d.dim() != 3 or d.shape[0] != R or d.shape[1] not in (1, S) or d.shape[2] != 3:
         raise ValueError(f"d must have shape {(R, S, 3)} or {(R, 1, 3)}, got {tuple(d.shape)}")
-    return d[:, :1] if d.shape[1] > 1 and d.stride(1) == 0 else d
+    return (d[:, :1] if d.shape[1] > 1 and d.stride(1) == 0 else d), num_rays
 
 
 def _check_ray_directions(x, d, ray_indices, offsets, ray_directions, num_rays) -> None:
