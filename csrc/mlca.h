@@ -44,8 +44,9 @@ C10_HOST_DEVICE inline acc gelu_grad(acc x) {
 }
 
 // The model's channels C and token width D (positions and directions are 3-vectors): the sizes the
-// kernels compile in as constants (CPU: C; CUDA: C and D for float32).
-constexpr int kExactChannels = 8, kExactTokenDim = 3;
+// kernels compile in as constants (CPU: C; CUDA: C and D for float32). CUDA also compiles
+// mlca_channels = 3 (tokens kept at the coordinates' width) in.
+constexpr int kExactChannels = 8, kExactTokenDim = 3, kNarrowChannels = 3;
 
 // T tokens of D values lifted to C channels, and the layout of a row of weight gradients:
 // dW_t (T*T), db_t (T), dW_c (C*C), db_c (C), dlift (C*D), each row-major.

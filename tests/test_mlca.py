@@ -350,6 +350,8 @@ CUDA_SHAPES = [
     ((65536 + 77,), 21, 8, 3),
     ((1000,), 9, 8, 3),
     ((300,), 20, 8, 3),  # the model's C and D in the T = 21 bucket: the run-time-size kernels
+    ((65536 + 77,), 21, 3, 3),  # mlca_channels = 3: exact-size kernels too
+    ((1000,), 9, 3, 3),
     ((333,), 30, 16, 3),
     ((129,), 32, 4, 3),
     ((50,), 5, 3, 3),
@@ -404,13 +406,15 @@ def test_cuda_half_precision(dtype, gen):
 @pytest.mark.profiler
 @on_cuda
 @needs_kernels
-@pytest.mark.parametrize("T, dtype, channels", [(21, torch.float32, 8), (9, torch.float32, 8), (20, torch.float32, 0),
-                                                 (21, torch.float64, 0)])
-def test_cuda_the_models_sizes_run_the_exact_size_kernels(T, dtype, channels, gen):
-    """float32 at the model's sizes (T = 21 or 9, C = 8, D = 3) runs the kernels compiled for them
-    (channels 8 in their name); other sizes and dtypes the run-time-size ones (channels 0)."""
-    inputs = make_inputs((500,), T, 8, 3, gen, dtype, device="cuda")
-    grad = random_grad(inputs, 8, gen)
+@pytest.mark.parametrize("T, C, dtype, channels", [(21, 8, torch.float32, 8), (9, 8, torch.float32, 8),
+                                                    (21, 3, torch.float32, 3), (9, 3, torch.float32, 3),
+                                                    (20, 8, torch.float32, 0), (21, 8, torch.float64, 0),
+                                                    (21, 5, torch.float32, 0)])
+def test_cuda_the_models_sizes_run_the_exact_size_kernels(T, C, dtype, channels, gen):
+    """float32 at the model's sizes (T = 21 or 9, C = 8 or 3, D = 3) runs the kernels compiled for
+    them (their C in the name); other sizes and dtypes the run-time-size ones (channels 0)."""
+    inputs = make_inputs((500,), T, C, 3, gen, dtype, device="cuda")
+    grad = random_grad(inputs, C, gen)
     with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CUDA]) as prof:
         forward_backward(inputs, grad, "kernel")
         torch.cuda.synchronize()

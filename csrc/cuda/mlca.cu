@@ -50,10 +50,10 @@ struct Problem {
   int threads;  // per block: a kernel's constant, set in the kernel (folds like the sizes below)
 };
 
-// The model's sizes (T = kT, C = 8, D = 3; positions and directions) as compile-time constants:
+// The model's sizes (T = kT, C = 8 or 3, D = 3; positions and directions) as compile-time constants:
 // every shared-memory stride and loop bound then folds into the instructions instead of being
 // computed at run time. Other sizes take the run-time path (kC = 0).
-using mm::kExactChannels, mm::kExactTokenDim;
+using mm::kExactChannels, mm::kExactTokenDim, mm::kNarrowChannels;
 
 // This kernel's problem: pr with the block size, and with the exact sizes where kC says so.
 template <int kT, int kC, int kThreads>
@@ -513,15 +513,20 @@ std::pair<int, size_t> choose_tile(Problem& pr, int kT, int threads, bool backwa
   return {0, 0};
 }
 
-// of(kC): the kernel for channels kC, for pr: the exact-size one (kC = 8) for float and the model's
-// sizes when its tile is the whole block (it is wherever the shared memory fits), else the
-// run-time-size one (kC = 0).
+// Whether pr has the exact sizes of the kernel for kT tokens and kC channels, and its tile is the
+// whole block (it is wherever the shared memory fits).
+template <int kT, int kC>
+bool exact_sizes(const Problem& pr, int threads) {
+  return pr.T == kT && pr.C == kC && pr.D == kExactTokenDim && pr.tile == threads / kC;
+}
+
+// of(kC): the kernel for channels kC, for pr: for float at the model's sizes an exact-size one
+// (kC = 8, the default, or 3, MLCA without widening the tokens), else the run-time-size one (kC = 0).
 template <typename scalar_t, int kT, typename Of>
 auto pick_kernel(const Problem& pr, int threads, Of of) {
   if constexpr (std::is_same_v<scalar_t, float> && kT != 32) {
-    if (pr.T == kT && pr.C == kExactChannels && pr.D == kExactTokenDim && pr.tile == threads / kExactChannels) {
-      return of(std::integral_constant<int, kExactChannels>{});
-    }
+    if (exact_sizes<kT, kExactChannels>(pr, threads)) return of(std::integral_constant<int, kExactChannels>{});
+    if (exact_sizes<kT, kNarrowChannels>(pr, threads)) return of(std::integral_constant<int, kNarrowChannels>{});
   }
   return of(std::integral_constant<int, 0>{});
 }
