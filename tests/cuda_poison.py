@@ -18,9 +18,10 @@ def poison_allocator(like, max_copies=64):
     (seen on an H100 after the segment-op and mlca tests). So each size is allocated until the
     allocator has to reserve new memory, which proves no cached free block of that size was left
     unpoisoned. Freed poisoned blocks can still merge with stale fragments too small to hold a
-    size, and the merged block may start in stale bytes: so finally the sizes are allocated in order, all alive at once as the op's outputs will
-    be, and filled, which poisons exactly the blocks the allocator hands out next. The mechanism
-    itself is asserted by allocating that sequence again."""
+    size, and the merged block may start in stale bytes: so finally the sizes are allocated in
+    order, all alive at once as the op's outputs will be, and filled, which poisons exactly the
+    blocks the allocator hands out next. The mechanism itself is asserted by allocating that
+    sequence again."""
     nbytes = [t.numel() * t.element_size() for t in like if t.numel()]
     if not nbytes:
         return
