@@ -86,6 +86,22 @@ def test_table_files_agree(finished):
     assert (finished / "A_seed1" / "eval" / "metrics.json").is_file()
 
 
+def test_table_gives_each_held_out_views_psnr_where_there_are_few(finished):
+    from mixer_nerf.ablation.table import MAX_VIEW_COLUMNS, markdown
+
+    table = json.loads((finished / "table.json").read_text())
+    for run in table["runs"]:  # --max-images 1: the one view's PSNR is the run's
+        assert list(run["view_psnr"].values()) == [pytest.approx(run["psnr"])]
+    md = (finished / "ablation.md").read_text()
+    name = next(iter(table["runs"][0]["view_psnr"]))
+    assert f"PSNR per held-out view:\n\n| Preset | Seed | {name} |" in md
+    assert f"| D | 1 | {table['runs'][3]['psnr']:.2f} |" in md
+    many = {f"v{i}.png": 20.0 for i in range(MAX_VIEW_COLUMNS + 1)}
+    assert "per held-out view" not in markdown({**table, "runs": [{**r, "view_psnr": many} for r in table["runs"]]})
+    other = [{**r, "view_psnr": {"other.png": 20.0}} if r["seed"] else r for r in table["runs"]]
+    assert "per held-out view" not in markdown({**table, "runs": other})  # the runs scored different views
+
+
 def test_second_invocation_skips_finished_runs(finished, capsys):
     before = (finished / "D_seed0" / "checkpoint.pt").stat().st_mtime_ns
     assert ablate(finished, "--presets", "AD", "--seeds", "0,1", "--resume") == 0

@@ -22,6 +22,7 @@ PRESET_COLUMNS = ["preset", "model", "seeds", *(f"{m}_{k}" for m in METRICS for 
                   *(f"{m}_change_vs_A" for m in METRICS), "params", "steps_per_s", "seconds_to_target"]
 RUN_COLUMNS = ["preset", "seed", "status", "steps", "train_seconds", "steps_per_s", "params", *METRICS,
                "seconds_to_target", "eval_split", "eval_views", "run"]
+MAX_VIEW_COLUMNS = 8  # per-view PSNR in the markdown for scenes with few held-out views (Fern: 3)
 
 
 def build_table(plan: AblationPlan, records: list[dict[str, Any]]) -> dict[str, Any]:
@@ -33,7 +34,8 @@ def build_table(plan: AblationPlan, records: list[dict[str, Any]]) -> dict[str, 
     """
     curves = {(r["preset"], r["seed"]): val_curve(CsvLog(Path(r["run"]) / "val_log.csv")) for r in records}
     target = plan.target_psnr if plan.target_psnr is not None else _reachable_target(curves.values())
-    runs = [{**r, "seconds_to_target": _seconds_to(curves[(r["preset"], r["seed"])], target)} for r in records]
+    runs = [{**r, "seconds_to_target": _seconds_to(curves[(r["preset"], r["seed"])], target),
+             "view_psnr": _view_psnr(Path(r["run"]))} for r in records]
     presets = [_preset_row(p, [r for r in runs if r["preset"] == p]) for p in plan.presets
                if any(r["preset"] == p for r in runs)]  # a report may hold presets not started yet
     reference = next((row for row in presets if row["preset"] == "A"), None)
@@ -101,9 +103,31 @@ def markdown(table: dict[str, Any]) -> str:
             _num(r["steps_per_s"], 1), *(_num(r[m], d) for m, d in zip(METRICS, DIGITS)),
             _num(r["seconds_to_target"], 1), f"{r['eval_views']} {r['eval_split'] or ''}".strip(),
         ]) + " |")
+    lines += _view_lines(table["runs"])
     if table["notes"]:
         lines += ["", *(f"Note: {n}" for n in table["notes"])]
     return "\n".join(lines) + "\n"
+
+
+def _view_psnr(run: Path) -> dict[str, float] | None:
+    """PSNR of each held-out view of a scored run (its ``eval/metrics.json``), by view name."""
+    path = run / "eval" / "metrics.json"
+    if not path.is_file():
+        return None
+    return {image["name"]: image["psnr"] for image in json.loads(path.read_text())["images"]}
+
+
+def _view_lines(runs: list[dict[str, Any]]) -> list[str]:
+    """A per-view PSNR table where the scored runs share at most MAX_VIEW_COLUMNS views: with few
+    held-out views one view can decide a mean (a floater, or a view the others do not constrain)."""
+    scored = [r for r in runs if r.get("view_psnr")]
+    names = list(scored[0]["view_psnr"]) if scored else []
+    if not names or len(names) > MAX_VIEW_COLUMNS or any(list(r["view_psnr"]) != names for r in scored):
+        return []
+    return ["", "PSNR per held-out view:", "", "| Preset | Seed | " + " | ".join(names) + " |",
+            "|---|---|" + "---|" * len(names),
+            *("| " + " | ".join([r["preset"], str(r["seed"]), *(_num(r["view_psnr"][n], 2) for n in names)]) + " |"
+              for r in scored)]
 
 
 def _preset_row(preset: str, runs: list[dict[str, Any]]) -> dict[str, Any]:
