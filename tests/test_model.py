@@ -342,6 +342,30 @@ def test_ray_directions_on_cuda(layout):
         torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-5)
 
 
+@pytest.mark.parametrize("preset", "CD")
+def test_without_the_direction_mlca_the_view_branch_takes_pe_d(preset):
+    """mlca_directions=False removes exactly the MLCA on PE(d): the same field as one whose direction
+    MLCA is at its identity start (lift [I; 0], no mixing), with the view weights of the lifted
+    coordinates and zeros for the extra channels."""
+    plain = randomize_(small_model(preset, mlca_directions=False)).double()
+    assert isinstance(plain.direction_mixer, torch.nn.Identity) and isinstance(plain.position_mixer, MLCA)
+    mixed = small_model(preset).double()
+    C, T = mixed.cfg.mlca_channels, 1 + 2 * mixed.cfg.dir_freqs
+    mixed.load_state_dict(
+        {k: v for k, v in plain.state_dict().items() if not k.startswith("view_direction")}, strict=False
+    )
+    with torch.no_grad():
+        weight = torch.zeros_like(mixed.view_direction.weight).view(-1, T, C)
+        weight[..., :3] = plain.view_direction.weight.view(-1, T, 3)
+        mixed.view_direction.weight.copy_(weight.view(-1, T * C))
+    x, d = random_rays(4, 5, torch.float64)
+    for a, b in zip(plain(x, d), mixed(x, d), strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)
+    removed = sum(p.numel() for p in mixed.direction_mixer.parameters()) + (T * C - T * 3) * mixed.cfg.view_width
+    assert sum(p.numel() for p in plain.parameters()) == sum(p.numel() for p in mixed.parameters()) - removed
+    assert [m for m in plain.modules() if isinstance(m, MLCA)] == [plain.position_mixer]  # what the decay reaches
+
+
 def test_ray_directions_without_samples():
     model = small_model("D")
     sigma, rgb = model(torch.zeros(0, 3), None, offsets=torch.zeros(3, dtype=torch.int64),

@@ -40,6 +40,7 @@ class ModelConfig:
     # MLCA (hybrid spatial feature learning)
     mlca_channels: int = 8  # channels each frequency-band token is lifted to (from 3 coordinates)
     mlca_concat_direction: bool = False  # paper's Eq. 7: mix PE(x) and PE(d) together in the trunk
+    mlca_directions: bool = True  # an MLCA on PE(d) before the view branch (False: NeRF's PE(d) there)
     # Squeeze-and-excitation
     se_reduction: int = 16
     se_per_point: bool = False  # gate each sample by itself instead of by its ray's mean

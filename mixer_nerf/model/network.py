@@ -2,7 +2,7 @@
 
     x -> (x - center) / scale -> PE (10 octaves) -> [MLCA] -> trunk 8 x 256, ReLU, skip at 4
       -> [SE over the ray's samples] -> Linear 256 -> 1 + 256 -> sigma = softplus(raw - 1), feature
-    d -> PE (4 octaves) -> [MLCA] ---------------------------------+
+    d -> PE (4 octaves) -> [MLCA, unless mlca_directions=False] ---+
     feature -> Linear 256 -> 128  +  Linear (PE(d) width) -> 128  -+-> ReLU -> Linear 128 -> 3 -> sigmoid
 
 Density activation and initialisation. With NeRF's ReLU density and PyTorch's default init, a run
@@ -57,10 +57,10 @@ class MixerNeRF(nn.Module):
         self.cfg = cfg = cfg or ModelConfig()
         pos_tokens, dir_tokens = 1 + 2 * cfg.pos_freqs, 1 + 2 * cfg.dir_freqs
         trunk_tokens = pos_tokens + (dir_tokens if cfg.mlca_concat_direction else 0)
-        self.position_mixer = _mixer(cfg, trunk_tokens)
-        self.direction_mixer = _mixer(cfg, dir_tokens)
-        trunk_in = trunk_tokens * (cfg.mlca_channels if cfg.use_mlca else 3)
-        dir_in = dir_tokens * (cfg.mlca_channels if cfg.use_mlca else 3)
+        self.position_mixer = _mixer(cfg, trunk_tokens, cfg.use_mlca)
+        self.direction_mixer = _mixer(cfg, dir_tokens, cfg.use_mlca and cfg.mlca_directions)
+        trunk_in = trunk_tokens * _channels(self.position_mixer)
+        dir_in = dir_tokens * _channels(self.direction_mixer)
 
         widths = [trunk_in] + [cfg.width] * cfg.depth
         self.trunk = nn.ModuleList(
@@ -230,8 +230,13 @@ class MixerNeRF(nn.Module):
         return F.softplus(raw + self.cfg.density_shift)
 
 
-def _mixer(cfg: ModelConfig, num_tokens: int) -> nn.Module:
-    return MLCA(num_tokens, 3, cfg.mlca_channels, cfg.backend) if cfg.use_mlca else nn.Identity()
+def _mixer(cfg: ModelConfig, num_tokens: int, mixes: bool) -> nn.Module:
+    return MLCA(num_tokens, 3, cfg.mlca_channels, cfg.backend) if mixes else nn.Identity()
+
+
+def _channels(mixer: nn.Module) -> int:
+    """Values per token of a mixer's output: MLCA's channels, or the 3 coordinates it would lift."""
+    return mixer.channels if isinstance(mixer, MLCA) else 3
 
 
 def _init_relu_layer(layer: nn.Linear) -> None:
