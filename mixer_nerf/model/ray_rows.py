@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import torch
 
+from ..ops.segment_ops_reference import ray_of_rows
+
 
 def spread_to_samples(
     values: torch.Tensor,
@@ -22,8 +24,7 @@ def spread_to_samples(
     if ray_indices is None:
         if offsets is None:
             raise ValueError("spread_to_samples needs offsets or ray_indices")
-        rays = torch.arange(values.shape[0], device=values.device)
-        ray_indices = torch.repeat_interleave(rays, offsets.diff(), output_size=num_samples)
+        ray_indices = ray_of_rows(offsets, num_samples)
     return _Spread.apply(values, ray_indices, offsets)
 
 

@@ -24,6 +24,8 @@ from __future__ import annotations
 
 import torch
 
+from .segment_ops_reference import ray_of_rows
+
 
 def composite_reference(
     sigmas: torch.Tensor,
@@ -77,9 +79,7 @@ def composite_packed_reference(
     counts = offsets[1:] - offsets[:-1]
     num_rays, num_samples = counts.numel(), sigmas.shape[0]
     width = int(counts.max()) if num_rays and num_samples else 0
-    ray = torch.repeat_interleave(
-        torch.arange(num_rays, device=offsets.device), counts, output_size=num_samples
-    )
+    ray = ray_of_rows(offsets, num_samples)
     slot = torch.arange(num_samples, device=offsets.device) - offsets[ray]
 
     def padded(x: torch.Tensor) -> torch.Tensor:
