@@ -28,6 +28,7 @@ from mixer_nerf.train import (
 )
 from mixer_nerf.render.skipping import render_rays_proposal
 from mixer_nerf.train.checkpoint import capture_rng_state, restore_rng_state
+from mixer_nerf.train.fields import model_config
 from mixer_nerf.train.sampling import resolve_sampler
 from mixer_nerf.train.guard import NonFiniteGuard
 from mixer_nerf.train.logbook import CsvLog, plot_curves
@@ -361,6 +362,14 @@ def test_auto_sampler_marches_bounded_scenes_and_proposes_for_forward_facing_and
     assert resolve_sampler(TrainConfig(sampler="occupancy"), box, ndc=True).sampler == "occupancy"
     with pytest.raises(ValueError, match="needs a scene box"):
         resolve_sampler(TrainConfig(sampler="occupancy"), None, ndc=False)
+
+
+def test_forward_facing_scenes_get_no_direction_mlca_unless_asked():
+    box = torch.tensor([[-1.0] * 3, [1.0] * 3])
+    assert model_config("D", {}, box, "torch", ndc=False).mlca_directions  # Blender: 360 degrees of views
+    assert model_config("D", {}, None, "torch", ndc=False).mlca_directions  # unbounded captures too
+    assert not model_config("D", {}, box, "torch", ndc=True).mlca_directions  # LLFF in NDC
+    assert model_config("D", {"mlca_directions": True}, box, "torch", ndc=True).mlca_directions
 
 
 def test_distortion_weight_is_refused_for_samplers_other_than_proposal():

@@ -46,12 +46,14 @@ class RadianceFields(nn.Module):
 
 
 def model_config(
-    preset: str, overrides: dict[str, Any], bbox: torch.Tensor | None, backend: str
+    preset: str, overrides: dict[str, Any], bbox: torch.Tensor | None, backend: str, ndc: bool = False
 ) -> ModelConfig:
     """The preset's model configuration for a scene: positions are normalised by the centre and
-    largest half-size of the scene box ``bbox`` (2, 3), and the encoding uses ``backend``.
-    Explicit ``overrides`` win."""
-    derived: dict[str, Any] = {"backend": backend}
+    largest half-size of the scene box ``bbox`` (2, 3), the encoding uses ``backend``, and a
+    forward-facing (``ndc``) scene gets no MLCA on PE(d): its views span a narrow cone, and the
+    direction mixer let the colour branch fit the few training views at the held-out ones' cost
+    (docs/model.md#where-mlca-costs). Explicit ``overrides`` win."""
+    derived: dict[str, Any] = {"backend": backend, "mlca_directions": not ndc}
     if bbox is not None:
         derived["scene_center"] = tuple(((bbox[0] + bbox[1]) / 2).tolist())
         derived["scene_scale"] = float(((bbox[1] - bbox[0]) / 2).abs().max())

@@ -207,7 +207,8 @@ class Trainer:
         self.background = self.train_scene.background.to(self.device, torch.float32)
 
         torch.manual_seed(cfg.seed)  # model initialisation
-        self.model_cfg = model_config(cfg.preset, cfg.model_overrides, self.train_scene.bbox, cfg.backend)
+        self.model_cfg = model_config(cfg.preset, cfg.model_overrides, self.train_scene.bbox, cfg.backend,
+                                      ndc=self.train_scene.ndc)
         check_sizes(cfg, self.model_cfg.width, self.device)
         self.fields = make_fields(cfg, self.model_cfg, self.train_scene.bbox)
         self.fields.to(self.device)
