@@ -251,6 +251,13 @@ def test_model_overrides_are_recorded(tmp_path):
     assert json.loads((out / "D_seed0" / "config.json").read_text())["model"]["se_per_point"] is True
 
 
+def test_a_model_without_the_direction_mlca_is_noted_in_the_table(finished, tmp_path):
+    assert "MLCA mixes PE(x) only" not in (finished / "ablation.md").read_text()
+    out = tmp_path / "nodir"
+    assert ablate(out, "--presets", "D", "--seeds", "0", "--model-override", "mlca_directions=false") == 0
+    assert "Note: MLCA mixes PE(x) only" in (out / "ablation.md").read_text()
+
+
 @pytest.mark.parametrize(
     "args, message",
     [

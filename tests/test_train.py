@@ -11,6 +11,7 @@ import json
 import math
 import os
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -837,13 +838,27 @@ def test_mlca_weight_decay_leaves_presets_without_mlca_alone_and_refuses_a_scale
         Trainer(tiny_config(tmp_path / "D", lr=1e-2, mlca_weight_decay=100.0), log=quiet)
 
 
-def test_val_holdout_trains_without_the_val_views_and_evaluates_on_them(llff_scene, tmp_path):
-    from mixer_nerf.evaluate import evaluate
-
+def _as_default_llff(llff_scene: Path) -> Path:
+    """The fixture's scene readable with the LLFF loader's default downscale (8)."""
     rows = np.load(llff_scene / "poses_bounds.npy")
     rows[:, [4, 9, 14]] *= 2  # full-resolution H, W, focal doubled: images_4/ reads as the default images_8/
     np.save(llff_scene / "poses_bounds.npy", rows)
     (llff_scene / "images_4").rename(llff_scene / "images_8")
+    return llff_scene
+
+
+def test_a_forward_facing_scene_trains_d_without_the_direction_mlca_and_says_so(llff_scene, tmp_path):
+    lines = []
+    trainer = Trainer(tiny_config(tmp_path, data=str(_as_default_llff(llff_scene)), steps=1), log=lines.append)
+    assert trainer.train_scene.ndc and not trainer.model_cfg.mlca_directions
+    assert isinstance(trainer.fields.coarse.direction_mixer, torch.nn.Identity)
+    assert any("MLCA mixes PE(x) only" in line for line in lines)
+
+
+def test_val_holdout_trains_without_the_val_views_and_evaluates_on_them(llff_scene, tmp_path):
+    from mixer_nerf.evaluate import evaluate
+
+    _as_default_llff(llff_scene)
     trainer = Trainer(tiny_config(tmp_path, data=str(llff_scene), val_holdout=4, steps=3), log=quiet)
     names = lambda scene: [p.name for p in scene.image_paths]  # noqa: E731
     assert len(trainer.train_scene) == 6 and trainer.val_split == "val"

@@ -8,9 +8,10 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from ..model import ModelConfig
 from ..train.checkpoint import load_checkpoint
 from ..train.config import TrainConfig
-from ..train.fields import model_config_from_dict
+from ..train.fields import model_config_from_dict, model_notes
 from ..train.logbook import CsvLog
 from ..train.output import RunFiles, write_text_atomic
 from ..train.sampling import make_fields
@@ -78,7 +79,7 @@ def _unfinished_record(preset: str, seed: int, files: RunFiles) -> dict[str, Any
         "steps": steps,
         "train_seconds": seconds,
         "steps_per_s": steps / seconds if seconds > 0 else None,
-        "params": count_parameters(files.checkpoint) if files.checkpoint.is_file() else None,
+        "params": checkpoint_model(files.checkpoint)[0] if files.checkpoint.is_file() else None,
         **_no_scores(),
     }
 
@@ -130,19 +131,21 @@ def run_one(plan: AblationPlan, preset: str, seed: int, log: Callable[[str], Non
         "steps": summary["step"],
         "train_seconds": summary["train_seconds"],
         "steps_per_s": summary["step"] / summary["train_seconds"] if summary["train_seconds"] > 0 else None,
-        "params": count_parameters(files.checkpoint),
         **_scores(plan, cfg, files, complete=summary["status"] in COMPLETE),
     }
+    params, model = checkpoint_model(files.checkpoint)
+    record.update(params=params, notes=record["notes"] + model_notes(model))
     write_text_atomic(record_path, json.dumps(record, indent=1))
     return record
 
 
-def count_parameters(ckpt: Path) -> int:
-    """Trainable parameters of a checkpoint's fields (both MLPs, proposal networks), not buffers."""
+def checkpoint_model(ckpt: Path) -> tuple[int, ModelConfig]:
+    """The trainable parameters of a checkpoint's fields (both MLPs, proposal networks; not
+    buffers) and its model configuration."""
     state = load_checkpoint(ckpt)
-    cfg = TrainConfig.from_dict(state["train_config"])
-    fields = make_fields(cfg, model_config_from_dict(state["model_config"]), state["scene"].get("bbox"))
-    return sum(p.numel() for p in fields.parameters() if p.requires_grad)
+    model = model_config_from_dict(state["model_config"])
+    fields = make_fields(TrainConfig.from_dict(state["train_config"]), model, state["scene"].get("bbox"))
+    return sum(p.numel() for p in fields.parameters() if p.requires_grad), model
 
 
 def _train(cfg: TrainConfig, files: RunFiles, log: Callable[[str], None]) -> dict[str, Any]:

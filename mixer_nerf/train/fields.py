@@ -60,6 +60,13 @@ def model_config(
     return preset_config(preset, **{**derived, **overrides})
 
 
+def model_notes(cfg: ModelConfig) -> list[str]:
+    """What a reader of a run's results needs to know about its model beyond the preset letter."""
+    if cfg.use_mlca and not cfg.mlca_directions:
+        return ["MLCA mixes PE(x) only (mlca_directions=false: the default on forward-facing scenes)"]
+    return []
+
+
 def model_config_to_dict(cfg: ModelConfig) -> dict[str, Any]:
     return dataclasses.asdict(cfg)
 

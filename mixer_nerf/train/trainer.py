@@ -31,7 +31,7 @@ from ..render.skipping import (
 from .checkpoint import capture_rng_state, load_checkpoint, restore_rng_state, save_checkpoint
 from .config import TrainConfig
 from .distributed import join, rank_seed, restore_rank_sampler
-from .fields import model_config, model_config_to_dict
+from .fields import model_config, model_config_to_dict, model_notes
 from .graphed_steps import GraphedSteps
 from .guard import NonFiniteError, NonFiniteGuard
 from .logbook import CsvLog, TensorBoardLog, plot_curves
@@ -210,6 +210,8 @@ class Trainer:
         self.model_cfg = model_config(cfg.preset, cfg.model_overrides, self.train_scene.bbox, cfg.backend,
                                       ndc=self.train_scene.ndc)
         check_sizes(cfg, self.model_cfg.width, self.device)
+        for note in model_notes(self.model_cfg):
+            self.log(f"  note: {note}")
         self.fields = make_fields(cfg, self.model_cfg, self.train_scene.bbox)
         self.fields.to(self.device)
         self.coarse_field, self.fine_field = self.fields.runners(cfg.precision, self.device)
