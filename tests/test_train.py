@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+import torch.nn.functional as F
 
 from mixer_nerf.train import (
     CheckpointError,
@@ -27,10 +28,13 @@ from mixer_nerf.train import (
     load_trained,
     save_checkpoint,
 )
-from mixer_nerf.render.skipping import render_rays_proposal
+from mixer_nerf.render.skipping import render_rays_proposal, shade_samples
 from mixer_nerf.train.checkpoint import capture_rng_state, restore_rng_state
 from mixer_nerf.train.fields import model_config
 from mixer_nerf.train.sampling import resolve_sampler
+from mixer_nerf.train import trainer as trainer_module
+from mixer_nerf.train import static_batch
+from mixer_nerf.train.static_batch import StaticMarchedBatch
 from mixer_nerf.train.guard import NonFiniteGuard
 from mixer_nerf.train.logbook import CsvLog, plot_curves
 from dispatch_count import dispatched_ops
@@ -460,6 +464,40 @@ def test_a_discarded_prefetch_rewinds_the_rays_and_the_batch_size(tmp_path):
     assert torch.equal(again.rays_o, ahead.rays_o) and torch.equal(again.samples.t_starts, ahead.samples.t_starts)
 
 
+@pytest.mark.parametrize("backend", ["torch", "kernel"])
+def test_a_static_batch_shades_and_learns_as_the_batch_itself(tmp_path, backend):
+    """Padded into fixed buffers (empty rays, a padding ray of zero-length samples), a batch gives
+    the same loss and parameter gradients as itself, twice in the same buffers."""
+    trainer = Trainer(tiny_config(tmp_path, sampler="occupancy", backend=backend, grid_warmup=2), log=quiet)
+    for _ in range(4):  # past the warm-up: pruned cells and early termination leave rays ragged
+        trainer.train_step()
+
+    def loss_and_grads(loss):
+        trainer.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        return [loss.detach()] + [p.grad.clone() for p in trainer.params]
+
+    static = None
+    for step in (trainer.step, trainer.step + 1):
+        batch = trainer.batches.take(step)
+        color = shade_samples(trainer.coarse_field, batch.rays_o, batch.rays_d, batch.samples, trainer.background,
+                              backend)[0]
+        plain = loss_and_grads(F.mse_loss(color, batch.target))
+        static = static or StaticMarchedBatch.for_batch(batch)
+        assert static.fits(batch)
+        static.load(batch)
+        assert static.rays > batch.rays_o.shape[0] and static.samples > batch.samples.t_starts.shape[0]
+        color = shade_samples(trainer.coarse_field, static.rays_o, static.rays_d, static.packed,
+                              trainer.background, backend)[0]
+        padded = loss_and_grads(static.mse(color))
+        for name, a, b in zip(["loss", *trainer.param_names], plain, padded, strict=True):
+            torch.testing.assert_close(b, a, rtol=1e-5, atol=1e-7, msg=name)
+    small = StaticMarchedBatch(1, 1, "cpu")
+    assert not small.fits(batch)
+    with pytest.raises(ValueError, match="does not fit buffers of 1 rays and 1 samples"):
+        small.load(batch)
+
+
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU")
 def test_cuda_batches_prepared_on_the_side_stream_train_as_those_prepared_in_line(tmp_path):
     """On CUDA the next batch is prepared on a side stream while the backward pass runs; the same
@@ -478,13 +516,74 @@ def test_cuda_batches_prepared_on_the_side_stream_train_as_those_prepared_in_lin
         torch.testing.assert_close(value, runs[1][0][name], rtol=1e-4, atol=1e-6, msg=name)
 
 
+class _EagerGraphs:
+    """GraphedSteps' interface, each step run eagerly: the replayed path's bookkeeping on a CPU."""
+
+    def __init__(self, body, params, generator):
+        self.body, self.captured = body, ()
+
+    def __call__(self, kind):
+        self.captured = (kind,)
+        return self.body(kind)
+
+
+def test_the_replayed_occupancy_path_trains_as_the_eager_one(tmp_path, monkeypatch):
+    """The bookkeeping of ``--cuda-graphs`` on the occupancy path (padded batches, the next batch
+    prepared from a copy of the weights, refresh steps eager, buffers grown, a checkpoint between
+    steps) with graphs stood in by eager calls: the same weights as the eager path's at the end."""
+    monkeypatch.setattr(trainer_module, "_check_graphable", lambda *_: None)
+    monkeypatch.setattr(trainer_module, "GraphedSteps", _EagerGraphs)
+    monkeypatch.setattr(static_batch, "RAY_ALIGN", 1)  # capacities as tight as these tiny batches
+    monkeypatch.setattr(static_batch, "SAMPLE_ALIGN", 1)
+    runs = []
+    for graphs in (True, False):
+        trainer = Trainer(tiny_config(tmp_path / str(graphs), sampler="occupancy", empty_space_weight=0.5,
+                                      empty_space_points=64, target_samples=2048, cuda_graphs=graphs), log=quiet)
+        for group in trainer.optimizer.param_groups:
+            group["capturable"] = False  # Adam captures on GPUs only
+        for step in range(10):  # past the warm-up: grid refreshes, early termination, empty-space loss
+            trainer.train_step()
+            if step == 5:
+                first_buffers = getattr(trainer, "static_batch", None)
+                trainer.save()  # drops the batch prepared ahead: the next one is drawn four times as large
+                trainer.sampler.batch_rays *= 4  # replayed path: outgrows its buffers, new ones
+        runs.append((params_of(trainer), trainer.samples_seen, trainer.marched_seen, trainer.rays_seen))
+        if graphs:
+            assert trainer.graphs.captured == ("marched",) and trainer.static_batch is not first_buffers
+    assert runs[0][1:] == runs[1][1:]
+    for name, value in runs[0][0].items():
+        torch.testing.assert_close(value, runs[1][0][name], rtol=1e-5, atol=1e-6, msg=name)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU")
+def test_cuda_graphed_occupancy_steps_train_as_the_eager_ones(tmp_path):
+    """Replayed occupancy steps (padded batches, the next batch prepared from a copy of the weights
+    beside the replay, refresh steps eager) end where the eager steps do, through a grown capacity
+    and a checkpoint."""
+    runs = []
+    for graphs in (True, False):
+        trainer = Trainer(tiny_config(tmp_path / str(graphs), sampler="occupancy", device="cuda", backend="auto",
+                                      precision="fp32", bf16_density_passes=True, empty_space_weight=0.5,
+                                      empty_space_points=64, cuda_graphs=graphs), log=quiet)
+        for step in range(12):  # past the warm-up: grid refreshes, early termination, empty-space loss
+            assert torch.isfinite(trainer.train_step()["loss"])
+            if step == 6:
+                trainer.save()  # drops the batch prepared ahead: the next one is drawn four times as large
+                trainer.sampler.batch_rays *= 4  # graphed: outgrows the buffers, new ones and a new graph
+        if graphs:
+            assert trainer.graphs.captured == ("marched",)
+        runs.append((params_of(trainer), trainer.samples_seen, trainer.marched_seen))
+    for name, value in runs[0][0].items():
+        torch.testing.assert_close(value, runs[1][0][name], rtol=1e-4, atol=1e-6, msg=name)
+
+
 def test_cuda_graphs_are_refused_on_a_cpu_before_training(tmp_path):
     with pytest.raises(ValueError, match="--cuda-graphs: it needs a CUDA device"):
         Trainer(tiny_config(tmp_path, sampler="proposal", cuda_graphs=True), log=quiet)
 
 
 @pytest.mark.parametrize("sampler, several, images, reason", [
-    ("occupancy", False, "cuda", "only the proposal sampler's steps keep their shapes"),
+    ("hierarchical", False, "cuda", "only the proposal and occupancy samplers' steps can keep their shapes"),
     ("proposal", True, "cuda", "not with several processes"),
     ("proposal", False, "cpu", "the training images do not fit on the GPU")])
 def test_cuda_graphs_refusals_name_their_reason(sampler, several, images, reason):
@@ -493,7 +592,8 @@ def test_cuda_graphs_refusals_name_their_reason(sampler, several, images, reason
     cfg = TrainConfig(sampler=sampler, cuda_graphs=True)
     with pytest.raises(ValueError, match=reason):
         _check_graphable(cfg, torch.device("cuda"), several, torch.device(images))
-    _check_graphable(TrainConfig(sampler="proposal"), torch.device("cuda"), False, torch.device("cuda"))
+    for sampler in ("proposal", "occupancy"):
+        _check_graphable(TrainConfig(sampler=sampler), torch.device("cuda"), False, torch.device("cuda"))
 
 
 @pytest.mark.cuda

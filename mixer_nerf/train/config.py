@@ -172,8 +172,9 @@ class TrainConfig:
         "after each step they are scaled by 1 - lr * W, which pulls the mixing toward the identity, "
         "the NeRF it extends (default 0: off)", metavar="W")
     cuda_graphs: bool = option(
-        False, "proposal sampler on a GPU: replay each training step as a CUDA graph, without the host "
-        "work between its kernels (needs the training images on the GPU and one process)")
+        False, "proposal or occupancy sampler on a GPU: replay each training step as a CUDA graph, without "
+        "the host work between its kernels (needs the training images on the GPU and one process; "
+        "occupancy batches are padded to a fixed capacity)")
     tensorboard: bool = option(
         False, "log losses, PSNR, learning rate, samples per ray, rays/s and validation renders to "
         "<out>/tensorboard (needs .[tensorboard])"

@@ -42,7 +42,7 @@ class MarchedBatches:
 
     def take(self, step: int) -> MarchedBatch:
         """The batch of ``step`` (prefetched, or prepared now), ready for the current stream."""
-        self._mark_weights()
+        self.mark_weights()
         if self._next is None or self._next[0] != step:
             self.discard()
             self.prefetch(step)
@@ -71,7 +71,7 @@ class MarchedBatches:
             self.rays.batch_rays = batch_rays
             self._next = None
 
-    def _mark_weights(self) -> None:
+    def mark_weights(self) -> None:
         """The current stream's weights are this step's: the next prefetch reads them after here."""
         if self._weights_ready is not None:
             self._weights_ready.record()

@@ -3,6 +3,7 @@ periodic validation, atomic checkpoints, logs, a non-finite guard and a wall-clo
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import json
 import math
@@ -39,10 +40,11 @@ from .marched_batches import MarchedBatches
 from .memory import FLOAT_BYTES, check_fits
 from .occupancy_batch import MarchedBatch, prepare_marched_batch
 from .output import RunFiles, prepare_run_folder, write_text_atomic
-from .precision import set_matmul_precision
+from .precision import MixedPrecisionField, set_matmul_precision
 from .sampler import RaySampler
 from .sampling import image_renderer, make_fields, occupancy_sampler, resolve_sampler
 from .scenes import held_out_split, locate_scene, scene_info, scene_source
+from .static_batch import StaticMarchedBatch
 
 RESUMABLE_OVERRIDES = ("steps", "time_budget", "device", "backend", "data", "render_samples", "ckpt_every",
                        "log_every", "cuda_graphs", "progress")
@@ -106,8 +108,8 @@ def _check_graphable(cfg: TrainConfig, device: torch.device, several_processes: 
     """Refuse ``--cuda-graphs`` where a step cannot be replayed as a graph, saying why."""
     if device.type != "cuda":
         why = "it needs a CUDA device"
-    elif cfg.sampler != "proposal":
-        why = f"only the proposal sampler's steps keep their shapes (this run's sampler: {cfg.sampler})"
+    elif cfg.sampler not in ("proposal", "occupancy"):
+        why = f"only the proposal and occupancy samplers' steps can keep their shapes (this run's sampler: {cfg.sampler})"
     elif several_processes:
         why = "not with several processes"
     elif images.type != "cuda":
@@ -233,14 +235,19 @@ class Trainer:
         near, far = self.train_scene.near, self.train_scene.far
         self.renderer = image_renderer(cfg, self.fields, near, far, self.background, step=lambda: self.step)
         self.sampler = RaySampler(self.train_scene, cfg.batch_rays, rank_seed(cfg.seed, self.rank))
-        self.batches = None
+        self.batches = self.weights_copy = None
         if self.fields.grid is not None:
             occupancy = occupancy_sampler(cfg, self.fields.grid, self.ranks and self.ranks.cell_share())
             if occupancy.budget is not None:
                 self.sampler.batch_rays = occupancy.budget.first_rays(cfg.batch_rays)
             empty_points = cfg.empty_space_points if cfg.empty_space_weight > 0 else 0
+            # Replayed steps prepare the next batch beside the graph, from a copy of the weights
+            # taken before it (the eager step's semantics), which the graph's update cannot race.
+            self.weights_copy = copy.deepcopy(self.fields.coarse).requires_grad_(False) if cfg.cuda_graphs else None
+            sampling_field = self.density_field if self.weights_copy is None else MixedPrecisionField(
+                self.weights_copy, self.device.type, self.density_field.dtype)
             self.batches = MarchedBatches(
-                lambda step: prepare_marched_batch(step, self.sampler, occupancy, self.density_field, near, far,
+                lambda step: prepare_marched_batch(step, self.sampler, occupancy, sampling_field, near, far,
                                                    empty_points, cfg.backend),
                 self.sampler)
             # The empty-space loss is the optical depth of a box diagonal through the mean density.
@@ -254,6 +261,7 @@ class Trainer:
         self.rays_seen = self.samples_seen = self.marched_seen = 0  # marched: before early termination
         if state is not None:
             self._load_state(state)
+            self._copy_weights()
         self.graphs = None
         if cfg.cuda_graphs:
             # Replayed steps read the learning rate from the device (a tensor the host refills each
@@ -262,7 +270,9 @@ class Trainer:
             for group in self.optimizer.param_groups:
                 group["lr"], group["capturable"] = torch.tensor(float(group["lr"]), device=self.device), True
             self._step_counter = torch.tensor(self.step, device=self.device)  # the step a replay is at
-            self.graphs = GraphedSteps(self._graphed_step, self.params, self.sampler.generator)
+            if self.batches is None:
+                self.graphs = GraphedSteps(self._graphed_step, self.params, self.sampler.generator)
+            self.static_batch = None  # occupancy: buffers and graphs made for the first batch, grown on demand
         if not self.rank:
             write_text_atomic(self.files.config, json.dumps(
                 {"train": cfg.to_dict(), "model": model_config_to_dict(self.model_cfg)}, indent=1))
@@ -277,11 +287,13 @@ class Trainer:
         lr = cfg.lr * self._lr_factor(progress)
         self._open_frequency_window(progress)
         for group in self.optimizer.param_groups:
-            if self.graphs is not None:
+            if cfg.cuda_graphs:
                 group["lr"].fill_(lr)
             else:
                 group["lr"] = lr
-        if self.batches is not None:
+        if self.batches is not None and cfg.cuda_graphs:
+            stats = self._replayed_marched_step(self.batches.take(self.step))
+        elif self.batches is not None:
             stats = self._learn(self._marched_losses(self.batches.take(self.step)), self.step + 1)
         elif self.fields.proposal is not None:
             update = proposal_update_due(self.step, cfg.proposal_update_every)
@@ -305,15 +317,48 @@ class Trainer:
         rays_o, rays_d, target = self.sampler.sample()
         return self._learn(self._proposal_losses(rays_o, rays_d, target, update), self._step_counter)
 
-    def _learn(self, losses: dict[str, torch.Tensor], step: int | torch.Tensor) -> dict[str, torch.Tensor]:
-        """Backward and optimizer step of ``losses`` at ``step`` (1-based, the host's or the device's)."""
+    def _replayed_marched_step(self, batch: MarchedBatch) -> dict[str, torch.Tensor]:
+        """The occupancy path's step with ``--cuda-graphs``: ``batch`` copied into fixed buffers
+        and the step replayed, then the next batch prepared beside the replay. Refresh steps with
+        the empty-space loss (one in ``grid_every``) run eagerly."""
+        if self.static_batch is None or not self.static_batch.fits(batch):
+            self.static_batch = StaticMarchedBatch.for_batch(batch)  # new buffers: a new graph
+            self.graphs = GraphedSteps(self._graphed_marched_step, self.params, self.sampler.generator)
+        self._copy_weights()
+        self.batches.mark_weights()  # the next batch reads the copy from here on
+        self._step_counter.add_(1)
+        if batch.empty_points is None:
+            self.static_batch.load(batch)
+            self._count_batch(batch)
+            stats = self.graphs("marched")
+        else:
+            stats = self._learn(self._marched_losses(batch), self._step_counter, prefetch=False)
+        self.batches.prefetch(self.step + 1)
+        return stats
+
+    def _copy_weights(self) -> None:
+        """Bring the copy of the weights that replayed steps prepare batches from up to date (on the
+        current stream: after any batch in preparation has read it)."""
+        if self.weights_copy is not None:
+            torch._foreach_copy_(list(self.weights_copy.parameters()), list(self.fields.coarse.parameters()))
+
+    def _graphed_marched_step(self, kind: str) -> dict[str, torch.Tensor]:
+        """The occupancy path's step on :attr:`static_batch`, as :class:`GraphedSteps` replays it."""
+        b = self.static_batch
+        color, *_ = shade_samples(self.coarse_field, b.rays_o, b.rays_d, b.packed, self.background, self.cfg.backend)
+        return self._learn({"loss_coarse": b.mse(color)}, self._step_counter, prefetch=False)
+
+    def _learn(self, losses: dict[str, torch.Tensor], step: int | torch.Tensor,
+               prefetch: bool = True) -> dict[str, torch.Tensor]:
+        """Backward and optimizer step of ``losses`` at ``step`` (1-based, the host's or the device's);
+        ``prefetch``: prepare the occupancy path's next batch after the backward pass."""
         cfg = self.cfg
         loss = sum(losses.values())
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         self.guard.observe_losses(step, **losses)
         mean = self.ranks and self.ranks.start_gradient_mean(self.params)  # overlaps the prefetch
-        if self.batches is not None:
+        if self.batches is not None and prefetch:
             self.batches.prefetch(step)  # overlaps the backward pass; reads the weights before the update
         if mean:
             mean.finish()
@@ -371,11 +416,14 @@ class Trainer:
                 out.weights, samples.edges, cfg.occlusion_fraction)
         return losses
 
-    def _marched_losses(self, batch: MarchedBatch) -> dict[str, torch.Tensor]:
-        cfg = self.cfg
+    def _count_batch(self, batch: MarchedBatch) -> None:
         self.rays_seen += batch.rays_o.shape[0]
         self.samples_seen += batch.samples.t_starts.shape[0]
         self.marched_seen += batch.num_marched
+
+    def _marched_losses(self, batch: MarchedBatch) -> dict[str, torch.Tensor]:
+        cfg = self.cfg
+        self._count_batch(batch)
         color, *_ = shade_samples(
             self.coarse_field, batch.rays_o, batch.rays_d, batch.samples, self.background, cfg.backend
         )
@@ -418,7 +466,7 @@ class Trainer:
         if not fraction:
             return
         alpha = self.model_cfg.pos_freqs * progress / fraction
-        for field in (self.fields.coarse, self.fields.fine):
+        for field in (self.fields.coarse, self.fields.fine, self.weights_copy):
             if field is not None:
                 field.set_frequency_window(alpha)
 
@@ -508,6 +556,7 @@ class Trainer:
         self.guard.raise_if_bad()
         if self.batches is not None:
             self.batches.discard()  # a resumed run prepares its first batch with these weights
+            self._copy_weights()
         rank_samplers = self.ranks and self.ranks.gather_objects(self.sampler.generator.get_state())
         if self.rank:
             return
