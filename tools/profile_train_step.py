@@ -53,7 +53,7 @@ def main() -> None:
                         help="default: the trainer's (on CUDA)")
     parser.add_argument("--empty-space-weight", type=float, default=None, help="default: the trainer's")
     parser.add_argument("--cuda-graphs", action="store_true",
-                        help="replay each step as a CUDA graph (the proposal sampler: e.g. --data .data/fern_8)")
+                        help="replay each step as a CUDA graph (the proposal or occupancy sampler)")
     parser.add_argument("--out", default=str(RESULTS / "train_step"),
                         help="write the tables to DIR/<device>_<scene>_<preset>_<precision>[_bf16pass][_graphs]_step<N>.txt "
                              "('' for none)")

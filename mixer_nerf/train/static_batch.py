@@ -19,8 +19,12 @@ import torch
 from ..ops.ray_marching import PackedSamples
 from .occupancy_batch import MarchedBatch
 
-GROWTH = 1.25  # capacity over the batch that outgrew the last one: few recaptures as batches drift
-RAY_ALIGN, SAMPLE_ALIGN = 256, 4096
+# Room over the batch that outgrew the last buffers. Samples: the budget holds a batch's samples
+# near its target, and every spare sample slot costs the MLP a row at each step, where a recapture
+# costs one eager step once. Rays: cheap to pad, and a run's rays per batch drift up as its
+# density sharpens.
+SAMPLE_GROWTH, RAY_GROWTH = 1.05, 1.25
+RAY_ALIGN, SAMPLE_ALIGN = 128, 1024
 
 
 class StaticMarchedBatch:
@@ -41,9 +45,9 @@ class StaticMarchedBatch:
 
     @classmethod
     def for_batch(cls, batch: MarchedBatch) -> StaticMarchedBatch:
-        """Buffers with room for ``batch`` and :data:`GROWTH` times its rays and samples."""
+        """Buffers with room for ``batch`` and some growth (:data:`RAY_GROWTH`, :data:`SAMPLE_GROWTH`)."""
         rays, samples = batch.rays_o.shape[0], batch.samples.t_starts.shape[0]
-        return cls(_round_up(rays * GROWTH, RAY_ALIGN), _round_up(samples * GROWTH, SAMPLE_ALIGN),
+        return cls(_round_up(rays * RAY_GROWTH, RAY_ALIGN), _round_up(samples * SAMPLE_GROWTH, SAMPLE_ALIGN),
                    batch.rays_o.device)
 
     def fits(self, batch: MarchedBatch) -> bool:
