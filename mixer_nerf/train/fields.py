@@ -52,7 +52,7 @@ def model_config(
     largest half-size of the scene box ``bbox`` (2, 3), the encoding uses ``backend``, and a
     forward-facing (``ndc``) scene gets no MLCA on PE(d): its views span a narrow cone, and the
     direction mixer let the colour branch fit the few training views at the held-out ones' cost
-    (docs/model.md#where-mlca-costs). Explicit ``overrides`` win."""
+    (docs/model.md, "Where MLCA costs"). Explicit ``overrides`` win."""
     derived: dict[str, Any] = {"backend": backend, "mlca_directions": not ndc}
     if bbox is not None:
         derived["scene_center"] = tuple(((bbox[0] + bbox[1]) / 2).tolist())
