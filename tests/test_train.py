@@ -543,7 +543,7 @@ def test_the_replayed_occupancy_path_trains_as_the_eager_one(tmp_path, monkeypat
             group["capturable"] = False  # Adam captures on GPUs only
         for step in range(10):  # past the warm-up: grid refreshes, early termination, empty-space loss
             trainer.train_step()
-            if step == 5:
+            if step == 6:  # the next step, 7, is replayed (refresh steps, even ones here, run eagerly)
                 first_buffers = getattr(trainer, "static_batch", None)
                 trainer.save()  # drops the batch prepared ahead: the next one is drawn four times as large
                 trainer.sampler.batch_rays *= 4  # replayed path: outgrows its buffers, new ones

@@ -246,6 +246,8 @@ class Trainer:
             self.weights_copy = copy.deepcopy(self.fields.coarse).requires_grad_(False) if cfg.cuda_graphs else None
             sampling_field = self.density_field if self.weights_copy is None else MixedPrecisionField(
                 self.weights_copy, self.device.type, self.density_field.dtype)
+            if self.weights_copy is not None:  # (copy, source) parameter lists, made once for every step's copy
+                self._copy_pairs = (list(self.weights_copy.parameters()), list(self.fields.coarse.parameters()))
             self.batches = MarchedBatches(
                 lambda step: prepare_marched_batch(step, self.sampler, occupancy, sampling_field, near, far,
                                                    empty_points, cfg.backend),
@@ -321,13 +323,13 @@ class Trainer:
         """The occupancy path's step with ``--cuda-graphs``: ``batch`` copied into fixed buffers
         and the step replayed, then the next batch prepared beside the replay. Refresh steps with
         the empty-space loss (one in ``grid_every``) run eagerly."""
-        if self.static_batch is None or not self.static_batch.fits(batch):
-            self.static_batch = StaticMarchedBatch.for_batch(batch)  # new buffers: a new graph
-            self.graphs = GraphedSteps(self._graphed_marched_step, self.params, self.sampler.generator)
         self._copy_weights()
         self.batches.mark_weights()  # the next batch reads the copy from here on
         self._step_counter.add_(1)
         if batch.empty_points is None:
+            if self.static_batch is None or not self.static_batch.fits(batch):
+                self.static_batch = StaticMarchedBatch.for_batch(batch)  # new buffers: a new graph
+                self.graphs = GraphedSteps(self._graphed_marched_step, self.params, self.sampler.generator)
             self.static_batch.load(batch)
             self._count_batch(batch)
             stats = self.graphs("marched")
@@ -340,7 +342,7 @@ class Trainer:
         """Bring the copy of the weights that replayed steps prepare batches from up to date (on the
         current stream: after any batch in preparation has read it)."""
         if self.weights_copy is not None:
-            torch._foreach_copy_(list(self.weights_copy.parameters()), list(self.fields.coarse.parameters()))
+            torch._foreach_copy_(*self._copy_pairs)
 
     def _graphed_marched_step(self, kind: str) -> dict[str, torch.Tensor]:
         """The occupancy path's step on :attr:`static_batch`, as :class:`GraphedSteps` replays it."""
