@@ -550,6 +550,9 @@ def test_the_replayed_occupancy_path_trains_as_the_eager_one(tmp_path, monkeypat
         runs.append((params_of(trainer), trainer.samples_seen, trainer.marched_seen, trainer.rays_seen))
         if graphs:
             assert trainer.graphs.captured == ("marched",) and trainer.static_batch is not first_buffers
+            # The copy is no autograd graph: one would hold the parameters' gradient accumulators
+            # alive on the stream of the copy, which breaks a capture on CUDA.
+            assert all(p.grad_fn is None and not p.requires_grad for p in trainer.weights_copy.parameters())
     assert runs[0][1:] == runs[1][1:]
     for name, value in runs[0][0].items():
         torch.testing.assert_close(value, runs[1][0][name], rtol=1e-5, atol=1e-6, msg=name)

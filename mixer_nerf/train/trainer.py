@@ -338,6 +338,9 @@ class Trainer:
         self.batches.prefetch(self.step + 1)
         return stats
 
+    # No graph: a recorded copy would keep the parameters' AccumulateGrad nodes alive on this (the
+    # default) stream, and a capture's backward would then accumulate there and break the capture.
+    @torch.no_grad()
     def _copy_weights(self) -> None:
         """Bring the copy of the weights that replayed steps prepare batches from up to date (on the
         current stream: after any batch in preparation has read it)."""
