@@ -580,6 +580,25 @@ def test_cuda_graphed_occupancy_steps_train_as_the_eager_ones(tmp_path):
         torch.testing.assert_close(value, runs[1][0][name], rtol=1e-4, atol=1e-6, msg=name)
 
 
+def test_the_step_profile_times_the_batch_preparation(tmp_path):
+    """tools/profile_train_step.py's host time in the occupancy path's batch preparation: a part of
+    the step's time, measured on real steps, the trainer's prefetch left as it was."""
+    import importlib.util
+    import re
+
+    path = Path(__file__).resolve().parents[1] / "tools" / "profile_train_step.py"
+    spec = importlib.util.spec_from_file_location("profile_train_step", path)
+    tool = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(tool)
+    trainer = Trainer(tiny_config(tmp_path, sampler="occupancy"), log=quiet)
+    trainer.train_step()
+    line = tool.preparation_time(trainer, 3)
+    spent, total = (float(v) for v in re.findall(r"([0-9.]+) ms", line))
+    assert 0 < spent <= total, line
+    assert trainer.step == 4 and "prefetch" not in vars(trainer.batches)
+    assert tool.preparation_time(Trainer(tiny_config(tmp_path / "h"), log=quiet), 1) == ""
+
+
 def test_cuda_graphs_are_refused_on_a_cpu_before_training(tmp_path):
     with pytest.raises(ValueError, match="--cuda-graphs: it needs a CUDA device"):
         Trainer(tiny_config(tmp_path, sampler="proposal", cuda_graphs=True), log=quiet)

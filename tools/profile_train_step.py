@@ -7,7 +7,8 @@
 Trains ``--warmup`` steps (past the occupancy grid's dense warm-up, so the batch has its steady
 size), then profiles ``--steps`` steps with torch.profiler. Prints ms per step (wall), the GPU's
 busy ms per step (sum of kernel times; and the time any kernel runs, overlapping streams counted
-once, against the profiled wall time: the GPU idle), the kernels sorted by CUDA time and the ops by
+once, against the profiled wall time: the GPU idle), with the occupancy sampler the host time per
+step spent preparing the next batch, the kernels sorted by CUDA time and the ops by
 the GPU time of the kernels they launched; a wall time well above the busy time means the step
 waits on the host (Python, launches, synchronisations). The
 file in ``--out`` also lists the Python functions by their own host time (cProfile, ``--steps``
@@ -101,6 +102,9 @@ def main() -> None:
     table += "\n" + _kernels_by_op(trainer, args.steps)
     host = host_profile(trainer.train_step, args.steps, top=35)
     syncs = _sync_sites(trainer, args.steps)
+    preparation = preparation_time(trainer, args.steps)
+    if preparation:
+        header += "\n" + preparation
     # The file before the prints: a reader that closes the pipe early (`| grep -m1`) must not lose it.
     if args.out:
         path = Path(args.out) / name
@@ -109,6 +113,37 @@ def main() -> None:
     print(header)
     print(table)
     print(syncs)
+
+
+def preparation_time(trainer: Trainer, steps: int) -> str:
+    """Host ms per step spent preparing the occupancy path's next batch (``MarchedBatches.prefetch``:
+    marching, the density pre-pass and the filter, their reads of sample counts included, which wait
+    for the GPU), against the whole step's, over ``steps`` more steps. Empty for other samplers."""
+    batches = trainer.batches
+    if batches is None:
+        return ""
+    spent = 0.0
+    prefetch = batches.prefetch
+
+    def timed(step: int) -> None:
+        nonlocal spent
+        start = time.perf_counter()
+        prefetch(step)
+        spent += time.perf_counter() - start
+
+    sync = torch.cuda.synchronize if trainer.device.type == "cuda" else (lambda: None)
+    batches.prefetch = timed
+    try:
+        sync()
+        start = time.perf_counter()
+        for _ in range(steps):
+            trainer.train_step()
+        sync()
+        total = time.perf_counter() - start
+    finally:
+        del batches.prefetch  # the instance attribute: the method again
+    return (f"host in the next batch's preparation: {spent * 1e3 / steps:.2f} ms of {total * 1e3 / steps:.2f} ms "
+            f"per step ({100 * spent / total:.0f}%)")
 
 
 def _kernels_by_op(trainer: Trainer, steps: int, top: int = 30) -> str:
