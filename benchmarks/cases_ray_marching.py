@@ -16,7 +16,7 @@ from __future__ import annotations
 import torch
 
 from benchmarks.harness import Case, Variant
-from mixer_nerf.ops.ray_marching import PackedSamples, ray_marching
+from mixer_nerf.ops.ray_marching import PackedSamples, ray_marching, ray_marching_fixed
 from mixer_nerf.ops.bitfield import pack_bits
 from mixer_nerf.ops.ray_marching_reference import ray_marching_reference
 
@@ -95,12 +95,20 @@ def cases(device: torch.device) -> list[Case]:
     def march(backend):
         return lambda: PerRaySummary(ray_marching(rays_o, rays_d, NEAR, FAR, grid, STEP, backend=backend))
 
-    variants = [Variant("kernel", march("kernel")), Variant("torch", march("torch"))]
+    # N is the float32 march's sample count; the fixed-size call gets 5% more rows, as a trainer would.
+    N = int(ray_marching(rays_o, rays_d, NEAR, FAR, grid, STEP).offsets[-1])
+    capacity = N + N // 20
+
+    def march_fixed():
+        return PerRaySummary(ray_marching_fixed(rays_o, rays_d, NEAR, FAR, grid, STEP, capacity).samples)
+
+    variants = [Variant("kernel", march("kernel")), Variant("torch", march("torch")),
+                Variant("kernel, fixed capacity (no sync)", march_fixed)]
     if device.type == "cuda":
         compiled = torch.compile(ray_marching_reference)
         near, far = torch.full((R,), NEAR, device=device), torch.full((R,), FAR, device=device)
         args = (rays_o, rays_d, near, far, None, bitfield, grid[1], grid[2], STEP)
-        variants.append(Variant("torch.compile", lambda: PerRaySummary(PackedSamples(*compiled(*args)))))
+        variants.append(Variant("torch.compile", lambda: PerRaySummary(PackedSamples(*compiled(*args)[:4]))))
         try:
             import nerfacc  # noqa: F401
 
@@ -115,8 +123,7 @@ def cases(device: torch.device) -> list[Case]:
         )
 
     # Rays (o, d, near, far) and the bitfield read once; samples (two floats, one int64) and
-    # offsets written once. N is the float32 march's sample count.
-    N = int(ray_marching(rays_o, rays_d, NEAR, FAR, grid, STEP).offsets[-1])
+    # offsets written once.
     min_bytes = R * 8 * 4 + bitfield.numel() + N * (4 + 4 + 8) + (R + 1) * 8
     occupied = occupancy.float().mean().item()
     size = f"R={R}, 128^3 grid ({100 * occupied:.1f}% occupied), step {STEP:g}, {N / R:.1f} samples/ray"

@@ -1,5 +1,5 @@
 // ray_marching on the CPU: rays in parallel, two passes (count the kept samples of every ray,
-// exclusive scan into offsets, march again writing them). The march itself is in
+// exclusive scan into offsets, march again writing them; into `capacity` rows when given). The march itself is in
 // ray_marching_math.h, shared with the CUDA kernel. Not differentiable: no backward.
 #include <torch/library.h>
 
@@ -21,16 +21,17 @@ using namespace ray_marching_math;
 // A ray costs from a handful of cell lookups (a miss) to a few hundred samples.
 constexpr int64_t kRayGrain = 64;
 
-std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> ray_marching_fwd_cpu(
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> ray_marching_fwd_cpu(
     const at::Tensor& rays_o, const at::Tensor& rays_d, const at::Tensor& near, const at::Tensor& far,
     const std::optional<at::Tensor>& jitter, const at::Tensor& bitfield, const at::Tensor& aabb,
-    at::IntArrayRef resolution, double step_size, double cone_angle, std::optional<int64_t> max_samples_per_ray) {
+    at::IntArrayRef resolution, double step_size, double cone_angle, std::optional<int64_t> max_samples_per_ray,
+    std::optional<int64_t> capacity) {
   check_ray_marching_inputs(rays_o, rays_d, near, far, jitter, bitfield, aabb, resolution, step_size, cone_angle,
-                            max_samples_per_ray, at::kCPU);
+                            max_samples_per_ray, capacity, at::kCPU);
   const int64_t R = rays_o.size(0);
   const auto index_options = rays_o.options().dtype(at::kLong);
   at::Tensor offsets = at::zeros({R + 1}, index_options);
-  at::Tensor t_starts, t_ends, ray_indices;
+  at::Tensor t_starts, t_ends, ray_indices, total;
   MIXER_NERF_DISPATCH_FLOATING(rays_o.scalar_type(), "ray_marching_fwd_cpu", [&] {
     using T = acc_t<scalar_t>;
     const auto in = march_inputs<scalar_t, T>(rays_o, rays_d, near, far, jitter, bitfield, aabb, resolution,
@@ -41,20 +42,23 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> ray_marching_fwd_cpu(
       for (int64_t r = begin; r < end; ++r) counts[r] = in.march(r, count);
     });
     for (int64_t r = 1; r < R; ++r) counts[r] += counts[r - 1];  // counts become offsets[1:]
-    const int64_t N = offsets.data_ptr<int64_t>()[R];
-    t_starts = at::empty({N}, rays_o.options());
-    t_ends = at::empty({N}, rays_o.options());
-    ray_indices = at::empty({N}, index_options);
+    total = offsets.narrow(0, R, 1).clone();
+    const int64_t rows = capacity.value_or(total.item<int64_t>());
+    t_starts = padded_rows(rows, capacity, rays_o.options());
+    t_ends = padded_rows(rows, capacity, rays_o.options());
+    ray_indices = padded_rows(rows, capacity, index_options);
     const int64_t* first = offsets.data_ptr<int64_t>();
+    const int64_t cap = capacity.value_or(-1);
     at::parallel_for(0, R, kRayGrain, [&](int64_t begin, int64_t end) {
       for (int64_t r = begin; r < end; ++r) {
-        WriteSamples<scalar_t, T> write{t_starts.data_ptr<scalar_t>() + first[r], t_ends.data_ptr<scalar_t>() + first[r],
-                                        ray_indices.data_ptr<int64_t>() + first[r], r};
+        WriteSamples<scalar_t, T> write{t_starts.data_ptr<scalar_t>(), t_ends.data_ptr<scalar_t>(),
+                                        ray_indices.data_ptr<int64_t>(), first[r], rows_before(first[r], cap), r};
         in.march(r, write);
       }
     });
   });
-  return {t_starts, t_ends, ray_indices, offsets};
+  if (capacity) offsets.clamp_max_(*capacity);
+  return {t_starts, t_ends, ray_indices, offsets, total};
 }
 
 }  // namespace

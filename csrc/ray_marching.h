@@ -22,7 +22,8 @@ inline void check_ray_marching_inputs(const at::Tensor& rays_o, const at::Tensor
                                       const at::Tensor& far, const std::optional<at::Tensor>& jitter,
                                       const at::Tensor& bitfield, const at::Tensor& aabb,
                                       at::IntArrayRef resolution, double step_size, double cone_angle,
-                                      std::optional<int64_t> max_samples_per_ray, c10::DeviceType dev) {
+                                      std::optional<int64_t> max_samples_per_ray, std::optional<int64_t> capacity,
+                                      c10::DeviceType dev) {
   MIXER_NERF_CHECK_INPUT(rays_o, dev);
   MIXER_NERF_CHECK_INPUT(rays_d, dev);
   MIXER_NERF_CHECK_INPUT(near, dev);
@@ -51,6 +52,13 @@ inline void check_ray_marching_inputs(const at::Tensor& rays_o, const at::Tensor
   MIXER_NERF_CHECK(step_size > 0 && std::isfinite(step_size), "step_size must be positive and finite");
   MIXER_NERF_CHECK(cone_angle >= 0 && std::isfinite(cone_angle), "cone_angle must be non-negative and finite");
   MIXER_NERF_CHECK(!max_samples_per_ray || *max_samples_per_ray >= 1, "max_samples_per_ray must be >= 1");
+  MIXER_NERF_CHECK(!capacity || *capacity >= 0, "capacity must be >= 0");
+}
+
+// An output of `rows` samples; with a capacity its rows past the samples stay zero (zero-length
+// intervals at t = 0 of ray 0).
+inline at::Tensor padded_rows(int64_t rows, std::optional<int64_t> capacity, const at::TensorOptions& options) {
+  return capacity ? at::zeros({rows}, options) : at::empty({rows}, options);
 }
 
 template <typename scalar_t, typename T>

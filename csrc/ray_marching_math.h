@@ -263,16 +263,24 @@ struct CountOnly {
 
 template <typename scalar_t, typename T>
 struct WriteSamples {
-  scalar_t* t_starts;  // already offset to the ray's first sample
+  scalar_t* t_starts;  // the outputs' first row
   scalar_t* t_ends;
   int64_t* ray_indices;
+  int64_t first;  // the ray's first row
+  int64_t limit;  // rows the ray may fill: a fixed-size output cuts off the samples past its end
   int64_t ray;
   C10_HOST_DEVICE void operator()(int64_t n, T t_start, T t_end) const {
-    t_starts[n] = scalar_t(t_start);
-    t_ends[n] = scalar_t(t_end);
-    ray_indices[n] = ray;
+    if (n >= limit) return;
+    t_starts[first + n] = scalar_t(t_start);
+    t_ends[first + n] = scalar_t(t_end);
+    ray_indices[first + n] = ray;
   }
 };
+
+// Rows ray r may fill from its first row `first`: all of them, or those before `capacity`.
+C10_HOST_DEVICE inline int64_t rows_before(int64_t first, int64_t capacity) {
+  return capacity < 0 ? INT64_MAX : (capacity > first ? capacity - first : 0);
+}
 
 }  // namespace ray_marching_math
 }  // namespace mixer_nerf

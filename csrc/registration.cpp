@@ -33,8 +33,10 @@ TORCH_LIBRARY(mixer_nerf, m) {
   m.def("composite_packed_fwd(Tensor sigmas, Tensor rgbs, Tensor t_starts, Tensor t_ends, Tensor? background, Tensor offsets) -> (Tensor, Tensor, Tensor, Tensor, Tensor)");
   m.def("composite_packed_bwd(Tensor? grad_color, Tensor? grad_depth, Tensor? grad_opacity, Tensor? grad_weights, Tensor sigmas, Tensor rgbs, Tensor t_starts, Tensor t_ends, Tensor? background, Tensor offsets, bool interval_grads) -> (Tensor, Tensor, Tensor?, Tensor?, Tensor?)");
   // ray_marching: rays_o/rays_d (R, 3), near/far (R), jitter (R) or None, occupancy bitfield uint8 (one bit
-  //   per cell), aabb (2, 3) -> t_starts (N), t_ends (N), ray_indices (N) int64, offsets (R+1) int64. No backward.
-  m.def("ray_marching_fwd(Tensor rays_o, Tensor rays_d, Tensor near, Tensor far, Tensor? jitter, Tensor bitfield, Tensor aabb, int[] resolution, float step_size, float cone_angle, int? max_samples_per_ray) -> (Tensor, Tensor, Tensor, Tensor)");
+  //   per cell), aabb (2, 3) -> t_starts (N), t_ends (N), ray_indices (N) int64, offsets (R+1) int64, total (1)
+  //   int64 (the samples marched). With a capacity the outputs have that many rows (no host sync): the
+  //   samples past it are cut, offsets clamped to it, the rows after the samples zero. No backward.
+  m.def("ray_marching_fwd(Tensor rays_o, Tensor rays_d, Tensor near, Tensor far, Tensor? jitter, Tensor bitfield, Tensor aabb, int[] resolution, float step_size, float cone_angle, int? max_samples_per_ray, int? capacity=None) -> (Tensor, Tensor, Tensor, Tensor, Tensor)");
   // segment_mean / ray_scale (squeeze-and-excitation on packed samples), offsets (R+1) int64 (ray r
   //   owns rows offsets[r]:offsets[r+1]): segment_mean: values (N, C) -> per-ray mean (R, C), 0 for
   //   an empty ray; ray_scale: features (N, C), scale (R, C) -> features[i] * scale[ray(i)] (N, C)

@@ -15,7 +15,13 @@ import pytest
 import torch
 
 from mixer_nerf import _extension
-from mixer_nerf.ops.ray_marching import PackedSamples, filter_by_transmittance, ray_marching
+from mixer_nerf.ops.ray_marching import (
+    FixedSamples,
+    PackedSamples,
+    filter_by_transmittance,
+    ray_marching,
+    ray_marching_fixed,
+)
 from mixer_nerf.ops.bitfield import pack_bits
 from mixer_nerf.ops.ray_marching_reference import clip_to_box, march_dtype, ray_marching_reference
 from cuda_poison import poison_allocator
@@ -404,16 +410,67 @@ def test_opcheck(gen):
     rays, grid = random_rays(50, gen), random_grid(gen)
     ray_marching(*rays, grid, 0.05, backend="kernel")  # registers the fake
     aabb = grid[1]
-    for jitter, cone, cap in ((None, 0.0, None), (torch.rand(50, generator=gen), 0.05, 4)):
-        args = (*rays, jitter, grid[0], aabb, list(grid[2]), 0.05, cone, cap)
+    for jitter, cone, cap, capacity in ((None, 0.0, None, None), (torch.rand(50, generator=gen), 0.05, 4, None),
+                                        (None, 0.0, None, 64)):
+        args = (*rays, jitter, grid[0], aabb, list(grid[2]), 0.05, cone, cap, capacity)
         torch.library.opcheck(torch.ops.mixer_nerf.ray_marching_fwd.default, args)
+
+
+# --- fixed-size outputs ------------------------------------------------------------------------
+
+
+def assert_fixed(fixed: FixedSamples, exact: PackedSamples, capacity: int):
+    """What ray_marching_fixed promises against ray_marching's samples: the first ``capacity`` of
+    them, offsets clamped, zero rows after them, the uncut count in ``total``."""
+    N, s = exact.t_starts.shape[0], fixed.samples
+    kept = min(N, capacity)
+    assert torch.equal(s.offsets, exact.offsets.clamp_max(capacity))
+    assert fixed.total.dtype == torch.int64 and fixed.total.tolist() == [N]
+    for name in ("t_starts", "t_ends", "ray_indices"):
+        got, want = getattr(s, name), getattr(exact, name)
+        assert got.shape == (capacity,) and got.dtype == want.dtype, name
+        assert torch.equal(got[:kept], want[:kept]), name
+        assert not got[kept:].any(), f"{name}: padding rows are not zero"
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("room", ["spare", "exact", "cut", "none"])
+@pytest.mark.parametrize("R, stratified, dtype", [(1000, False, torch.float32), (300, True, torch.float64),
+                                                  (0, False, torch.float32)])
+def test_fixed_capacity_holds_the_first_samples(gen, backend, room, R, stratified, dtype):
+    rays, grid = random_rays(R, gen, dtype), random_grid(gen)
+    exact = march(rays, grid, backend=backend, seed=3 if stratified else None)
+    N = exact.t_starts.shape[0]
+    capacity = {"spare": N + 17, "exact": N, "cut": N // 2, "none": 0}[room]
+    generator = torch.Generator().manual_seed(3) if stratified else None
+    fixed = ray_marching_fixed(*rays, grid, 0.013, capacity, stratified=stratified, generator=generator,
+                               backend=backend)
+    assert_fixed(fixed, exact, capacity)
+    if room == "cut" and R:
+        assert N // 2 < N and int(fixed.samples.offsets[-1]) == N // 2  # some rays lost samples
+
+
+@needs_kernels
+def test_fixed_capacity_kernel_matches_reference(gen):
+    rays, grid = random_rays(2000, gen), random_grid(gen, 0.6)
+    for capacity in (0, 1, 777, 10**6):
+        got, want = (ray_marching_fixed(*rays, grid, 0.02, capacity, max_samples_per_ray=9, backend=backend)
+                     for backend in ("kernel", "torch"))
+        assert_same(got.samples, want.samples)
+        assert torch.equal(got.total, want.total)
+
+
+@pytest.mark.parametrize("capacity", [-1, 2.5, None, "8"])
+def test_fixed_capacity_must_be_a_count(gen, capacity):
+    with pytest.raises(ValueError, match="capacity must be an int >= 0"):
+        ray_marching_fixed(*random_rays(4, gen), random_grid(gen), 0.1, capacity)
 
 
 # --- CUDA --------------------------------------------------------------------------------------
 
 
 def check_cuda(
-    rays, grid, stratified=False, exact=True, step=0.013, cone_angle=0.0, max_samples_per_ray=None
+    rays, grid, stratified=False, exact=True, step=0.013, cone_angle=0.0, max_samples_per_ray=None, capacity=None
 ):
     """CUDA kernel vs CPU kernel vs the reference on either device, all on the same jitter (the
     registered op takes it explicitly: CPU and CUDA generators draw different numbers)."""
@@ -427,20 +484,21 @@ def check_cuda(
             return None if t is None else t.to(device)
 
         aabb_ = to(aabb.to(march_dtype(dtype)))
-        options = (list(resolution), step, cone_angle, max_samples_per_ray)
-        return PackedSamples(
-            *(t.cpu() for t in fn(*map(to, rays), to(jitter), to(bitfield), aabb_, *options))
-        )
+        options = (list(resolution), step, cone_angle, max_samples_per_ray, capacity)
+        *samples, total = (t.cpu() for t in fn(*map(to, rays), to(jitter), to(bitfield), aabb_, *options))
+        return PackedSamples(*samples), total
 
     kernel = torch.ops.mixer_nerf.ray_marching_fwd
-    cpu, reference = run(kernel, "cpu"), run(ray_marching_reference, "cpu")
+    (cpu, cpu_total), (reference, reference_total) = run(kernel, "cpu"), run(ray_marching_reference, "cpu")
     poison_allocator(list(cpu))
-    got = run(kernel, "cuda")
-    check_layout(got, R)
+    got, total = run(kernel, "cuda")
+    if capacity is None:
+        check_layout(got, R)
     same = assert_same if exact else assert_nearly_same
     same(got, cpu)
     same(cpu, reference)
-    same(run(ray_marching_reference, "cuda"), reference)  # eager PyTorch on the GPU agrees too
+    assert torch.equal(total, cpu_total) and torch.equal(cpu_total, reference_total)
+    same(run(ray_marching_reference, "cuda")[0], reference)  # eager PyTorch on the GPU agrees too
 
 
 @pytest.mark.cuda
@@ -463,6 +521,46 @@ def test_cuda_dtypes(gen, dtype):
 def test_cuda_cone_and_cap(gen):
     check_cuda(random_rays(2000, gen), random_grid(gen), exact=False, cone_angle=0.02)
     check_cuda(random_rays(2000, gen), random_grid(gen, 0.9), max_samples_per_ray=7)
+
+
+@pytest.mark.cuda
+@on_cuda
+@pytest.mark.parametrize("capacity", [0, 5000, 10**6])
+def test_cuda_fixed_capacity_matches_cpu_and_reference(gen, capacity):
+    check_cuda(random_rays(3000, gen), random_grid(gen), stratified=True, capacity=capacity)
+    check_cuda([t[:0] for t in random_rays(1, gen)], random_grid(gen), capacity=capacity)
+
+
+@pytest.mark.cuda
+@on_cuda
+def test_cuda_fixed_capacity_needs_no_sync_and_replays_in_a_graph(gen):
+    """No host read of the count, so the march can be captured once and replayed on new rays."""
+    rays = [t.cuda() for t in random_rays(3000, gen)]
+    grid = tuple(t.cuda() if isinstance(t, torch.Tensor) else t for t in random_grid(gen))
+    exact = ray_marching(*rays, grid, 0.013)
+    capacity = exact.t_starts.shape[0]
+    torch.cuda.synchronize()
+    torch.cuda.set_sync_debug_mode("error")
+    try:
+        fixed = ray_marching_fixed(*rays, grid, 0.013, capacity // 2)
+    finally:
+        torch.cuda.set_sync_debug_mode("default")
+    assert_fixed(fixed, exact, capacity // 2)
+
+    static = [t.clone() for t in rays]
+    side = torch.cuda.Stream()
+    side.wait_stream(torch.cuda.current_stream())
+    with torch.cuda.stream(side):
+        ray_marching_fixed(*static, grid, 0.013, capacity)  # loads and warms up outside the capture
+    torch.cuda.current_stream().wait_stream(side)
+    graph = torch.cuda.CUDAGraph()
+    with torch.cuda.graph(graph):
+        out = ray_marching_fixed(*static, grid, 0.013, capacity)
+    new_rays = [t.cuda() for t in random_rays(3000, gen)]
+    for held, new in zip(static, new_rays):
+        held.copy_(new)
+    graph.replay()
+    assert_fixed(out, ray_marching(*new_rays, grid, 0.013), capacity)
 
 
 @pytest.mark.cuda

@@ -1,5 +1,6 @@
 // ray_marching on CUDA: the two passes of the CPU kernel (count the kept samples of every ray;
-// scan counts into offsets; march again writing them), with one warp per ray. The lanes test 32
+// scan counts into offsets; march again writing them, into `capacity` rows without reading the
+// count back when one is given), with one warp per ray. The lanes test 32
 // consecutive lattice samples at a time with the per-sample test of ray_marching_math.h and
 // rank the kept ones with a ballot; after a window whose last sample is empty the warp jumps
 // past that sample's cell like march_ray does. Which samples are kept depends only on that
@@ -100,34 +101,39 @@ __global__ void __launch_bounds__(kThreads) count_samples_kernel(MarchInputs<sca
 
 template <typename scalar_t, typename T>
 __global__ void __launch_bounds__(kThreads) write_samples_kernel(MarchInputs<scalar_t, T> in, int64_t R,
-                                                                 const int64_t* offsets, scalar_t* t_starts,
-                                                                 scalar_t* t_ends, int64_t* ray_indices) {
+                                                                 const int64_t* offsets, int64_t capacity,
+                                                                 scalar_t* t_starts, scalar_t* t_ends,
+                                                                 int64_t* ray_indices) {
   const int64_t r = warp_ray();
   if (r >= R) return;
   const int64_t first = offsets[r];
-  WriteSamples<scalar_t, T> write{t_starts + first, t_ends + first, ray_indices + first, r};
+  const int64_t limit = rows_before(first, capacity);
+  if (limit == 0) return;  // the whole warp: the ray lies past a fixed-size output's end
+  WriteSamples<scalar_t, T> write{t_starts, t_ends, ray_indices, first, limit, r};
   march_warp(in, r, threadIdx.x % kWarpSize, write);
 }
 
-std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> ray_marching_fwd_cuda(
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> ray_marching_fwd_cuda(
     const at::Tensor& rays_o, const at::Tensor& rays_d, const at::Tensor& near, const at::Tensor& far,
     const std::optional<at::Tensor>& jitter, const at::Tensor& bitfield, const at::Tensor& aabb,
-    at::IntArrayRef resolution, double step_size, double cone_angle, std::optional<int64_t> max_samples_per_ray) {
+    at::IntArrayRef resolution, double step_size, double cone_angle, std::optional<int64_t> max_samples_per_ray,
+    std::optional<int64_t> capacity) {
   check_ray_marching_inputs(rays_o, rays_d, near, far, jitter, bitfield, aabb, resolution, step_size, cone_angle,
-                            max_samples_per_ray, at::kCUDA);
+                            max_samples_per_ray, capacity, at::kCUDA);
   const c10::cuda::CUDAGuard guard(rays_o.device());
   const auto stream = c10::cuda::getCurrentCUDAStream();
   const int64_t R = rays_o.size(0);
   const auto index_options = rays_o.options().dtype(at::kLong);
   at::Tensor offsets = at::zeros({R + 1}, index_options);
   if (R == 0) {
-    return {at::empty({0}, rays_o.options()), at::empty({0}, rays_o.options()), at::empty({0}, index_options),
-            offsets};
+    const int64_t rows = capacity.value_or(0);
+    return {padded_rows(rows, capacity, rays_o.options()), padded_rows(rows, capacity, rays_o.options()),
+            padded_rows(rows, capacity, index_options), offsets, at::zeros({1}, index_options)};
   }
   constexpr int64_t kRaysPerBlock = kThreads / kWarpSize;
   MIXER_NERF_CHECK((R + kRaysPerBlock - 1) / kRaysPerBlock <= int64_t(INT32_MAX), "ray_marching: too many rays for one launch");
   const unsigned blocks = unsigned((R + kRaysPerBlock - 1) / kRaysPerBlock);
-  at::Tensor t_starts, t_ends, ray_indices;
+  at::Tensor t_starts, t_ends, ray_indices, total;
   MIXER_NERF_DISPATCH_FLOATING(rays_o.scalar_type(), "ray_marching_fwd_cuda", [&] {
     using T = acc_t<scalar_t>;
     const auto in = march_inputs<scalar_t, T>(rays_o, rays_d, near, far, jitter, bitfield, aabb, resolution,
@@ -136,17 +142,20 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> ray_marching_fwd_cuda
     count_samples_kernel<scalar_t, T><<<blocks, kThreads, 0, stream>>>(in, R, counts.data_ptr<int64_t>());
     C10_CUDA_KERNEL_LAUNCH_CHECK();
     at::cumsum_out(counts, counts, 0);
-    const int64_t N = offsets[R].item<int64_t>();  // the outputs' size: one sync, unavoidable
-    t_starts = at::empty({N}, rays_o.options());
-    t_ends = at::empty({N}, rays_o.options());
-    ray_indices = at::empty({N}, index_options);
-    if (N == 0) return;
+    total = offsets.narrow(0, R, 1).clone();
+    // The outputs' size: without a capacity the count itself, read back (one sync).
+    const int64_t rows = capacity ? *capacity : total.item<int64_t>();
+    t_starts = padded_rows(rows, capacity, rays_o.options());
+    t_ends = padded_rows(rows, capacity, rays_o.options());
+    ray_indices = padded_rows(rows, capacity, index_options);
+    if (rows == 0) return;
     write_samples_kernel<scalar_t, T><<<blocks, kThreads, 0, stream>>>(
-        in, R, offsets.data_ptr<int64_t>(), t_starts.data_ptr<scalar_t>(), t_ends.data_ptr<scalar_t>(),
-        ray_indices.data_ptr<int64_t>());
+        in, R, offsets.data_ptr<int64_t>(), capacity.value_or(-1), t_starts.data_ptr<scalar_t>(),
+        t_ends.data_ptr<scalar_t>(), ray_indices.data_ptr<int64_t>());
     C10_CUDA_KERNEL_LAUNCH_CHECK();
   });
-  return {t_starts, t_ends, ray_indices, offsets};
+  if (capacity) offsets.clamp_max_(*capacity);
+  return {t_starts, t_ends, ray_indices, offsets, total};
 }
 
 }  // namespace

@@ -14,11 +14,12 @@ from .hierarchical_samples import hierarchical_samples
 from .linear_relu import linear_relu
 from .mlca import mlca
 from .positional_encoding import positional_encoding
-from .ray_marching import PackedSamples, filter_by_transmittance, ray_marching
+from .ray_marching import FixedSamples, PackedSamples, filter_by_transmittance, ray_marching, ray_marching_fixed
 from .sample_pdf import sample_pdf, sample_pdf_packed
 from .segment_ops import ray_scale, segment_mean
 
 __all__ = [
+    "FixedSamples",
     "PackedSamples",
     "check_pending",
     "composite",
@@ -29,6 +30,7 @@ __all__ = [
     "mlca",
     "positional_encoding",
     "ray_marching",
+    "ray_marching_fixed",
     "ray_scale",
     "sample_pdf",
     "sample_pdf_packed",

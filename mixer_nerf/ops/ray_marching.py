@@ -85,6 +85,53 @@ def ray_marching(
         are [t_k, min(t_{k+1}, t_hi)] on a fixed lattice, so consecutive kept samples share
         their boundary and a fully occupied grid tiles [t_lo, t_hi] exactly (from t_lo + jitter).
     """
+    *samples, _ = _march(rays_o, rays_d, near, far, grid, step_size, stratified, generator, cone_angle,
+                         max_samples_per_ray, None, backend)
+    return PackedSamples(*samples)
+
+
+class FixedSamples(NamedTuple):
+    """:func:`ray_marching_fixed`'s samples in buffers of a fixed size."""
+
+    samples: PackedSamples  # capacity rows: the samples, then zero rows (t_start = t_end = 0, ray 0)
+    total: torch.Tensor  # (1,) int64 on the rays' device: how many samples the march gave
+
+
+def ray_marching_fixed(
+    rays_o: torch.Tensor,
+    rays_d: torch.Tensor,
+    near: torch.Tensor | float,
+    far: torch.Tensor | float,
+    grid,
+    step_size: float,
+    capacity: int,
+    stratified: bool = False,
+    generator: torch.Generator | None = None,
+    cone_angle: float = 0.0,
+    max_samples_per_ray: int | None = None,
+    backend: str = "auto",
+) -> FixedSamples:
+    """:func:`ray_marching` into outputs of ``capacity`` rows, without reading the number of
+    samples back to the host: no synchronisation on a GPU, and the same shapes every call (a CUDA
+    graph can capture it).
+
+    The samples are those of :func:`ray_marching` with the same arguments, cut at ``capacity``:
+    ``samples.offsets`` is clamped to it, so the rays past it lose their samples (the ray that
+    crosses it keeps its first ones). Rows from ``samples.offsets[-1]`` on are zero: empty intervals
+    at t = 0 owned by no ray (their ray index is 0, a valid index for gathers). ``total`` is the
+    number of samples before the cut, on the device: ``total > capacity`` says samples were lost,
+    and sizes the next call's batch without a synchronisation now.
+    """
+    if not (isinstance(capacity, int) and capacity >= 0):
+        raise ValueError(f"capacity must be an int >= 0, got {capacity!r}")
+    *samples, total = _march(rays_o, rays_d, near, far, grid, step_size, stratified, generator, cone_angle,
+                             max_samples_per_ray, capacity, backend)
+    return FixedSamples(PackedSamples(*samples), total)
+
+
+def _march(rays_o, rays_d, near, far, grid, step_size, stratified, generator, cone_angle, max_samples_per_ray,
+           capacity, backend) -> tuple[torch.Tensor, ...]:
+    """Validated inputs into the op or its reference: t_starts, t_ends, ray_indices, offsets, total."""
     bitfield, aabb, resolution = _grid_parts(grid)
     R = _validate(rays_o, rays_d, bitfield, aabb, resolution, step_size, cone_angle, max_samples_per_ray)
     near, far = _per_ray("near", near, rays_o), _per_ray("far", far, rays_o)
@@ -104,11 +151,12 @@ def ray_marching(
         float(step_size),
         float(cone_angle),
         max_samples_per_ray,
+        capacity,
     )
     if not use_kernel(backend, rays_o.device):
-        return PackedSamples(*ray_marching_reference(*inputs))
+        return ray_marching_reference(*inputs)
     _register_fakes()
-    return PackedSamples(*torch.ops.mixer_nerf.ray_marching_fwd(*inputs))
+    return torch.ops.mixer_nerf.ray_marching_fwd(*inputs)
 
 
 @torch.no_grad()
@@ -212,12 +260,14 @@ def _register_fakes() -> None:
 
 
 def _ray_marching_fwd_fake(
-    rays_o, rays_d, near, far, jitter, bitfield, aabb, resolution, step_size, cone_angle, max_samples_per_ray
+    rays_o, rays_d, near, far, jitter, bitfield, aabb, resolution, step_size, cone_angle, max_samples_per_ray,
+    capacity=None,
 ):
-    n = torch.library.get_ctx().new_dynamic_size()
+    n = torch.library.get_ctx().new_dynamic_size() if capacity is None else capacity
     return (
         rays_o.new_empty(n),
         rays_o.new_empty(n),
         rays_o.new_empty(n, dtype=torch.int64),
         rays_o.new_empty(rays_o.shape[0] + 1, dtype=torch.int64),
+        rays_o.new_empty(1, dtype=torch.int64),
     )

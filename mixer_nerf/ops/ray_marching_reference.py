@@ -53,18 +53,34 @@ def ray_marching_reference(
     step_size: float,
     cone_angle: float = 0.0,
     max_samples_per_ray: int | None = None,
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    capacity: int | None = None,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Packed samples of R rays; arguments as ``torch.ops.mixer_nerf.ray_marching_fwd``.
 
     Args:
         rays_o, rays_d: (R, 3). near, far: (R,). jitter: (R,) in [0, 1) or None.
         bitfield: (ceil(X*Y*Z / 8),) uint8 occupancy bits. aabb: (2, 3) box corners.
-        resolution: (X, Y, Z) cells.
+        resolution: (X, Y, Z) cells. capacity: rows of the outputs (None: as many as samples).
 
     Returns:
-        t_starts (N,), t_ends (N,) in the rays' dtype, ray_indices (N,) int64 and offsets (R+1,)
-        int64: ray r's samples are rows offsets[r]:offsets[r+1], in order along the ray.
+        t_starts (N,), t_ends (N,) in the rays' dtype, ray_indices (N,) int64, offsets (R+1,)
+        int64 (ray r's samples are rows offsets[r]:offsets[r+1], in order along the ray) and
+        total (1,) int64, the number of samples. With ``capacity`` N = capacity: the first
+        ``capacity`` samples, offsets clamped to it, zero rows after the samples.
     """
+    *samples, offsets = _march(rays_o, rays_d, near, far, jitter, bitfield, aabb, resolution, step_size,
+                               cone_angle, max_samples_per_ray)
+    total = offsets[-1:].clone()
+    if capacity is None:
+        return (*samples, offsets, total)
+    kept = [x[:capacity] for x in samples]
+    padded = [torch.cat([x, x.new_zeros(capacity - x.shape[0])]) for x in kept]
+    return (*padded, offsets.clamp_max(capacity), total)
+
+
+def _march(rays_o, rays_d, near, far, jitter, bitfield, aabb, resolution, step_size, cone_angle,
+           max_samples_per_ray):
+    """t_starts, t_ends, ray_indices and offsets of every sample (see :func:`ray_marching_reference`)."""
     R, device, dtype = rays_o.shape[0], rays_o.device, march_dtype(rays_o.dtype)
     o, d = rays_o.to(dtype), rays_d.to(dtype)
     box = aabb.to(dtype).reshape(2, 3)
