@@ -5,7 +5,8 @@ the grid's box and marched with a fixed step (growing with distance when ``cone_
 keeping only samples whose midpoint lies in an occupied cell and jumping over empty cells. The
 definition is in :mod:`mixer_nerf.ops.ray_marching_reference` and ``csrc/ray_marching_math.h``.
 Marching is not differentiable: the samples are positions to evaluate a model at, and come back
-without grad.
+without grad. :func:`ray_marching_fixed` gives the same samples in buffers of a fixed size, with
+their count left on the device (no GPU synchronisation: a CUDA graph can capture it).
 
 :func:`filter_by_transmittance` then drops samples that cannot change the image (behind an
 opaque surface, or nearly transparent) once their densities are known.
