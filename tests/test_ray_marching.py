@@ -464,6 +464,34 @@ def test_fixed_capacity_kernel_matches_reference(gen):
 def test_fixed_capacity_must_be_a_count(gen, capacity):
     with pytest.raises(ValueError, match="capacity must be an int >= 0"):
         ray_marching_fixed(*random_rays(4, gen), random_grid(gen), 0.1, capacity)
+    samples = ray_marching(*random_rays(4, gen), full_grid(), 0.1)
+    with pytest.raises(ValueError, match="capacity must be an int >= 0"):
+        samples.select_fixed(torch.ones_like(samples.t_starts, dtype=torch.bool), capacity)
+
+
+@pytest.mark.parametrize("room", ["spare", "exact", "cut", "none"])
+@pytest.mark.parametrize("fixed_input", [False, True])
+def test_select_fixed_keeps_what_select_keeps(gen, room, fixed_input):
+    """The sync-free selection into fixed rows against select(): the same samples, cut and padded
+    as ray_marching_fixed's are; a fixed-size input's padding rows are never kept."""
+    rays, grid = random_rays(500, gen), random_grid(gen, 0.5)
+    exact = march(rays, grid, backend="torch")
+    N = exact.t_starts.shape[0]
+    if fixed_input:  # the same samples in a fixed layout with 50 padding rows
+        source = ray_marching_fixed(*rays, grid, 0.013, N + 50, backend="torch").samples
+    else:
+        source = exact
+    keep = torch.rand(source.t_starts.shape[0], generator=gen) < 0.6
+    selected = exact.select(keep[:N])
+    kept = selected.t_starts.shape[0]
+    capacity = {"spare": kept + 9, "exact": kept, "cut": kept // 3, "none": 0}[room]
+    assert_fixed(source.select_fixed(keep, capacity), selected, capacity)
+
+
+def test_select_fixed_rejects_a_mask_of_another_length(gen):
+    samples = ray_marching(*random_rays(8, gen), full_grid(), 0.1)
+    with pytest.raises(ValueError, match="keep"):
+        samples.select_fixed(torch.ones(samples.t_starts.shape[0] + 1, dtype=torch.bool), 4)
 
 
 # --- CUDA --------------------------------------------------------------------------------------
@@ -534,18 +562,24 @@ def test_cuda_fixed_capacity_matches_cpu_and_reference(gen, capacity):
 @pytest.mark.cuda
 @on_cuda
 def test_cuda_fixed_capacity_needs_no_sync_and_replays_in_a_graph(gen):
-    """No host read of the count, so the march can be captured once and replayed on new rays."""
+    """No host read of a count (the march, the filter and the fixed selection), so the march can
+    be captured once and replayed on new rays."""
     rays = [t.cuda() for t in random_rays(3000, gen)]
     grid = tuple(t.cuda() if isinstance(t, torch.Tensor) else t for t in random_grid(gen))
     exact = ray_marching(*rays, grid, 0.013)
     capacity = exact.t_starts.shape[0]
     torch.cuda.synchronize()
+    sigmas = torch.rand(capacity, device="cuda") * 50
     torch.cuda.set_sync_debug_mode("error")
     try:
         fixed = ray_marching_fixed(*rays, grid, 0.013, capacity // 2)
+        whole = ray_marching_fixed(*rays, grid, 0.013, capacity)
+        keep = filter_by_transmittance(sigmas, whole.samples)
+        selected = whole.samples.select_fixed(keep, capacity // 3)
     finally:
         torch.cuda.set_sync_debug_mode("default")
     assert_fixed(fixed, exact, capacity // 2)
+    assert_fixed(selected, exact.select(filter_by_transmittance(sigmas, exact)), capacity // 3)
 
     static = [t.clone() for t in rays]
     side = torch.cuda.Stream()

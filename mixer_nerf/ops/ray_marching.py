@@ -49,6 +49,27 @@ class PackedSamples(NamedTuple):
             self.t_starts[rows], self.t_ends[rows], self.ray_indices[rows], kept_before[self.offsets]
         )
 
+    def select_fixed(self, keep: torch.Tensor, capacity: int) -> FixedSamples:
+        """:meth:`select` into ``capacity`` rows without a host sync (the layout of
+        :func:`ray_marching_fixed`: kept samples in order, cut at ``capacity``, then zero rows;
+        ``total``: how many were kept). Rows from ``offsets[-1]`` on (a fixed layout's padding)
+        are never kept."""
+        if not (isinstance(capacity, int) and capacity >= 0):
+            raise ValueError(f"capacity must be an int >= 0, got {capacity!r}")
+        check_shape("keep", keep, (self.t_starts.shape[0],), " (one flag per sample)")
+        rows = torch.arange(keep.shape[0], device=keep.device)
+        keep = keep & (rows < self.offsets[-1])
+        kept_before = torch.nn.functional.pad(keep.cumsum(0), (1, 0))
+        # Each kept row to its place; dropped rows and those past the capacity to a spare last row.
+        place = torch.where(keep, kept_before[:-1], capacity).clamp_max(capacity)
+
+        def placed(values: torch.Tensor) -> torch.Tensor:
+            return values.new_zeros(capacity + 1).scatter_(0, place, values)[:capacity]
+
+        samples = PackedSamples(placed(self.t_starts), placed(self.t_ends), placed(self.ray_indices),
+                                kept_before[self.offsets].clamp_max(capacity))
+        return FixedSamples(samples, kept_before[-1:])
+
 
 def ray_marching(
     rays_o: torch.Tensor,
