@@ -54,8 +54,7 @@ class PackedSamples(NamedTuple):
         :func:`ray_marching_fixed`: kept samples in order, cut at ``capacity``, then zero rows;
         ``total``: how many were kept). Rows from ``offsets[-1]`` on (a fixed layout's padding)
         are never kept."""
-        if not (isinstance(capacity, int) and capacity >= 0):
-            raise ValueError(f"capacity must be an int >= 0, got {capacity!r}")
+        _check_capacity(capacity)
         check_shape("keep", keep, (self.t_starts.shape[0],), " (one flag per sample)")
         rows = torch.arange(keep.shape[0], device=keep.device)
         keep = keep & (rows < self.offsets[-1])
@@ -144,11 +143,15 @@ def ray_marching_fixed(
     number of samples before the cut, on the device: ``total > capacity`` says samples were lost,
     and sizes the next call's batch without a synchronisation now.
     """
-    if not (isinstance(capacity, int) and capacity >= 0):
-        raise ValueError(f"capacity must be an int >= 0, got {capacity!r}")
+    _check_capacity(capacity)
     *samples, total = _march(rays_o, rays_d, near, far, grid, step_size, stratified, generator, cone_angle,
                              max_samples_per_ray, capacity, backend)
     return FixedSamples(PackedSamples(*samples), total)
+
+
+def _check_capacity(capacity: int) -> None:
+    if not (isinstance(capacity, int) and capacity >= 0):
+        raise ValueError(f"capacity must be an int >= 0, got {capacity!r}")
 
 
 def _march(rays_o, rays_d, near, far, grid, step_size, stratified, generator, cone_angle, max_samples_per_ray,
