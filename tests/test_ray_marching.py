@@ -22,6 +22,7 @@ from mixer_nerf.ops.ray_marching import (
     ray_marching,
     ray_marching_fixed,
 )
+from mixer_nerf.ops import composite_packed
 from mixer_nerf.ops.bitfield import pack_bits
 from mixer_nerf.ops.ray_marching_reference import clip_to_box, march_dtype, ray_marching_reference
 from cuda_poison import poison_allocator
@@ -486,6 +487,35 @@ def test_select_fixed_keeps_what_select_keeps(gen, room, fixed_input):
     kept = selected.t_starts.shape[0]
     capacity = {"spare": kept + 9, "exact": kept, "cut": kept // 3, "none": 0}[room]
     assert_fixed(source.select_fixed(keep, capacity), selected, capacity)
+
+
+@pytest.mark.parametrize("room", ["spare", "exact", "cut", "none"])
+def test_fixed_samples_name_the_intact_rays_and_pad_to_a_last_ray(gen, room):
+    """intact(): the rays whose samples all fit (those past the cut, and the ray across it, lost
+    some); with_padding_ray(): one more ray owns the zero rows, so the composite of the padded
+    layout gives every real ray what the exact samples give it and the padding ray nothing."""
+    rays, grid = random_rays(400, gen), random_grid(gen, 0.5)
+    exact = march(rays, grid, backend="torch")
+    N = exact.t_starts.shape[0]
+    capacity = {"spare": N + 30, "exact": N, "cut": N // 2, "none": 0}[room]
+    fixed = ray_marching_fixed(*rays, grid, 0.013, capacity, backend="torch")
+    ends = exact.offsets[1:]
+    assert torch.equal(fixed.intact(), (ends < capacity) | (N <= capacity))
+    assert room != "cut" or not fixed.intact()[ends > capacity].any() and fixed.intact()[ends < capacity].all()
+    padded = fixed.with_padding_ray()
+    R = rays[0].shape[0]
+    assert torch.equal(padded.offsets[:-1], fixed.samples.offsets) and int(padded.offsets[-1]) == capacity
+    rows = torch.arange(capacity)
+    assert torch.equal(padded.ray_indices == R, rows >= fixed.samples.offsets[-1])
+    sigma_all, rgb_all = torch.rand(N, generator=gen) * 5, torch.rand(N, 3, generator=gen)
+    kept = min(N, capacity)  # the fixed rows hold the first samples, then zero rows
+    sigma = torch.cat([sigma_all[:kept], sigma_all.new_full((capacity - kept,), 7.0)])
+    rgb = torch.cat([rgb_all[:kept], rgb_all.new_ones(capacity - kept, 3)])
+    color = composite_packed(sigma, rgb, padded.t_starts, padded.t_ends, padded.offsets, backend="torch")[0]
+    full = composite_packed(sigma_all, rgb_all, exact.t_starts, exact.t_ends, exact.offsets, backend="torch")[0]
+    intact = fixed.intact()
+    torch.testing.assert_close(color[:R][intact], full[intact])
+    assert not color[R].any()
 
 
 def test_select_fixed_rejects_a_mask_of_another_length(gen):

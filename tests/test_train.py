@@ -28,13 +28,13 @@ from mixer_nerf.train import (
     load_trained,
     save_checkpoint,
 )
-from mixer_nerf.render.skipping import render_rays_proposal, shade_samples
+from mixer_nerf.render.skipping import march_samples, march_samples_fixed, render_rays_proposal, shade_samples
+from mixer_nerf.render.skipping.marching import with_padding_ray
 from mixer_nerf.train.checkpoint import capture_rng_state, restore_rng_state
 from mixer_nerf.train.fields import model_config
 from mixer_nerf.train.sampling import resolve_sampler
 from mixer_nerf.train import trainer as trainer_module
-from mixer_nerf.train import static_batch
-from mixer_nerf.train.static_batch import StaticMarchedBatch
+from mixer_nerf.train.fixed_batch import FixedBatch, FixedBatches, FixedCapacity
 from mixer_nerf.train.guard import NonFiniteGuard
 from mixer_nerf.train.logbook import CsvLog, plot_curves
 from dispatch_count import dispatched_ops
@@ -464,38 +464,90 @@ def test_a_discarded_prefetch_rewinds_the_rays_and_the_batch_size(tmp_path):
     assert torch.equal(again.rays_o, ahead.rays_o) and torch.equal(again.samples.t_starts, ahead.samples.t_starts)
 
 
+class _OpaqueSlab(torch.nn.Module):
+    """A density pre-pass that ends every ray soon after it enters x > 0."""
+
+    def density(self, x: torch.Tensor) -> torch.Tensor:
+        return 200.0 * (x[:, 0] > 0).float()
+
+
 @pytest.mark.parametrize("backend", ["torch", "kernel"])
-def test_a_static_batch_shades_and_learns_as_the_batch_itself(tmp_path, backend):
-    """Padded into fixed buffers (empty rays, a padding ray of zero-length samples), a batch gives
-    the same loss and parameter gradients as itself, twice in the same buffers."""
+@pytest.mark.parametrize("room", ["spare", "cut"])
+def test_fixed_marching_keeps_and_teaches_what_eager_marching_does(tmp_path, backend, room):
+    """march_samples_fixed against march_samples on the same rays and random state, with a trained
+    field and a pruned grid: the same samples (cut at the capacity), the counts on the device; in
+    a batch padded to the capacity (a padding ray, the cut rays weighted out) the loss and the
+    gradients are those of the eager batch's intact rays."""
     trainer = Trainer(tiny_config(tmp_path, sampler="occupancy", backend=backend, grid_warmup=2), log=quiet)
     for _ in range(4):  # past the warm-up: pruned cells and early termination leave rays ragged
         trainer.train_step()
+    occupancy, generator, scene = trainer.occupancy, trainer.sampler.generator, trainer.train_scene
+    rays_o, rays_d, target = trainer.sampler.sample(64)
+    state = generator.get_state()
+    options, slab = occupancy.marching, _OpaqueSlab()  # the young field drops nothing yet: the slab does
+    eager = march_samples(rays_o, rays_d, occupancy.grid, scene.near, scene.far, options, density_field=slab,
+                          generator=generator, backend=backend)
+    generator.set_state(state)
+    marched, kept = eager.num_marched, eager.samples.t_starts.shape[0]
+    assert 0 < kept < marched
+    rows = (marched + 50, kept + 20) if room == "spare" else (marched, kept // 2)
+    fixed = march_samples_fixed(rays_o, rays_d, occupancy.grid, scene.near, scene.far, options, *rows,
+                                density_field=slab, generator=generator, backend=backend)
+    assert fixed.marched.total.tolist() == [marched] and fixed.samples.total.tolist() == [kept]
+    first = min(kept, rows[1])
+    for name in ("t_starts", "t_ends", "ray_indices"):
+        assert getattr(fixed.samples.samples, name).shape == (rows[1],)
+        assert torch.equal(getattr(fixed.samples.samples, name)[:first], getattr(eager.samples, name)[:first])
+    intact = fixed.intact()
+    assert bool(intact.all()) == (room == "spare") and intact.any()
 
     def loss_and_grads(loss):
         trainer.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         return [loss.detach()] + [p.grad.clone() for p in trainer.params]
 
-    static = None
-    for step in (trainer.step, trainer.step + 1):
-        batch = trainer.batches.take(step)
-        color = shade_samples(trainer.coarse_field, batch.rays_o, batch.rays_d, batch.samples, trainer.background,
-                              backend)[0]
-        plain = loss_and_grads(F.mse_loss(color, batch.target))
-        static = static or StaticMarchedBatch.for_batch(batch)
-        assert static.fits(batch)
-        static.load(batch)
-        assert static.rays > batch.rays_o.shape[0] and static.samples > batch.samples.t_starts.shape[0]
-        color = shade_samples(trainer.coarse_field, static.rays_o, static.rays_d, static.packed,
-                              trainer.background, backend)[0]
-        padded = loss_and_grads(static.mse(color))
-        for name, a, b in zip(["loss", *trainer.param_names], plain, padded, strict=True):
-            torch.testing.assert_close(b, a, rtol=1e-5, atol=1e-7, msg=name)
-    small = StaticMarchedBatch(1, 1, "cpu")
-    assert not small.fits(batch)
-    with pytest.raises(ValueError, match="does not fit buffers of 1 rays and 1 samples"):
-        small.load(batch)
+    def shade(rays_o, rays_d, samples):
+        return shade_samples(trainer.coarse_field, rays_o, rays_d, samples, trainer.background, backend)[0]
+
+    plain = loss_and_grads(F.mse_loss(shade(rays_o, rays_d, eager.samples)[intact], target[intact]))
+    weight = intact.float()
+    batch = FixedBatch(*with_padding_ray(rays_o, rays_d), torch.cat([target, target.new_zeros(1, 3)]),
+                       fixed.samples.with_padding_ray(), torch.cat([weight, weight.new_zeros(1)]), None, None)
+    padded = loss_and_grads(batch.mse(shade(batch.rays_o, batch.rays_d, batch.samples)))
+    for name, a, b in zip(["loss", *trainer.param_names], plain, padded, strict=True):
+        torch.testing.assert_close(b, a, rtol=1e-5, atol=1e-7, msg=name)
+
+
+def test_fixed_batches_use_num_rays_and_adapt_it_on_the_device(tmp_path):
+    """Only the first num_rays rays get samples and count; the next batch's num_rays comes from
+    this one's counts (the sample target, the marched buffer), and the counters add up."""
+    trainer = Trainer(tiny_config(tmp_path, sampler="occupancy", grid_warmup=2), log=quiet)
+    for _ in range(4):
+        trainer.train_step()
+    eager = trainer.batches.take(trainer.step)
+    scene, target = trainer.train_scene, 3000
+    capacity = FixedCapacity.for_batch(eager, target)
+    assert capacity.rays >= 2 * eager.rays_o.shape[0] and capacity.kept >= target
+    batches = FixedBatches(trainer.sampler, trainer.occupancy, capacity, 3, target, scene.near, scene.far, 16,
+                           "torch")
+    seen, kept_per_draw = torch.zeros(3, dtype=torch.int64), []
+    for draw in range(8):
+        num_rays = int(batches.num_rays)
+        b = batches.draw(trainer.density_field, empty_space=draw == 0)
+        R = capacity.rays
+        assert b.rays_o.shape == (R + 1, 3) and b.samples.offsets.shape == (R + 2,)
+        assert b.samples.t_starts.shape == (capacity.kept,) and int(b.samples.offsets[-1]) == capacity.kept
+        per_ray = b.samples.offsets.diff()
+        assert not per_ray[num_rays:R].any() and not b.ray_weight[num_rays:].any()
+        assert b.ray_weight[:num_rays].sum() > 0
+        kept = int(b.samples.offsets[R])
+        kept_per_draw.append(kept)
+        seen += torch.tensor([num_rays, kept, 0])
+        assert (b.empty_points is None) == (draw != 0)
+        want = min(math.floor(num_rays * target / max(kept, 1)), R)
+        assert int(batches.num_rays) <= max(want, 1)
+    assert batches.seen[:2].tolist() == seen[:2].tolist() and batches.seen[2] >= batches.seen[1]
+    assert 0.5 * target <= sum(kept_per_draw[-4:]) / 4 and max(kept_per_draw) <= capacity.kept  # near the target
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU")
@@ -527,57 +579,64 @@ class _EagerGraphs:
         return self.body(kind)
 
 
-def test_the_replayed_occupancy_path_trains_as_the_eager_one(tmp_path, monkeypatch):
-    """The bookkeeping of ``--cuda-graphs`` on the occupancy path (padded batches, the next batch
-    prepared from a copy of the weights, refresh steps eager, buffers grown, a checkpoint between
-    steps) with graphs stood in by eager calls: the same weights as the eager path's at the end."""
+def test_the_fixed_capacity_path_trains_and_checkpoints(tmp_path, monkeypatch):
+    """The bookkeeping of ``--cuda-graphs`` on the occupancy path with graphs stood in by eager
+    calls: eager steps until twice the grid's warm-up, then fixed-capacity steps (refreshes outside
+    the graph), the counters the device kept, and a checkpoint that resumes eagerly from the
+    batch size the device reached."""
     monkeypatch.setattr(trainer_module, "_check_graphable", lambda *_: None)
     monkeypatch.setattr(trainer_module, "GraphedSteps", _EagerGraphs)
-    monkeypatch.setattr(static_batch, "RAY_ALIGN", 1)  # capacities as tight as these tiny batches
-    monkeypatch.setattr(static_batch, "SAMPLE_ALIGN", 1)
-    runs = []
-    for graphs in (True, False):
-        trainer = Trainer(tiny_config(tmp_path / str(graphs), sampler="occupancy", empty_space_weight=0.5,
-                                      empty_space_points=64, target_samples=2048, cuda_graphs=graphs), log=quiet)
-        for group in trainer.optimizer.param_groups:
-            group["capturable"] = False  # Adam captures on GPUs only
-        for step in range(10):  # past the warm-up: grid refreshes, early termination, empty-space loss
-            trainer.train_step()
-            if step == 6:  # the next step, 7, is replayed (refresh steps, even ones here, run eagerly)
-                first_buffers = getattr(trainer, "static_batch", None)
-                trainer.save()  # drops the batch prepared ahead: the next one is drawn four times as large
-                trainer.sampler.batch_rays *= 4  # replayed path: outgrows its buffers, new ones
-        runs.append((params_of(trainer), trainer.samples_seen, trainer.marched_seen, trainer.rays_seen))
-        if graphs:
-            assert trainer.graphs.captured == ("marched",) and trainer.static_batch is not first_buffers
-            # The copy is no autograd graph: one would hold the parameters' gradient accumulators
-            # alive on the stream of the copy, which breaks a capture on CUDA.
-            assert all(p.grad_fn is None and not p.requires_grad for p in trainer.weights_copy.parameters())
-    assert runs[0][1:] == runs[1][1:]
-    for name, value in runs[0][0].items():
-        torch.testing.assert_close(value, runs[1][0][name], rtol=1e-5, atol=1e-6, msg=name)
+    cfg = tiny_config(tmp_path, sampler="occupancy", empty_space_weight=0.5, empty_space_points=64,
+                      target_samples=2048, cuda_graphs=True, grid_every=4, steps=20)
+    trainer = Trainer(cfg, log=quiet)
+    for group in trainer.optimizer.param_groups:
+        group["capturable"] = False  # Adam captures on GPUs only
+    for step in range(12):
+        assert torch.isfinite(trainer.train_step()["loss"])
+        assert (trainer.fixed is None) == (step < 2 * cfg.grid_warmup)
+    assert trainer.graphs.captured == ("fixed",)
+    rays, samples = trainer.rays_seen, trainer.samples_seen
+    assert not trainer.fixed.seen.any() and 0 < rays < samples <= trainer.marched_seen
+    trainer.train_step()
+    assert trainer.rays_seen > rays
+    num_rays = int(trainer.fixed.num_rays)
+    trainer.save()
+    assert load_checkpoint(tmp_path / "checkpoint.pt")["progress"]["batch_rays"] == num_rays
+    trainer._release_folder()  # as fit() does when it returns
+    resumed = Trainer(cfg, resume=True, log=quiet)
+    assert resumed.sampler.batch_rays == num_rays and resumed.rays_seen == trainer.rays_seen
+    for group in resumed.optimizer.param_groups:
+        group["capturable"] = False
+    resumed.train_step()
+    assert resumed.fixed is not None  # past the switch: the first step measures the capacities
 
 
+@pytest.mark.cuda
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU")
-def test_cuda_graphed_occupancy_steps_train_as_the_eager_ones(tmp_path):
-    """Replayed occupancy steps (padded batches, the next batch prepared from a copy of the weights
-    beside the replay, refresh steps eager) end where the eager steps do, through a grown capacity
-    and a checkpoint."""
-    runs = []
+def test_cuda_fixed_capacity_steps_replay_without_a_sync(tmp_path):
+    """On a GPU the fixed-capacity steps replay one graph with no host sync at all (refresh steps
+    excepted), and train: finite losses that fall as the eager run's do."""
+    losses = {}
     for graphs in (True, False):
         trainer = Trainer(tiny_config(tmp_path / str(graphs), sampler="occupancy", device="cuda", backend="auto",
                                       precision="fp32", bf16_density_passes=True, empty_space_weight=0.5,
-                                      empty_space_points=64, cuda_graphs=graphs), log=quiet)
-        for step in range(12):  # past the warm-up: grid refreshes, early termination, empty-space loss
-            assert torch.isfinite(trainer.train_step()["loss"])
-            if step == 6:
-                trainer.save()  # drops the batch prepared ahead: the next one is drawn four times as large
-                trainer.sampler.batch_rays *= 4  # graphed: outgrows the buffers, new ones and a new graph
+                                      empty_space_points=64, cuda_graphs=graphs, grid_every=4), log=quiet)
+        losses[graphs] = []
+        for _ in range(40):
+            replay = graphs and trainer.graphs is not None and trainer.graphs.captured \
+                and not trainer.occupancy.is_refresh_step(trainer.step)
+            torch.cuda.set_sync_debug_mode("error" if replay else 0)
+            try:
+                losses[graphs].append(trainer.train_step()["mse"].clone())
+            finally:
+                torch.cuda.set_sync_debug_mode(0)
         if graphs:
-            assert trainer.graphs.captured == ("marched",)
-        runs.append((params_of(trainer), trainer.samples_seen, trainer.marched_seen))
-    for name, value in runs[0][0].items():
-        torch.testing.assert_close(value, runs[1][0][name], rtol=1e-4, atol=1e-6, msg=name)
+            assert trainer.graphs.captured == ("fixed",) and trainer.rays_seen > 0
+    for run in losses.values():
+        assert all(torch.isfinite(v) for v in run)
+    late = {graphs: float(torch.stack(run[-10:]).mean()) for graphs, run in losses.items()}
+    early = float(torch.stack(losses[True][:4]).mean())
+    assert late[True] < early and late[True] < 2 * late[False], (early, late)
 
 
 def test_the_step_profile_times_the_batch_preparation(tmp_path):

@@ -91,7 +91,7 @@ def main() -> None:
               f"{wall_ms:.2f} ms per step (wall, unprofiled), GPU busy {busy_ms:.2f} ms per step "
               f"(kernel times summed; {active_ms:.2f} ms with some kernel running on any stream, idle "
               f"{100 * max(0.0, 1 - active_ms / profiled_ms):.0f}% of the profiled {profiled_ms:.2f} ms), "
-              f"batch {trainer.sampler.batch_rays} rays, step {trainer.step}, per ray {marched / rays:.1f} "
+              f"batch {batch_rays(trainer)} rays, step {trainer.step}, per ray {marched / rays:.1f} "
               f"marched and {shaded / rays:.1f} shaded samples, bf16 density passes "
               f"{trainer.cfg.bf16_density_passes}")
     table = events.table(sort_by="self_cuda_time_total", row_limit=30, max_name_column_width=70)
@@ -115,12 +115,18 @@ def main() -> None:
     print(syncs)
 
 
+def batch_rays(trainer: Trainer) -> int:
+    """The rays of the next batch (fixed-capacity batches keep that count on the device)."""
+    return trainer.sampler.batch_rays if trainer.fixed is None else int(trainer.fixed.num_rays)
+
+
 def preparation_time(trainer: Trainer, steps: int) -> str:
     """Host ms per step spent preparing the occupancy path's next batch (``MarchedBatches.prefetch``:
     marching, the density pre-pass and the filter, their reads of sample counts included, which wait
-    for the GPU), against the whole step's, over ``steps`` more steps. Empty for other samplers."""
+    for the GPU), against the whole step's, over ``steps`` more steps. Empty for other samplers and
+    for fixed-capacity batches (drawn inside the step's graph)."""
     batches = trainer.batches
-    if batches is None:
+    if batches is None or trainer.fixed is not None:
         return ""
     spent = 0.0
     prefetch = batches.prefetch

@@ -115,7 +115,24 @@ class FixedSamples(NamedTuple):
     """:func:`ray_marching_fixed`'s samples in buffers of a fixed size."""
 
     samples: PackedSamples  # capacity rows: the samples, then zero rows (t_start = t_end = 0, ray 0)
-    total: torch.Tensor  # (1,) int64 on the rays' device: how many samples the march gave
+    total: torch.Tensor  # (1,) int64 on the rays' device: how many samples there were before the cut
+
+    def intact(self) -> torch.Tensor:
+        """(R,) bool: rays that lost no sample to the cut at the capacity (when samples were cut,
+        the rays that end right at it count as cut too: their offsets cannot tell)."""
+        capacity = self.samples.t_starts.shape[0]
+        return (self.samples.offsets[1:] < capacity) | (self.total <= capacity)
+
+    def with_padding_ray(self) -> PackedSamples:
+        """The same rows with one more ray, R, that owns the zero rows past the samples: every row
+        then belongs to a ray, as the packed ops (``composite_packed``, segment ops) require. Its
+        rows are empty intervals, so it composites to the background and sends no gradient."""
+        s = self.samples
+        capacity, num_rays = s.t_starts.shape[0], s.offsets.shape[0] - 1
+        rows = torch.arange(capacity, device=s.offsets.device)
+        ray_indices = torch.where(rows < s.offsets[-1], s.ray_indices, num_rays)
+        offsets = torch.cat([s.offsets, s.offsets.new_full((1,), capacity)])
+        return PackedSamples(s.t_starts, s.t_ends, ray_indices, offsets)
 
 
 def ray_marching_fixed(

@@ -25,11 +25,11 @@ class RaySampler:
         self._pixels = scene.H * scene.W
         self._total = len(scene) * self._pixels
 
-    def sample(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """One batch: origins, dirs, target colours, each (batch_rays, 3) float32."""
-        flat = torch.randint(
-            self._total, (self.batch_rays,), generator=self.generator, device=self.generator.device
-        )
+    def sample(self, count: int | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """One batch: origins, dirs, target colours, each (count, 3) float32 (default count:
+        ``batch_rays``)."""
+        count = self.batch_rays if count is None else count
+        flat = torch.randint(self._total, (count,), generator=self.generator, device=self.generator.device)
         image_idx, pixel_idx = flat // self._pixels, flat % self._pixels
         origins, dirs = self.scene.rays_at(image_idx, pixel_idx)
         return origins.float(), dirs.float(), self.scene.colors_at(image_idx, pixel_idx)

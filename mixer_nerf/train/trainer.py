@@ -3,7 +3,6 @@ periodic validation, atomic checkpoints, logs, a non-finite guard and a wall-clo
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 import json
 import math
@@ -32,6 +31,7 @@ from ..render.skipping import (
 from .checkpoint import capture_rng_state, load_checkpoint, restore_rng_state, save_checkpoint
 from .config import TrainConfig
 from .distributed import join, rank_seed, restore_rank_sampler
+from .fixed_batch import FixedBatches, FixedCapacity
 from .fields import model_config, model_config_to_dict, model_notes
 from .graphed_steps import GraphedSteps
 from .guard import NonFiniteError, NonFiniteGuard
@@ -40,11 +40,10 @@ from .marched_batches import MarchedBatches
 from .memory import FLOAT_BYTES, check_fits
 from .occupancy_batch import MarchedBatch, prepare_marched_batch
 from .output import RunFiles, prepare_run_folder, write_text_atomic
-from .precision import MixedPrecisionField, set_matmul_precision
+from .precision import set_matmul_precision
 from .sampler import RaySampler
 from .sampling import image_renderer, make_fields, occupancy_sampler, resolve_sampler
 from .scenes import held_out_split, locate_scene, scene_info, scene_source
-from .static_batch import StaticMarchedBatch
 
 RESUMABLE_OVERRIDES = ("steps", "time_budget", "device", "backend", "data", "render_samples", "ckpt_every",
                        "log_every", "cuda_graphs", "progress")
@@ -145,6 +144,16 @@ class TrainingClock:
             torch.cuda.synchronize(self.device)
 
 
+def _seen_counter(index: int, doc: str) -> property:
+    def get(self) -> int:
+        return self._settled_counts()[index]
+
+    def set(self, value: int) -> None:
+        self._settled_counts()[index] = value
+
+    return property(get, set, doc=doc)
+
+
 class Trainer:
     """One training run in ``cfg.out``.
 
@@ -235,22 +244,15 @@ class Trainer:
         near, far = self.train_scene.near, self.train_scene.far
         self.renderer = image_renderer(cfg, self.fields, near, far, self.background, step=lambda: self.step)
         self.sampler = RaySampler(self.train_scene, cfg.batch_rays, rank_seed(cfg.seed, self.rank))
-        self.batches = self.weights_copy = None
+        self.batches = self.occupancy = None
         if self.fields.grid is not None:
-            occupancy = occupancy_sampler(cfg, self.fields.grid, self.ranks and self.ranks.cell_share())
+            self.occupancy = occupancy = occupancy_sampler(cfg, self.fields.grid, self.ranks and self.ranks.cell_share())
             if occupancy.budget is not None:
                 self.sampler.batch_rays = occupancy.budget.first_rays(cfg.batch_rays)
-            empty_points = cfg.empty_space_points if cfg.empty_space_weight > 0 else 0
-            # Replayed steps prepare the next batch beside the graph, from a copy of the weights
-            # taken before it (the eager step's semantics), which the graph's update cannot race.
-            self.weights_copy = copy.deepcopy(self.fields.coarse).requires_grad_(False) if cfg.cuda_graphs else None
-            sampling_field = self.density_field if self.weights_copy is None else MixedPrecisionField(
-                self.weights_copy, self.device.type, self.density_field.dtype)
-            if self.weights_copy is not None:  # (copy, source) parameter lists, made once for every step's copy
-                self._copy_pairs = (list(self.weights_copy.parameters()), list(self.fields.coarse.parameters()))
+            self.empty_points = cfg.empty_space_points if cfg.empty_space_weight > 0 else 0
             self.batches = MarchedBatches(
-                lambda step: prepare_marched_batch(step, self.sampler, occupancy, sampling_field, near, far,
-                                                   empty_points, cfg.backend),
+                lambda step: prepare_marched_batch(step, self.sampler, occupancy, self.density_field, near, far,
+                                                   self.empty_points, cfg.backend),
                 self.sampler)
             # The empty-space loss is the optical depth of a box diagonal through the mean density.
             self.box_diagonal = float((self.fields.grid.aabb[1] - self.fields.grid.aabb[0]).norm())
@@ -260,10 +262,9 @@ class Trainer:
         self.check_every = 1 if self.device.type == "cpu" else min(cfg.log_every, 50)
         self.train_log, self.val_log = CsvLog(self.files.train_log), CsvLog(self.files.val_log)
         self.step, self.clock = 0, TrainingClock(self.device)
-        self.rays_seen = self.samples_seen = self.marched_seen = 0  # marched: before early termination
+        self._seen, self.fixed = [0, 0, 0], None  # rays, samples and marched samples: the *_seen counters
         if state is not None:
             self._load_state(state)
-            self._copy_weights()
         self.graphs = None
         if cfg.cuda_graphs:
             # Replayed steps read the learning rate from the device (a tensor the host refills each
@@ -274,10 +275,22 @@ class Trainer:
             self._step_counter = torch.tensor(self.step, device=self.device)  # the step a replay is at
             if self.batches is None:
                 self.graphs = GraphedSteps(self._graphed_step, self.params, self.sampler.generator)
-            self.static_batch = None  # occupancy: buffers and graphs made for the first batch, grown on demand
         if not self.rank:
             write_text_atomic(self.files.config, json.dumps(
                 {"train": cfg.to_dict(), "model": model_config_to_dict(self.model_cfg)}, indent=1))
+
+    rays_seen = _seen_counter(0, "Rays trained on so far.")
+    samples_seen = _seen_counter(1, "Samples the field was trained at so far.")
+    marched_seen = _seen_counter(2, "Samples marching gave so far (before early termination).")
+
+    def _settled_counts(self) -> list[int]:
+        """The counters, with what fixed-capacity batches counted on the device folded in (a sync:
+        read them at logs and checkpoints, not every step)."""
+        if self.fixed is not None:
+            pending = self.fixed.seen.tolist()
+            self.fixed.seen.zero_()
+            self._seen = [a + b for a, b in zip(self._seen, pending)]
+        return self._seen
 
     # -- one step ---------------------------------------------------------------------------
 
@@ -294,7 +307,7 @@ class Trainer:
             else:
                 group["lr"] = lr
         if self.batches is not None and cfg.cuda_graphs:
-            stats = self._replayed_marched_step(self.batches.take(self.step))
+            stats = self._fixed_capacity_step()
         elif self.batches is not None:
             stats = self._learn(self._marched_losses(self.batches.take(self.step)), self.step + 1)
         elif self.fields.proposal is not None:
@@ -319,39 +332,39 @@ class Trainer:
         rays_o, rays_d, target = self.sampler.sample()
         return self._learn(self._proposal_losses(rays_o, rays_d, target, update), self._step_counter)
 
-    def _replayed_marched_step(self, batch: MarchedBatch) -> dict[str, torch.Tensor]:
-        """The occupancy path's step with ``--cuda-graphs``: ``batch`` copied into fixed buffers
-        and the step replayed, then the next batch prepared beside the replay. Refresh steps with
-        the empty-space loss (one in ``grid_every``) run eagerly."""
-        self._copy_weights()
-        self.batches.mark_weights()  # the next batch reads the copy from here on
+    def _fixed_capacity_step(self) -> dict[str, torch.Tensor]:
+        """The occupancy path's step with ``--cuda-graphs``: batches of fixed capacity
+        (:class:`FixedBatches`), drawn and trained in one replayed graph with no host sync. Eager
+        steps until the grid's warm-up is over and the batch size has settled (the capacities
+        come from the last of them), and at grid refreshes (a host-side pass, and the empty-space
+        loss)."""
+        occupancy, step = self.occupancy, self.step
         self._step_counter.add_(1)
-        if batch.empty_points is None:
-            if self.static_batch is None or not self.static_batch.fits(batch):
-                self.static_batch = StaticMarchedBatch.for_batch(batch)  # new buffers: a new graph
-                self.graphs = GraphedSteps(self._graphed_marched_step, self.params, self.sampler.generator)
-            self.static_batch.load(batch)
-            self._count_batch(batch)
-            stats = self.graphs("marched")
-        else:
-            stats = self._learn(self._marched_losses(batch), self._step_counter, prefetch=False)
-        self.batches.prefetch(self.step + 1)
-        return stats
+        if self.fixed is None:
+            batch = self.batches.take(step)
+            settled = step >= 2 * occupancy.refresh.warmup
+            stats = self._learn(self._marched_losses(batch), self._step_counter, prefetch=not settled)
+            if settled:
+                target = batch.samples.t_starts.shape[0] if occupancy.budget is None else occupancy.budget.target
+                self.fixed = FixedBatches(self.sampler, occupancy, FixedCapacity.for_batch(batch, target),
+                                          self.sampler.batch_rays, target, self.train_scene.near,
+                                          self.train_scene.far, self.empty_points, self.cfg.backend)
+                self.graphs = GraphedSteps(self._fixed_body, self.params, self.sampler.generator)
+            return stats
+        if occupancy.is_refresh_step(step):
+            occupancy.update(step, self.density_field, self.sampler.generator)
+            return self._fixed_body("refresh")
+        return self.graphs("fixed")
 
-    # No graph: a recorded copy would keep the parameters' AccumulateGrad nodes alive on this (the
-    # default) stream, and a capture's backward would then accumulate there and break the capture.
-    @torch.no_grad()
-    def _copy_weights(self) -> None:
-        """Bring the copy of the weights that replayed steps prepare batches from up to date (on the
-        current stream: after any batch in preparation has read it)."""
-        if self.weights_copy is not None:
-            torch._foreach_copy_(*self._copy_pairs)
-
-    def _graphed_marched_step(self, kind: str) -> dict[str, torch.Tensor]:
-        """The occupancy path's step on :attr:`static_batch`, as :class:`GraphedSteps` replays it."""
-        b = self.static_batch
-        color, *_ = shade_samples(self.coarse_field, b.rays_o, b.rays_d, b.packed, self.background, self.cfg.backend)
-        return self._learn({"loss_coarse": b.mse(color)}, self._step_counter, prefetch=False)
+    def _fixed_body(self, kind: str) -> dict[str, torch.Tensor]:
+        """One step on a :class:`FixedBatches` batch, as :class:`GraphedSteps` replays it (kind
+        "fixed") or eagerly at a grid refresh (kind "refresh", with the empty-space loss)."""
+        b = self.fixed.draw(self.density_field, empty_space=kind == "refresh")
+        color, *_ = shade_samples(self.coarse_field, b.rays_o, b.rays_d, b.samples, self.background, self.cfg.backend)
+        losses = {"loss_coarse": b.mse(color)}
+        if b.empty_points is not None:
+            losses["loss_empty"] = self._empty_space_loss(b.empty_points, b.empty_mask)
+        return self._learn(losses, self._step_counter, prefetch=False)
 
     def _learn(self, losses: dict[str, torch.Tensor], step: int | torch.Tensor,
                prefetch: bool = True) -> dict[str, torch.Tensor]:
@@ -434,10 +447,14 @@ class Trainer:
         )
         losses = {"loss_coarse": F.mse_loss(color, batch.target)}
         if batch.empty_points is not None:
-            sigma = self.coarse_field.density(batch.empty_points)
-            depth = (sigma * batch.empty_mask).mean() * self.box_diagonal
-            losses["loss_empty"] = cfg.empty_space_weight * depth
+            losses["loss_empty"] = self._empty_space_loss(batch.empty_points, batch.empty_mask)
         return losses
+
+    def _empty_space_loss(self, points: torch.Tensor, empty: torch.Tensor) -> torch.Tensor:
+        """The optical depth of a box diagonal through the mean density at ``points`` (P, 3) that
+        lie in cells the grid marks ``empty`` (P,)."""
+        sigma = self.coarse_field.density(points)
+        return self.cfg.empty_space_weight * (sigma * empty).mean() * self.box_diagonal
 
     def _progress(self) -> float:
         """How far the run is: the step over ``cfg.steps`` or, with a time budget, the training time
@@ -471,7 +488,7 @@ class Trainer:
         if not fraction:
             return
         alpha = self.model_cfg.pos_freqs * progress / fraction
-        for field in (self.fields.coarse, self.fields.fine, self.weights_copy):
+        for field in (self.fields.coarse, self.fields.fine):
             if field is not None:
                 field.set_frequency_window(alpha)
 
@@ -561,7 +578,8 @@ class Trainer:
         self.guard.raise_if_bad()
         if self.batches is not None:
             self.batches.discard()  # a resumed run prepares its first batch with these weights
-            self._copy_weights()
+        if self.fixed is not None:
+            self.sampler.batch_rays = int(self.fixed.num_rays)  # a resumed run starts eagerly with it
         rank_samplers = self.ranks and self.ranks.gather_objects(self.sampler.generator.get_state())
         if self.rank:
             return

@@ -3,7 +3,8 @@ samples (early ray termination) and rays that miss the scene (box clipping), on 
 
 - :class:`OccupancyGrid`: which cells of the scene box can hold anything.
 - :class:`MarchingOptions`, :func:`march_samples`, :func:`shade_samples`,
-  :func:`render_rays_marched`: marching through the grid and shading what survives.
+  :func:`render_rays_marched`: marching through the grid and shading what survives;
+  :func:`march_samples_fixed`: the same marching in buffers of fixed sizes, with no host sync.
 - :class:`SampleBudget`: ray batches sized to a number of samples per step.
 - :class:`OccupancySampler`: the grid, its refresh schedule, marching and the budget together, as
   the trainer uses them.
@@ -16,10 +17,12 @@ samples (early ray termination) and rays that miss the scene (box clipping), on 
 from .distortion import distortion_loss
 from .occlusion import occlusion_loss
 from .marching import (
+    FixedMarchedSamples,
     MarchedResult,
     MarchedSamples,
     MarchingOptions,
     march_samples,
+    march_samples_fixed,
     render_rays_marched,
     shade_samples,
 )
@@ -42,6 +45,7 @@ __all__ = [
     "INTERVALS",
     "RESIDUALS",
     "CellShare",
+    "FixedMarchedSamples",
     "GridRefresh",
     "MarchedResult",
     "MarchedSamples",
@@ -54,6 +58,7 @@ __all__ = [
     "distortion_loss",
     "occlusion_loss",
     "march_samples",
+    "march_samples_fixed",
     "proposal_loss",
     "proposal_update_due",
     "render_rays_marched",

@@ -28,7 +28,13 @@ import torch
 from torch import nn
 
 from ...ops import composite_packed
-from ...ops.ray_marching import PackedSamples, filter_by_transmittance, ray_marching
+from ...ops.ray_marching import (
+    FixedSamples,
+    PackedSamples,
+    filter_by_transmittance,
+    ray_marching,
+    ray_marching_fixed,
+)
 from .occupancy_grid import OccupancyGrid
 
 
@@ -136,6 +142,59 @@ def march_samples(
     keep = filter_by_transmittance(sigma.float() * norm, samples, options.early_stop_eps,
                                    options.alpha_threshold)
     return MarchedSamples(samples.select(keep), num_marched)
+
+
+class FixedMarchedSamples(NamedTuple):
+    """:func:`march_samples_fixed`'s samples, in buffers of fixed sizes."""
+
+    samples: FixedSamples  # the kept samples (R rays; ``with_padding_ray`` for R + 1)
+    marched: FixedSamples  # what marching gave (the pre-pass evaluated every row)
+
+    def intact(self) -> torch.Tensor:
+        """(R,) bool: the rays that lost no sample to either capacity."""
+        return self.marched.intact() & self.samples.intact()
+
+
+def with_padding_ray(rays_o: torch.Tensor, rays_d: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(R, 3)`` rays and one more for :meth:`FixedSamples.with_padding_ray`'s padding ray: at the
+    origin, looking down +z (a unit direction keeps its positions and view direction finite)."""
+    return (torch.cat([rays_o, rays_o.new_zeros(1, 3)]),
+            torch.cat([rays_d, rays_d.new_tensor([[0.0, 0.0, 1.0]])]))
+
+
+@torch.no_grad()
+def march_samples_fixed(
+    rays_o: torch.Tensor,
+    rays_d: torch.Tensor,
+    grid: OccupancyGrid,
+    near: float | torch.Tensor,
+    far: float | torch.Tensor,
+    options: MarchingOptions,
+    marched_rows: int,
+    kept_rows: int,
+    *,
+    stratified: bool = True,
+    density_field: nn.Module | None = None,
+    generator: torch.Generator | None = None,
+    backend: str = "auto",
+) -> FixedMarchedSamples:
+    """:func:`march_samples` with no host synchronisation and the same shapes every call (a CUDA
+    graph can capture it): marching into ``marched_rows`` rows, the density pre-pass over all of
+    them, the samples it keeps into ``kept_rows`` rows (``FixedSamples.select_fixed``). Rays past
+    either cut lose samples: :meth:`FixedMarchedSamples.intact` names the rays that kept all."""
+    step = grid.step_size if options.step_size is None else options.step_size
+    marched = ray_marching_fixed(rays_o, rays_d, near, far, grid, step, marched_rows, stratified=stratified,
+                                 generator=generator, cone_angle=options.cone_angle, backend=backend)
+    keep = torch.ones_like(marched.samples.t_starts, dtype=torch.bool)
+    if density_field is not None and options.filters and marched_rows:
+        padded = marched.with_padding_ray()
+        x, viewdirs, norm, layout = field_inputs(density_field, *with_padding_ray(rays_o, rays_d), padded)
+        if hasattr(density_field, "density"):
+            sigma = density_field.density(x, **layout)
+        else:
+            sigma = density_field(x, viewdirs, **layout)[0]
+        keep = filter_by_transmittance(sigma.float() * norm, padded, options.early_stop_eps, options.alpha_threshold)
+    return FixedMarchedSamples(marched.samples.select_fixed(keep, kept_rows), marched)
 
 
 def shade_samples(
