@@ -158,8 +158,9 @@ class FixedMarchedSamples(NamedTuple):
 def with_padding_ray(rays_o: torch.Tensor, rays_d: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """``(R, 3)`` rays and one more for :meth:`FixedSamples.with_padding_ray`'s padding ray: at the
     origin, looking down +z (a unit direction keeps its positions and view direction finite)."""
-    return (torch.cat([rays_o, rays_o.new_zeros(1, 3)]),
-            torch.cat([rays_d, rays_d.new_tensor([[0.0, 0.0, 1.0]])]))
+    down_z = rays_d.new_zeros(1, 3)
+    down_z[:, 2] = 1.0  # filled on the device: a CUDA graph cannot capture a copy from the host
+    return torch.cat([rays_o, rays_o.new_zeros(1, 3)]), torch.cat([rays_d, down_z])
 
 
 @torch.no_grad()
