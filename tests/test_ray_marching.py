@@ -16,9 +16,11 @@ import torch
 
 from mixer_nerf import _extension
 from mixer_nerf.ops.ray_marching import (
+    PADDING_ROWS,
     FixedSamples,
     PackedSamples,
     filter_by_transmittance,
+    padding_rays,
     ray_marching,
     ray_marching_fixed,
 )
@@ -489,24 +491,24 @@ def test_select_fixed_keeps_what_select_keeps(gen, room, fixed_input):
     assert_fixed(source.select_fixed(keep, capacity), selected, capacity)
 
 
-@pytest.mark.parametrize("room", ["spare", "exact", "cut", "none"])
-def test_fixed_samples_name_the_intact_rays_and_pad_to_a_last_ray(gen, room):
+@pytest.mark.parametrize("room", ["spare", "many", "exact", "cut", "none"])
+def test_fixed_samples_name_the_intact_rays_and_pad_to_short_rays(gen, room):
     """intact(): the rays whose samples all fit (those past the cut, and the ray across it, lost
-    some); with_padding_ray(): one more ray owns the zero rows, so the composite of the padded
-    layout gives every real ray what the exact samples give it and the padding ray nothing."""
+    some); with_padding_rays(): short rays own the zero rows, so the composite of the padded
+    layout gives every real ray what the exact samples give it and the padding rays nothing."""
     rays, grid = random_rays(400, gen), random_grid(gen, 0.5)
     exact = march(rays, grid, backend="torch")
     N = exact.t_starts.shape[0]
-    capacity = {"spare": N + 30, "exact": N, "cut": N // 2, "none": 0}[room]
+    capacity = {"spare": N + 30, "many": 3 * N + 5, "exact": N, "cut": N // 2, "none": 0}[room]
     fixed = ray_marching_fixed(*rays, grid, 0.013, capacity, backend="torch")
     ends = exact.offsets[1:]
     assert torch.equal(fixed.intact(), (ends < capacity) | (N <= capacity))
     assert room != "cut" or not fixed.intact()[ends > capacity].any() and fixed.intact()[ends < capacity].all()
-    padded = fixed.with_padding_ray()
-    R = rays[0].shape[0]
-    assert torch.equal(padded.offsets[:-1], fixed.samples.offsets) and int(padded.offsets[-1]) == capacity
-    rows = torch.arange(capacity)
-    assert torch.equal(padded.ray_indices == R, rows >= fixed.samples.offsets[-1])
+    padded = fixed.with_padding_rays()
+    R, P = rays[0].shape[0], padding_rays(capacity)
+    assert padded.offsets.shape == (R + P + 1,) and torch.equal(padded.offsets[: R + 1], fixed.samples.offsets)
+    assert int(padded.offsets[-1]) == capacity and (padded.offsets.diff()[R:] <= PADDING_ROWS).all()
+    assert torch.equal(padded.ray_indices, torch.repeat_interleave(torch.arange(R + P), padded.offsets.diff()))
     sigma_all, rgb_all = torch.rand(N, generator=gen) * 5, torch.rand(N, 3, generator=gen)
     kept = min(N, capacity)  # the fixed rows hold the first samples, then zero rows
     sigma = torch.cat([sigma_all[:kept], sigma_all.new_full((capacity - kept,), 7.0)])
@@ -515,7 +517,7 @@ def test_fixed_samples_name_the_intact_rays_and_pad_to_a_last_ray(gen, room):
     full = composite_packed(sigma_all, rgb_all, exact.t_starts, exact.t_ends, exact.offsets, backend="torch")[0]
     intact = fixed.intact()
     torch.testing.assert_close(color[:R][intact], full[intact])
-    assert not color[R].any()
+    assert not color[R:].any()
 
 
 def test_select_fixed_rejects_a_mask_of_another_length(gen):

@@ -29,7 +29,8 @@ from mixer_nerf.train import (
     save_checkpoint,
 )
 from mixer_nerf.render.skipping import march_samples, march_samples_fixed, render_rays_proposal, shade_samples
-from mixer_nerf.render.skipping.marching import with_padding_ray
+from mixer_nerf.ops.ray_marching import padding_rays
+from mixer_nerf.render.skipping.marching import with_padding_rays
 from mixer_nerf.train.checkpoint import capture_rng_state, restore_rng_state
 from mixer_nerf.train.fields import model_config
 from mixer_nerf.train.sampling import resolve_sampler
@@ -511,8 +512,9 @@ def test_fixed_marching_keeps_and_teaches_what_eager_marching_does(tmp_path, bac
 
     plain = loss_and_grads(F.mse_loss(shade(rays_o, rays_d, eager.samples)[intact], target[intact]))
     weight = intact.float()
-    batch = FixedBatch(*with_padding_ray(rays_o, rays_d), torch.cat([target, target.new_zeros(1, 3)]),
-                       fixed.samples.with_padding_ray(), torch.cat([weight, weight.new_zeros(1)]), None, None)
+    pad = padding_rays(rows[1])
+    batch = FixedBatch(*with_padding_rays(rays_o, rays_d, pad), torch.cat([target, target.new_zeros(pad, 3)]),
+                       fixed.samples.with_padding_rays(), torch.cat([weight, weight.new_zeros(pad)]), None, None)
     padded = loss_and_grads(batch.mse(shade(batch.rays_o, batch.rays_d, batch.samples)))
     for name, a, b in zip(["loss", *trainer.param_names], plain, padded, strict=True):
         torch.testing.assert_close(b, a, rtol=1e-5, atol=1e-7, msg=name)
@@ -535,7 +537,8 @@ def test_fixed_batches_use_num_rays_and_adapt_it_on_the_device(tmp_path):
         num_rays = int(batches.num_rays)
         b = batches.draw(trainer.density_field, empty_space=draw == 0)
         R = capacity.rays
-        assert b.rays_o.shape == (R + 1, 3) and b.samples.offsets.shape == (R + 2,)
+        P = padding_rays(capacity.kept)
+        assert b.rays_o.shape == (R + P, 3) and b.samples.offsets.shape == (R + P + 1,)
         assert b.samples.t_starts.shape == (capacity.kept,) and int(b.samples.offsets[-1]) == capacity.kept
         per_ray = b.samples.offsets.diff()
         assert not per_ray[num_rays:R].any() and not b.ray_weight[num_rays:].any()

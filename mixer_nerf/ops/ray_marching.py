@@ -123,16 +123,28 @@ class FixedSamples(NamedTuple):
         capacity = self.samples.t_starts.shape[0]
         return (self.samples.offsets[1:] < capacity) | (self.total <= capacity)
 
-    def with_padding_ray(self) -> PackedSamples:
-        """The same rows with one more ray, R, that owns the zero rows past the samples: every row
-        then belongs to a ray, as the packed ops (``composite_packed``, segment ops) require. Its
-        rows are empty intervals, so it composites to the background and sends no gradient."""
+    def with_padding_rays(self) -> PackedSamples:
+        """The same rows with :func:`padding_rays` more rays that own the zero rows past the
+        samples, :data:`PADDING_ROWS` each: every row then belongs to a ray, as the packed ops
+        (``composite_packed``, segment ops) require, and no ray is long (the per-ray kernels walk
+        a ray's rows in one thread). Their rows are empty intervals: they composite to the
+        background and send no gradient."""
         s = self.samples
         capacity, num_rays = s.t_starts.shape[0], s.offsets.shape[0] - 1
+        end = s.offsets[-1:]
         rows = torch.arange(capacity, device=s.offsets.device)
-        ray_indices = torch.where(rows < s.offsets[-1], s.ray_indices, num_rays)
-        offsets = torch.cat([s.offsets, s.offsets.new_full((1,), capacity)])
-        return PackedSamples(s.t_starts, s.t_ends, ray_indices, offsets)
+        ray_indices = torch.where(rows < end, s.ray_indices, num_rays + (rows - end).div(PADDING_ROWS, rounding_mode="floor"))
+        ends = (end + PADDING_ROWS * torch.arange(1, padding_rays(capacity) + 1, device=end.device)).clamp_max(capacity)
+        return PackedSamples(s.t_starts, s.t_ends, ray_indices, torch.cat([s.offsets, ends]))
+
+
+PADDING_ROWS = 32
+"""Rows per padding ray of :meth:`FixedSamples.with_padding_rays` (about a real ray's samples)."""
+
+
+def padding_rays(capacity: int) -> int:
+    """The padding rays :meth:`FixedSamples.with_padding_rays` adds to ``capacity`` rows."""
+    return -(-capacity // PADDING_ROWS)
 
 
 def ray_marching_fixed(

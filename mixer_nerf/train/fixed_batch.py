@@ -17,9 +17,9 @@ from typing import NamedTuple
 import torch
 from torch import nn
 
-from ..ops.ray_marching import PackedSamples
+from ..ops.ray_marching import PackedSamples, padding_rays
 from ..render.skipping import OccupancySampler, march_samples_fixed
-from ..render.skipping.marching import with_padding_ray
+from ..render.skipping.marching import with_padding_rays
 from .occupancy_batch import MarchedBatch
 from .sampler import RaySampler
 
@@ -45,16 +45,16 @@ class FixedCapacity(NamedTuple):
 
 
 class FixedBatch(NamedTuple):
-    rays_o: torch.Tensor  # (R + 1, 3): the drawn rays, then the padding ray of the spare rows
-    rays_d: torch.Tensor  # (R + 1, 3)
-    target: torch.Tensor  # (R + 1, 3)
-    samples: PackedSamples  # (kept rows,) over the R + 1 rays
-    ray_weight: torch.Tensor  # (R + 1,) 1 for the rays the loss counts: in the batch, no sample lost
+    rays_o: torch.Tensor  # (R + P, 3): the drawn rays, then the P padding rays of the spare rows
+    rays_d: torch.Tensor  # (R + P, 3)
+    target: torch.Tensor  # (R + P, 3)
+    samples: PackedSamples  # (kept rows,) over the R + P rays
+    ray_weight: torch.Tensor  # (R + P,) 1 for the rays the loss counts: in the batch, no sample lost
     empty_points: torch.Tensor | None  # (P, 3) random box points for the empty-space loss (refresh steps)
     empty_mask: torch.Tensor | None  # (P,) bool: the point lies in a cell the grid marks empty
 
     def mse(self, color: torch.Tensor) -> torch.Tensor:
-        """The mean squared error of the counted rays of ``color`` (R + 1, 3) against their targets."""
+        """The mean squared error of the counted rays of ``color`` (R + P, 3) against their targets."""
         error = (color - self.target).square() * self.ray_weight[:, None]
         return error.sum() / (3 * self.ray_weight.sum().clamp_min(1))
 
@@ -96,8 +96,9 @@ class FixedBatches:
         points = mask = None
         if empty_space and self.empty_space_points:
             points, mask = self.occupancy.grid.random_points(self.empty_space_points, generator)
-        return FixedBatch(*with_padding_ray(rays_o, rays_d), torch.cat([target, target.new_zeros(1, 3)]),
-                          marched.samples.with_padding_ray(), torch.cat([counted, counted.new_zeros(1)]),
+        pad = padding_rays(cap.kept)
+        return FixedBatch(*with_padding_rays(rays_o, rays_d, pad), torch.cat([target, target.new_zeros(pad, 3)]),
+                          marched.samples.with_padding_rays(), torch.cat([counted, counted.new_zeros(pad)]),
                           points, mask)
 
     def _adapt(self, kept: torch.Tensor, marched: torch.Tensor) -> None:

@@ -32,6 +32,7 @@ from ...ops.ray_marching import (
     FixedSamples,
     PackedSamples,
     filter_by_transmittance,
+    padding_rays,
     ray_marching,
     ray_marching_fixed,
 )
@@ -147,7 +148,7 @@ def march_samples(
 class FixedMarchedSamples(NamedTuple):
     """:func:`march_samples_fixed`'s samples, in buffers of fixed sizes."""
 
-    samples: FixedSamples  # the kept samples (R rays; ``with_padding_ray`` for R + 1)
+    samples: FixedSamples  # the kept samples (R rays; ``with_padding_rays`` for more)
     marched: FixedSamples  # what marching gave (the pre-pass evaluated every row)
 
     def intact(self) -> torch.Tensor:
@@ -155,12 +156,13 @@ class FixedMarchedSamples(NamedTuple):
         return self.marched.intact() & self.samples.intact()
 
 
-def with_padding_ray(rays_o: torch.Tensor, rays_d: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """``(R, 3)`` rays and one more for :meth:`FixedSamples.with_padding_ray`'s padding ray: at the
-    origin, looking down +z (a unit direction keeps its positions and view direction finite)."""
-    down_z = rays_d.new_zeros(1, 3)
+def with_padding_rays(rays_o: torch.Tensor, rays_d: torch.Tensor, count: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(R, 3)`` rays and ``count`` more for :meth:`FixedSamples.with_padding_rays`' padding rays:
+    at the origin, looking down +z (a unit direction keeps their positions and view directions
+    finite)."""
+    down_z = rays_d.new_zeros(count, 3)
     down_z[:, 2] = 1.0  # filled on the device: a CUDA graph cannot capture a copy from the host
-    return torch.cat([rays_o, rays_o.new_zeros(1, 3)]), torch.cat([rays_d, down_z])
+    return torch.cat([rays_o, rays_o.new_zeros(count, 3)]), torch.cat([rays_d, down_z])
 
 
 @torch.no_grad()
@@ -188,8 +190,9 @@ def march_samples_fixed(
                                  generator=generator, cone_angle=options.cone_angle, backend=backend)
     keep = torch.ones_like(marched.samples.t_starts, dtype=torch.bool)
     if density_field is not None and options.filters and marched_rows:
-        padded = marched.with_padding_ray()
-        x, viewdirs, norm, layout = field_inputs(density_field, *with_padding_ray(rays_o, rays_d), padded)
+        padded = marched.with_padding_rays()
+        rays = with_padding_rays(rays_o, rays_d, padding_rays(marched_rows))
+        x, viewdirs, norm, layout = field_inputs(density_field, *rays, padded)
         if hasattr(density_field, "density"):
             sigma = density_field.density(x, **layout)
         else:
