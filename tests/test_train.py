@@ -35,6 +35,7 @@ from mixer_nerf.train.checkpoint import capture_rng_state, restore_rng_state
 from mixer_nerf.train.fields import model_config
 from mixer_nerf.train.sampling import resolve_sampler
 from mixer_nerf.train import trainer as trainer_module
+from mixer_nerf.train import fixed_batch
 from mixer_nerf.train.fixed_batch import FixedBatch, FixedBatches, FixedCapacity
 from mixer_nerf.train.guard import NonFiniteGuard
 from mixer_nerf.train.logbook import CsvLog, plot_curves
@@ -582,6 +583,29 @@ class _EagerGraphs:
         return self.body(kind)
 
 
+def test_fixed_batches_grow_where_the_last_batch_wanted_more(tmp_path):
+    """Rays grow when the target asked for more than the buffers hold, marched rows when they
+    limited the batch; a batch that fits changes nothing."""
+    trainer = Trainer(tiny_config(tmp_path, sampler="occupancy", grid_warmup=2), log=quiet)
+    for _ in range(4):
+        trainer.train_step()
+    scene = trainer.train_scene
+    for capacity, target in ((FixedCapacity(4, 10**5, 10**4), 5000), (FixedCapacity(256, 256, 10**4), 5000),
+                             (FixedCapacity(256, 10**5, 10**4), 50)):
+        batches = FixedBatches(trainer.sampler, trainer.occupancy, capacity, 4, target, scene.near, scene.far, 0,
+                               "torch")
+        for _ in range(3):
+            batches.draw(trainer.density_field, empty_space=False)
+        for_target, for_buffer = batches.wanted.tolist()
+        assert batches.grow(max_rays=1000) == (capacity != batches.capacity)
+        grown = batches.capacity
+        assert grown.kept == capacity.kept and grown.rays >= capacity.rays and grown.marched >= capacity.marched
+        assert (grown.rays > capacity.rays) == (for_target > 0.95 * capacity.rays)
+        assert (grown.marched > capacity.marched) == (for_buffer < min(for_target, grown.rays))
+        assert grown.rays <= 1000
+    assert grown == capacity  # the last one fits
+
+
 def test_the_fixed_capacity_path_trains_and_checkpoints(tmp_path, monkeypatch):
     """The bookkeeping of ``--cuda-graphs`` on the occupancy path with graphs stood in by eager
     calls: eager steps until twice the grid's warm-up, then fixed-capacity steps (refreshes outside
@@ -589,15 +613,21 @@ def test_the_fixed_capacity_path_trains_and_checkpoints(tmp_path, monkeypatch):
     batch size the device reached."""
     monkeypatch.setattr(trainer_module, "_check_graphable", lambda *_: None)
     monkeypatch.setattr(trainer_module, "GraphedSteps", _EagerGraphs)
+    monkeypatch.setattr(trainer_module, "CAPACITY_CHECK_EVERY", 1)
+    monkeypatch.setattr(fixed_batch, "RAY_ROOM", 1.0)  # too few rays for the target: the path grows them
+    monkeypatch.setattr(fixed_batch, "ALIGN", 1)
     cfg = tiny_config(tmp_path, sampler="occupancy", empty_space_weight=0.5, empty_space_points=64,
                       target_samples=2048, cuda_graphs=True, grid_every=4, steps=20)
-    trainer = Trainer(cfg, log=quiet)
+    said = []
+    trainer = Trainer(cfg, log=said.append)
     for group in trainer.optimizer.param_groups:
         group["capturable"] = False  # Adam captures on GPUs only
     for step in range(12):
         assert torch.isfinite(trainer.train_step()["loss"])
         assert (trainer.fixed is None) == (step < 2 * cfg.grid_warmup)
     assert trainer.graphs.captured == ("fixed",)
+    sizes = [line for line in said if "batches of up to" in line]
+    assert len(sizes) >= 2 and sizes[0].startswith(f"  step {2 * cfg.grid_warmup}:")  # the switch, then growth
     rays, samples = trainer.rays_seen, trainer.samples_seen
     assert not trainer.fixed.seen.any() and 0 < rays < samples <= trainer.marched_seen
     trainer.train_step()
@@ -616,18 +646,22 @@ def test_the_fixed_capacity_path_trains_and_checkpoints(tmp_path, monkeypatch):
 
 @pytest.mark.cuda
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU")
-def test_cuda_fixed_capacity_steps_replay_without_a_sync(tmp_path):
+def test_cuda_fixed_capacity_steps_replay_without_a_sync(tmp_path, monkeypatch):
     """On a GPU the fixed-capacity steps replay one graph with no host sync at all (refresh steps
-    excepted), and train: finite losses that fall as the eager run's do."""
-    losses = {}
+    and capacity checks excepted), grow their buffers into a new graph, and train: finite losses
+    that fall as the eager run's do."""
+    monkeypatch.setattr(trainer_module, "CAPACITY_CHECK_EVERY", 5)
+    monkeypatch.setattr(fixed_batch, "RAY_ROOM", 1.0)
+    monkeypatch.setattr(fixed_batch, "ALIGN", 1)
+    losses, said = {}, []
     for graphs in (True, False):
         trainer = Trainer(tiny_config(tmp_path / str(graphs), sampler="occupancy", device="cuda", backend="auto",
                                       precision="fp32", bf16_density_passes=True, empty_space_weight=0.5,
-                                      empty_space_points=64, cuda_graphs=graphs, grid_every=4), log=quiet)
+                                      empty_space_points=64, cuda_graphs=graphs, grid_every=4), log=said.append)
         losses[graphs] = []
         for _ in range(40):
             replay = graphs and trainer.graphs is not None and trainer.graphs.captured \
-                and not trainer.occupancy.is_refresh_step(trainer.step)
+                and not trainer.occupancy.is_refresh_step(trainer.step) and trainer.step % 5
             torch.cuda.set_sync_debug_mode("error" if replay else 0)
             try:
                 losses[graphs].append(trainer.train_step()["mse"].clone())
@@ -635,6 +669,7 @@ def test_cuda_fixed_capacity_steps_replay_without_a_sync(tmp_path):
                 torch.cuda.set_sync_debug_mode(0)
         if graphs:
             assert trainer.graphs.captured == ("fixed",) and trainer.rays_seen > 0
+            assert len([line for line in said if "batches of up to" in line]) >= 2  # grown, captured again
     for run in losses.values():
         assert all(torch.isfinite(v) for v in run)
     late = {graphs: float(torch.stack(run[-10:]).mean()) for graphs, run in losses.items()}

@@ -74,6 +74,8 @@ class FixedBatches:
         self.empty_space_points, self.backend = empty_space_points, backend
         device = rays.generator.device
         self.num_rays = torch.tensor(min(num_rays, capacity.rays), device=device)
+        # The rays the last batch asked for next: for the target, and within the marched buffer.
+        self.wanted = torch.zeros(2, device=device)
         self.seen = torch.zeros(3, dtype=torch.int64, device=device)
         self.near, self.far = (torch.as_tensor(v, dtype=torch.float32, device=device) for v in (near, far))
 
@@ -109,6 +111,21 @@ class FixedBatches:
         per_buffer = n * (0.95 * self.capacity.marched) / marched.float().clamp_min(1)
         rays = torch.minimum(per_target, per_buffer).floor().clamp(1, self.capacity.rays)
         self.num_rays.copy_(rays.squeeze(0).long())
+        self.wanted.copy_(torch.cat([per_target, per_buffer]))
+
+    def grow(self, max_rays: int) -> bool:
+        """Grow the capacity where the last batch wanted more than it had: rays (up to
+        ``max_rays``), or marched rows when they limited the batch. One host sync; True when the
+        capacity changed (a captured step must then be captured again)."""
+        for_target, for_buffer = self.wanted.tolist()
+        rays, marched, kept = self.capacity
+        if for_target > 0.95 * rays and rays < max_rays:
+            rays = min(_round_up(1.5 * for_target), max(max_rays, rays))
+        if for_buffer < min(for_target, rays):
+            marched = _round_up(marched * 1.05 * min(for_target, rays) / max(for_buffer, 1))
+        grown = FixedCapacity(rays, marched, kept)
+        changed, self.capacity = grown != self.capacity, grown
+        return changed
 
 
 def _round_up(value: float) -> int:

@@ -51,6 +51,8 @@ RESUMABLE_OVERRIDES = ("steps", "time_budget", "device", "backend", "data", "ren
 learning-rate schedule to the new end), where it runs, where its scene now is, how much a
 render may hold at once and how often it saves and logs. Any other
 setting that differs from the checkpoint is refused by name: the run continues as it began."""
+CAPACITY_CHECK_EVERY = 100
+"""Steps between checks of whether fixed-capacity batches outgrew their buffers (a host sync each)."""
 DEVICE_SETTINGS = ("precision", "bf16_density_passes", "val_images")
 """Picked anew for the machine when a resumed run moves to another device type (unless typed)."""
 
@@ -349,12 +351,22 @@ class Trainer:
                 self.fixed = FixedBatches(self.sampler, occupancy, FixedCapacity.for_batch(batch, target),
                                           self.sampler.batch_rays, target, self.train_scene.near,
                                           self.train_scene.far, self.empty_points, self.cfg.backend)
-                self.graphs = GraphedSteps(self._fixed_body, self.params, self.sampler.generator)
+                self._capture_fixed_step(step)
             return stats
+        if step % CAPACITY_CHECK_EVERY == 0:
+            max_rays = (1 << 18) if occupancy.budget is None else occupancy.budget.max_rays
+            if self.fixed.grow(max_rays):
+                self._capture_fixed_step(step)
         if occupancy.is_refresh_step(step):
             occupancy.update(step, self.density_field, self.sampler.generator)
             return self._fixed_body("refresh")
         return self.graphs("fixed")
+
+    def _capture_fixed_step(self, step: int) -> None:
+        """A new graph for the fixed-capacity step (captured at its first call), for new shapes."""
+        self.graphs = GraphedSteps(self._fixed_body, self.params, self.sampler.generator)
+        rays, marched, kept = self.fixed.capacity
+        self.log(f"  step {step}: batches of up to {rays} rays, {marched} marched and {kept} kept samples")
 
     def _fixed_body(self, kind: str) -> dict[str, torch.Tensor]:
         """One step on a :class:`FixedBatches` batch, as :class:`GraphedSteps` replays it (kind
