@@ -411,14 +411,17 @@ def _relaunched(args: argparse.Namespace, cfg: TrainConfig) -> bool:
 
 def _train(cfg: TrainConfig, resume: bool, overwrite: bool) -> dict[str, Any]:
     from .train import Trainer
+    from .train.distributed import leave
 
     trainer = Trainer(cfg, resume=resume, overwrite=overwrite)
     c = trainer.cfg
-    if trainer.rank:
-        return trainer.fit()
-    print(f"training {c.steps} steps on {c.device} ({c.precision}, backend {c.backend}), preset {c.preset}, "
-          f"{sampling_summary(c)} -> {trainer.files.root}")
+    if not trainer.rank:
+        print(f"training {c.steps} steps on {c.device} ({c.precision}, backend {c.backend}), preset {c.preset}, "
+              f"{sampling_summary(c)} -> {trainer.files.root}")
     summary = trainer.fit()
+    leave()  # every rank, before rank 0 evaluates alone
+    if trainer.rank:
+        return summary
     print(f"training {summary['status']} at step {summary['step']} after {summary['train_seconds']:.1f} s")
     return summary
 

@@ -156,6 +156,17 @@ def _max_reduce(t: torch.Tensor) -> None:
         dist.all_reduce(t, op=dist.ReduceOp.MAX)
 
 
+def leave() -> None:
+    """Leave the process group together, once training is over: a barrier, then the group's
+    teardown on every rank. A rank that exited while another still used the group (rank 0
+    evaluates after training) sometimes aborted in its exit ("terminate called without an active
+    exception"). A no-op without a group."""
+    if dist.is_initialized():
+        with collective("leaving the process group"):
+            dist.barrier()
+        _leave()
+
+
 def _leave() -> None:
     if dist.is_initialized():
         dist.destroy_process_group()
