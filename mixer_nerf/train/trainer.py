@@ -336,10 +336,9 @@ class Trainer:
 
     def _fixed_capacity_step(self) -> dict[str, torch.Tensor]:
         """The occupancy path's step with ``--cuda-graphs``: batches of fixed capacity
-        (:class:`FixedBatches`), drawn and trained in one replayed graph with no host sync. Eager
-        steps until the grid's warm-up is over and the batch size has settled (the capacities
-        come from the last of them), and at grid refreshes (a host-side pass, and the empty-space
-        loss)."""
+        (:class:`FixedBatches`), drawn and trained in one replayed graph with no host sync (one
+        graph for plain steps, one for grid refreshes). Eager steps until the grid's warm-up is
+        over and the batch size has settled (the capacities come from the last of them)."""
         occupancy, step = self.occupancy, self.step
         self._step_counter.add_(1)
         if self.fixed is None:
@@ -357,10 +356,7 @@ class Trainer:
             max_rays = (1 << 18) if occupancy.budget is None else occupancy.budget.max_rays
             if self.fixed.grow(max_rays):
                 self._capture_fixed_step(step)
-        if occupancy.is_refresh_step(step):
-            occupancy.update(step, self.density_field, self.sampler.generator)
-            return self._fixed_body("refresh")
-        return self.graphs("fixed")
+        return self.graphs("refresh" if occupancy.is_refresh_step(step) else "fixed")
 
     def _capture_fixed_step(self, step: int) -> None:
         """A new graph for the fixed-capacity step (captured at its first call), for new shapes."""
@@ -369,8 +365,10 @@ class Trainer:
         self.log(f"  step {step}: batches of up to {rays} rays, {marched} marched and {kept} kept samples")
 
     def _fixed_body(self, kind: str) -> dict[str, torch.Tensor]:
-        """One step on a :class:`FixedBatches` batch, as :class:`GraphedSteps` replays it (kind
-        "fixed") or eagerly at a grid refresh (kind "refresh", with the empty-space loss)."""
+        """One step on a :class:`FixedBatches` batch, as :class:`GraphedSteps` replays it: kind
+        "fixed", or "refresh" (the grid's refresh first, then a step with the empty-space loss)."""
+        if kind == "refresh":
+            self.occupancy.update(self.step, self.density_field, self.sampler.generator)
         b = self.fixed.draw(self.density_field, empty_space=kind == "refresh")
         color, *_ = shade_samples(self.coarse_field, b.rays_o, b.rays_d, b.samples, self.background, self.cfg.backend)
         losses = {"loss_coarse": b.mse(color)}

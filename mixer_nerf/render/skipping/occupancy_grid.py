@@ -161,12 +161,14 @@ class OccupancyGrid(nn.Module):
             return torch.arange(index, self.num_cells, count, device=device)
         quarter = -(-(self.num_cells // 4) // count)  # ceil: together at least a quarter
         random_cells = torch.randint(self.num_cells, (quarter,), device=device, generator=generator)
-        occupied = unpack_bits(self.bitfield, self.num_cells).nonzero().squeeze(1)
-        if occupied.numel() > quarter:
-            occupied = occupied[
-                torch.randint(occupied.numel(), (quarter,), device=device, generator=generator)
-            ]
-        return torch.cat([random_cells, occupied])
+        # As many occupied cells, drawn with replacement by rank among the occupied: a fixed count
+        # and no host sync (a CUDA graph can capture the refresh). With none occupied they are
+        # random cells too.
+        occupied_before = unpack_bits(self.bitfield, self.num_cells).cumsum(0)
+        total = occupied_before[-1:]
+        ranks = (torch.rand(quarter, device=device, generator=generator) * total).long().clamp_max(total - 1)
+        occupied = torch.searchsorted(occupied_before, ranks + 1)
+        return torch.cat([random_cells, torch.where(total > 0, occupied, random_cells)])
 
     def random_points(
         self, count: int, generator: torch.Generator | None = None
