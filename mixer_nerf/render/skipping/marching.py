@@ -135,14 +135,21 @@ def march_samples(
     num_marched = samples.t_starts.shape[0]
     if density_field is None or not options.filters or not num_marched:
         return MarchedSamples(samples, num_marched)
+    return MarchedSamples(samples.select(_worth_shading(density_field, rays_o, rays_d, samples, options)),
+                          num_marched)
+
+
+def _worth_shading(density_field: nn.Module, rays_o, rays_d, samples: PackedSamples,
+                   options: MarchingOptions) -> torch.Tensor:
+    """The pre-pass: ``density_field``'s densities at ``samples`` (its ``density`` when it has
+    one: no colour branch), then which samples early termination and the alpha threshold keep
+    (N,) bool."""
     x, viewdirs, norm, layout = field_inputs(density_field, rays_o, rays_d, samples)
     if hasattr(density_field, "density"):
         sigma = density_field.density(x, **layout)
     else:
         sigma = density_field(x, viewdirs, **layout)[0]
-    keep = filter_by_transmittance(sigma.float() * norm, samples, options.early_stop_eps,
-                                   options.alpha_threshold)
-    return MarchedSamples(samples.select(keep), num_marched)
+    return filter_by_transmittance(sigma.float() * norm, samples, options.early_stop_eps, options.alpha_threshold)
 
 
 class FixedMarchedSamples(NamedTuple):
@@ -190,14 +197,8 @@ def march_samples_fixed(
                                  generator=generator, cone_angle=options.cone_angle, backend=backend)
     keep = torch.ones_like(marched.samples.t_starts, dtype=torch.bool)
     if density_field is not None and options.filters and marched_rows:
-        padded = marched.with_padding_rays()
         rays = with_padding_rays(rays_o, rays_d, padding_rays(marched_rows))
-        x, viewdirs, norm, layout = field_inputs(density_field, *rays, padded)
-        if hasattr(density_field, "density"):
-            sigma = density_field.density(x, **layout)
-        else:
-            sigma = density_field(x, viewdirs, **layout)[0]
-        keep = filter_by_transmittance(sigma.float() * norm, padded, options.early_stop_eps, options.alpha_threshold)
+        keep = _worth_shading(density_field, *rays, marched.with_padding_rays(), options)
     return FixedMarchedSamples(marched.samples.select_fixed(keep, kept_rows), marched)
 
 
