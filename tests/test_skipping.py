@@ -7,6 +7,7 @@ import pytest
 import torch
 from torch import nn
 
+from mixer_nerf.ops.bitfield import pack_bits
 from mixer_nerf.render import ChunkResult, ImageRenderer, render_in_chunks
 from mixer_nerf.render.skipping import (
     GridRefresh,
@@ -66,6 +67,27 @@ def test_occupancy_sampler_refreshes_on_its_schedule_and_sizes_the_next_batch():
     assert 0 < n < 8 * 2 * 3 ** 0.5 / grid.step_size  # the ball's cells only
     assert sampler.next_batch_rays(8, marched) == SampleBudget(target=512).next_rays(8, n)
     assert OccupancySampler(grid).next_batch_rays(8, marched) is None
+
+
+@pytest.mark.parametrize("occupied", [0, 1, 37, 4096])
+def test_a_refresh_measures_a_random_quarter_and_as_many_occupied_cells(occupied):
+    """After the warm-up a refresh picks a fixed count of cells (no host sync: a CUDA graph can
+    capture it): a random quarter, then as many drawn among the occupied cells, every one of them
+    occupied (random cells too when none is), and the occupied ones evenly."""
+    grid = OccupancyGrid([-1, -1, -1, 1, 1, 1], 16)
+    gen = torch.Generator().manual_seed(occupied)
+    chosen = torch.randperm(grid.num_cells, generator=gen)[:occupied]
+    grid.bitfield.copy_(pack_bits(torch.zeros(grid.num_cells, dtype=torch.bool).index_fill_(0, chosen, True)))
+    cells = grid._cells_to_update(False, gen, None)
+    quarter = grid.num_cells // 4
+    assert cells.shape == (2 * quarter,) and 0 <= cells.min() and cells.max() < grid.num_cells
+    drawn = cells[quarter:]
+    if occupied:
+        assert torch.isin(drawn, chosen).all()
+        counts = torch.bincount(drawn, minlength=grid.num_cells)[chosen].float()
+        assert counts.min() > 0 if occupied <= 37 else counts.std() < 3 * counts.mean().sqrt()
+    else:
+        assert torch.equal(drawn, cells[:quarter])  # the random quarter again
 
 
 def test_render_in_chunks_matches_one_chunk_and_counts_samples():

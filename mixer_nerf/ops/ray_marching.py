@@ -133,8 +133,10 @@ class FixedSamples(NamedTuple):
         capacity, num_rays = s.t_starts.shape[0], s.offsets.shape[0] - 1
         end = s.offsets[-1:]
         rows = torch.arange(capacity, device=s.offsets.device)
-        ray_indices = torch.where(rows < end, s.ray_indices, num_rays + (rows - end).div(PADDING_ROWS, rounding_mode="floor"))
-        ends = (end + PADDING_ROWS * torch.arange(1, padding_rays(capacity) + 1, device=end.device)).clamp_max(capacity)
+        padding_ray = num_rays + (rows - end).div(PADDING_ROWS, rounding_mode="floor")
+        ray_indices = torch.where(rows < end, s.ray_indices, padding_ray)
+        steps = torch.arange(1, padding_rays(capacity) + 1, device=end.device)
+        ends = (end + PADDING_ROWS * steps).clamp_max(capacity)
         return PackedSamples(s.t_starts, s.t_ends, ray_indices, torch.cat([s.offsets, ends]))
 
 

@@ -149,7 +149,8 @@ def _worth_shading(density_field: nn.Module, rays_o, rays_d, samples: PackedSamp
         sigma = density_field.density(x, **layout)
     else:
         sigma = density_field(x, viewdirs, **layout)[0]
-    return filter_by_transmittance(sigma.float() * norm, samples, options.early_stop_eps, options.alpha_threshold)
+    return filter_by_transmittance(sigma.float() * norm, samples, options.early_stop_eps,
+                                   options.alpha_threshold)
 
 
 class FixedMarchedSamples(NamedTuple):
@@ -163,7 +164,8 @@ class FixedMarchedSamples(NamedTuple):
         return self.marched.intact() & self.samples.intact()
 
 
-def with_padding_rays(rays_o: torch.Tensor, rays_d: torch.Tensor, count: int) -> tuple[torch.Tensor, torch.Tensor]:
+def with_padding_rays(rays_o: torch.Tensor, rays_d: torch.Tensor,
+                      count: int) -> tuple[torch.Tensor, torch.Tensor]:
     """``(R, 3)`` rays and ``count`` more for :meth:`FixedSamples.with_padding_rays`' padding rays:
     at the origin, looking down +z (a unit direction keeps their positions and view directions
     finite)."""
