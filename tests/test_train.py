@@ -606,18 +606,19 @@ def test_fixed_batches_grow_where_the_last_batch_wanted_more(tmp_path):
     assert grown == capacity  # the last one fits
 
 
-def test_the_fixed_capacity_path_trains_and_checkpoints(tmp_path, monkeypatch):
+@pytest.mark.parametrize("preset", ["A", "D"])
+def test_the_fixed_capacity_path_trains_and_checkpoints(tmp_path, monkeypatch, preset):
     """The bookkeeping of ``--cuda-graphs`` on the occupancy path with graphs stood in by eager
-    calls: eager steps until twice the grid's warm-up, then fixed-capacity steps (refreshes outside
-    the graph), the counters the device kept, and a checkpoint that resumes eagerly from the
-    batch size the device reached."""
+    calls: eager steps until twice the grid's warm-up, then fixed-capacity steps (refreshes a kind
+    of their own), buffers grown, the counters the device kept, and a checkpoint that resumes
+    eagerly from the batch size the device reached."""
     monkeypatch.setattr(trainer_module, "_check_graphable", lambda *_: None)
     monkeypatch.setattr(trainer_module, "GraphedSteps", _EagerGraphs)
     monkeypatch.setattr(trainer_module, "CAPACITY_CHECK_EVERY", 1)
     monkeypatch.setattr(fixed_batch, "RAY_ROOM", 1.0)  # too few rays for the target: the path grows them
     monkeypatch.setattr(fixed_batch, "ALIGN", 1)
     cfg = tiny_config(tmp_path, sampler="occupancy", empty_space_weight=0.5, empty_space_points=64,
-                      target_samples=2048, cuda_graphs=True, grid_every=4, steps=20)
+                      target_samples=2048, cuda_graphs=True, grid_every=4, steps=20, preset=preset)
     said = []
     trainer = Trainer(cfg, log=said.append)
     for group in trainer.optimizer.param_groups:
