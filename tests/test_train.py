@@ -35,6 +35,7 @@ from mixer_nerf.train.checkpoint import capture_rng_state, restore_rng_state
 from mixer_nerf.train.fields import model_config
 from mixer_nerf.train.sampling import resolve_sampler
 from mixer_nerf.train import trainer as trainer_module
+from mixer_nerf.render.skipping import SampleBudget
 from mixer_nerf.train import fixed_batch
 from mixer_nerf.train.fixed_batch import FixedBatch, FixedBatches, FixedCapacity
 from mixer_nerf.train.guard import NonFiniteGuard
@@ -529,10 +530,10 @@ def test_fixed_batches_use_num_rays_and_adapt_it_on_the_device(tmp_path):
         trainer.train_step()
     eager = trainer.batches.take(trainer.step)
     scene, target = trainer.train_scene, 3000
-    capacity = FixedCapacity.for_batch(eager, target)
+    trainer.occupancy.budget = SampleBudget(target)
+    capacity = FixedCapacity.for_batch(eager, trainer.occupancy.budget)
     assert capacity.rays >= 2 * eager.rays_o.shape[0] and capacity.kept >= target
-    batches = FixedBatches(trainer.sampler, trainer.occupancy, capacity, 3, target, scene.near, scene.far, 16,
-                           "torch")
+    batches = FixedBatches(trainer.sampler, trainer.occupancy, capacity, 3, scene.near, scene.far, 16, "torch")
     seen, kept_per_draw = torch.zeros(3, dtype=torch.int64), []
     for draw in range(8):
         num_rays = int(batches.num_rays)
@@ -552,6 +553,12 @@ def test_fixed_batches_use_num_rays_and_adapt_it_on_the_device(tmp_path):
         assert int(batches.num_rays) <= max(want, 1)
     assert batches.seen[:2].tolist() == seen[:2].tolist() and batches.seen[2] >= batches.seen[1]
     assert 0.5 * target <= sum(kept_per_draw[-4:]) / 4 and max(kept_per_draw) <= capacity.kept  # near the target
+    trainer.occupancy.budget, trainer.sampler.batch_rays = None, 24  # no budget: the configured rays
+    batches = FixedBatches(trainer.sampler, trainer.occupancy, FixedCapacity(64, 10**5, 10**4), 3, scene.near,
+                           scene.far, 0, "torch")
+    for _ in range(2):
+        batches.draw(trainer.density_field, empty_space=False)
+        assert int(batches.num_rays) == 24  # as the eager path draws them
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU")
@@ -592,12 +599,12 @@ def test_fixed_batches_grow_where_the_last_batch_wanted_more(tmp_path):
     scene = trainer.train_scene
     for capacity, target in ((FixedCapacity(4, 10**5, 10**4), 5000), (FixedCapacity(256, 256, 10**4), 5000),
                              (FixedCapacity(256, 10**5, 10**4), 50)):
-        batches = FixedBatches(trainer.sampler, trainer.occupancy, capacity, 4, target, scene.near, scene.far, 0,
-                               "torch")
+        trainer.occupancy.budget = SampleBudget(target, max_rays=1000)
+        batches = FixedBatches(trainer.sampler, trainer.occupancy, capacity, 4, scene.near, scene.far, 0, "torch")
         for _ in range(3):
             batches.draw(trainer.density_field, empty_space=False)
         for_target, for_buffer = batches.wanted.tolist()
-        assert batches.grow(max_rays=1000) == (capacity != batches.capacity)
+        assert batches.grow() == (capacity != batches.capacity)
         grown = batches.capacity
         assert grown.kept == capacity.kept and grown.rays >= capacity.rays and grown.marched >= capacity.marched
         assert (grown.rays > capacity.rays) == (for_target > 0.95 * capacity.rays)

@@ -18,7 +18,7 @@ import torch
 from torch import nn
 
 from ..ops.ray_marching import PackedSamples, padding_rays
-from ..render.skipping import OccupancySampler, march_samples_fixed
+from ..render.skipping import OccupancySampler, SampleBudget, march_samples_fixed
 from ..render.skipping.marching import with_padding_rays
 from .occupancy_batch import MarchedBatch
 from .sampler import RaySampler
@@ -37,9 +37,11 @@ class FixedCapacity(NamedTuple):
     kept: int  # rows of kept samples (what the field evaluates with gradient)
 
     @classmethod
-    def for_batch(cls, batch: MarchedBatch, target: int) -> FixedCapacity:
-        """Room for batches like ``batch`` (an eager one) that aim at ``target`` kept samples."""
+    def for_batch(cls, batch: MarchedBatch, budget: SampleBudget | None) -> FixedCapacity:
+        """Room for batches like ``batch`` (an eager one) held near ``budget``'s target of kept
+        samples (None: of ``batch``'s rays)."""
         rays, kept = batch.rays_o.shape[0], max(batch.samples.t_starts.shape[0], 1)
+        target = kept if budget is None else budget.target
         return cls(_round_up(rays * RAY_ROOM), _round_up(target * MARCHED_ROOM * batch.num_marched / kept),
                    _round_up(target * KEPT_ROOM))
 
@@ -61,16 +63,17 @@ class FixedBatch(NamedTuple):
 
 class FixedBatches:
     """Draws :class:`FixedBatch` es of ``capacity`` from ``rays`` through ``occupancy``, starting
-    with ``num_rays`` rays and holding later batches near ``target`` kept samples.
+    with ``num_rays`` rays: later batches as the eager path sizes them, near the sample budget's
+    target (``occupancy.budget``), or ``rays.batch_rays`` rays without a budget.
 
     ``seen``: (3,) int64 device counters of the rays used, the samples kept and the samples
     marched, summed over the batches drawn (read them when a sync costs nothing).
     """
 
     def __init__(self, rays: RaySampler, occupancy: OccupancySampler, capacity: FixedCapacity, num_rays: int,
-                 target: int, near: float | torch.Tensor, far: float | torch.Tensor, empty_space_points: int,
+                 near: float | torch.Tensor, far: float | torch.Tensor, empty_space_points: int,
                  backend: str) -> None:
-        self.rays, self.occupancy, self.capacity, self.target = rays, occupancy, capacity, target
+        self.rays, self.occupancy, self.capacity = rays, occupancy, capacity
         self.empty_space_points, self.backend = empty_space_points, backend
         device = rays.generator.device
         self.num_rays = torch.tensor(min(num_rays, capacity.rays), device=device)
@@ -104,19 +107,23 @@ class FixedBatches:
                           points, mask)
 
     def _adapt(self, kept: torch.Tensor, marched: torch.Tensor) -> None:
-        """The next batch's rays from this one's counts: ``target`` kept samples, marched samples
-        within their buffer (with a margin for the next batch's spread)."""
-        n = self.num_rays.float()
-        per_target = n * self.target / kept.float().clamp_min(1)
+        """The next batch's rays from this one's counts: the budget's target of kept samples (or
+        the configured rays), marched samples within their buffer (with a margin for the next
+        batch's spread)."""
+        n, budget = self.num_rays.float(), self.occupancy.budget
+        kept = kept.float().clamp_min(1)
+        per_target = torch.full_like(kept, self.rays.batch_rays) if budget is None else n * budget.target / kept
         per_buffer = n * (0.95 * self.capacity.marched) / marched.float().clamp_min(1)
         rays = torch.minimum(per_target, per_buffer).floor().clamp(1, self.capacity.rays)
         self.num_rays.copy_(rays.squeeze(0).long())
         self.wanted.copy_(torch.cat([per_target, per_buffer]))
 
-    def grow(self, max_rays: int) -> bool:
-        """Grow the capacity where the last batch wanted more than it had: rays (up to
-        ``max_rays``), or marched rows when they limited the batch. One host sync; True when the
-        capacity changed (a captured step must then be captured again)."""
+    def grow(self) -> bool:
+        """Grow the capacity where the last batch wanted more than it had: rays (up to the
+        budget's ``max_rays``), or marched rows when they limited the batch. One host sync; True
+        when the capacity changed (a captured step must then be captured again)."""
+        budget = self.occupancy.budget
+        max_rays = self.rays.batch_rays if budget is None else budget.max_rays
         for_target, for_buffer = self.wanted.tolist()
         rays, marched, kept = self.capacity
         if for_target > 0.95 * rays and rays < max_rays:

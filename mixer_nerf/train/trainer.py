@@ -346,16 +346,13 @@ class Trainer:
             settled = step >= 2 * occupancy.refresh.warmup
             stats = self._learn(self._marched_losses(batch), self._step_counter, prefetch=not settled)
             if settled:
-                target = batch.samples.t_starts.shape[0] if occupancy.budget is None else occupancy.budget.target
-                self.fixed = FixedBatches(self.sampler, occupancy, FixedCapacity.for_batch(batch, target),
-                                          self.sampler.batch_rays, target, self.train_scene.near,
-                                          self.train_scene.far, self.empty_points, self.cfg.backend)
+                self.fixed = FixedBatches(self.sampler, occupancy, FixedCapacity.for_batch(batch, occupancy.budget),
+                                          self.sampler.batch_rays, self.train_scene.near, self.train_scene.far,
+                                          self.empty_points, self.cfg.backend)
                 self._capture_fixed_step(step)
             return stats
-        if step % CAPACITY_CHECK_EVERY == 0:
-            max_rays = (1 << 18) if occupancy.budget is None else occupancy.budget.max_rays
-            if self.fixed.grow(max_rays):
-                self._capture_fixed_step(step)
+        if step % CAPACITY_CHECK_EVERY == 0 and self.fixed.grow():
+            self._capture_fixed_step(step)
         return self.graphs("refresh" if occupancy.is_refresh_step(step) else "fixed")
 
     def _capture_fixed_step(self, step: int) -> None:

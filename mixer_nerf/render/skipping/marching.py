@@ -197,10 +197,11 @@ def march_samples_fixed(
     step = grid.step_size if options.step_size is None else options.step_size
     marched = ray_marching_fixed(rays_o, rays_d, near, far, grid, step, marched_rows, stratified=stratified,
                                  generator=generator, cone_angle=options.cone_angle, backend=backend)
-    keep = torch.ones_like(marched.samples.t_starts, dtype=torch.bool)
     if density_field is not None and options.filters and marched_rows:
         rays = with_padding_rays(rays_o, rays_d, padding_rays(marched_rows))
         keep = _worth_shading(density_field, *rays, marched.with_padding_rays(), options)
+    else:
+        keep = torch.ones_like(marched.samples.t_starts, dtype=torch.bool)
     return FixedMarchedSamples(marched.samples.select_fixed(keep, kept_rows), marched)
 
 
