@@ -52,18 +52,19 @@ class Method:
     """A method's training step, validation render, trainer (ours-based methods) and, for a run
     kept in ``--run-dir``, how to save and restore the state the trainer's checkpoint lacks."""
 
-    step_fn: Callable[[int], dict]
+    step_fn: Callable[[int], dict | Callable[[], dict]]  # stats, or how to read them at a checkpoint
     render: Callable
     trainer: object = None
     save_extra: Callable[[Path], None] | None = None
     load_extra: Callable[[Path, int], None] | None = None
 
 
-def run_curve(step_fn: Callable[[int], dict], render: Callable, val, checkpoints: list[float], log: Callable,
-              clock: TrainingClock, start: tuple[int, int] | None = None, save: Callable[[int], None] | None = None,
-              save_every: float = math.inf, stop_after: float = math.inf) -> int:
+def run_curve(step_fn: Callable[[int], dict | Callable[[], dict]], render: Callable, val, checkpoints: list[float],
+              log: Callable, clock: TrainingClock, start: tuple[int, int] | None = None,
+              save: Callable[[int], None] | None = None, save_every: float = math.inf, stop_after: float = math.inf) -> int:
     """Train with ``step_fn(step)`` until the last checkpoint, validating at each one (``clock``
-    pauses meanwhile). Step 0 runs before the clock starts: it builds any JIT kernels (nerfacc's,
+    pauses meanwhile) and logging the stats of the step before it (``step_fn``'s dict, or what
+    the callable it returned reads then). Step 0 runs before the clock starts: it builds any JIT kernels (nerfacc's,
     ours) and warms up caches. ``start``: (step, checkpoints done) of a resumed run, which skips
     the warm-up. ``save(step)`` runs, clock paused, every ``save_every`` training seconds, at each
     checkpoint and before a stop after ``stop_after`` seconds. Returns the checkpoints reached."""
@@ -83,7 +84,8 @@ def run_curve(step_fn: Callable[[int], dict], render: Callable, val, checkpoints
         now = clock.now()
         if now >= pending[0]:
             elapsed = clock.pause()
-            point = {"seconds": round(elapsed, 2), "step": step, "val_psnr": validate(render, val), **stats}
+            point = {"seconds": round(elapsed, 2), "step": step, "val_psnr": validate(render, val),
+                     **(stats() if callable(stats) else stats)}
             pending.pop(0)
             done += 1
             log(point)
@@ -177,7 +179,8 @@ def nerfacc_proposal_method(args, train, val, device) -> Method:
     from mixer_nerf.render.volume import query_field
 
     args.sampler = "proposal"
-    trainer = ours_method(args, train, val, device).trainer
+    # only ours' fields, sampler and schedule are used: nothing to replay
+    trainer = ours_method(argparse.Namespace(**{**vars(args), "cuda_graphs": False}), train, val, device).trainer
     cfg, fields = trainer.cfg, trainer.fields
     networks = list(fields.proposal.networks)
     proposal_params = [p for net in networks for p in net.parameters()]
@@ -273,14 +276,23 @@ def ours_method(args, train, val, device) -> Method:
     resume = args.run_dir is not None and (Path(args.run_dir) / "checkpoint.pt").is_file()
     trainer = Trainer(cfg, resume=resume, overwrite=args.run_dir is not None and not resume, log=lambda _: None)
 
-    def step_fn(step: int) -> dict:
+    last = {"step": trainer.step, "rays": trainer.rays_seen, "samples": trainer.samples_seen}
+
+    def stats() -> dict:
+        """Per-step averages since the last checkpoint: read only there, as replayed steps count
+        their samples on the device."""
+        steps = max(trainer.step - last["step"], 1)
+        rays, samples = trainer.rays_seen, trainer.samples_seen
+        point = {"samples_per_ray": samples / max(rays, 1), "samples_per_step": (samples - last["samples"]) / steps,
+                 "rays": (rays - last["rays"]) / steps, "marched_per_ray": trainer.marched_seen / max(rays, 1),
+                 "lr": float(trainer.optimizer.param_groups[0]["lr"])}
+        last.update(step=trainer.step, rays=rays, samples=samples)
+        return point
+
+    def step_fn(step: int) -> Callable[[], dict]:
         trainer.fields.train()
-        samples_before, rays_before = trainer.samples_seen, trainer.rays_seen
         trainer.train_step()
-        return {"samples_per_ray": trainer.samples_seen / max(trainer.rays_seen, 1),
-                "samples_per_step": trainer.samples_seen - samples_before, "rays": trainer.rays_seen - rays_before,
-                "marched_per_ray": trainer.marched_seen / max(trainer.rays_seen, 1),
-                "lr": trainer.optimizer.param_groups[0]["lr"]}
+        return stats
 
     return Method(step_fn, trainer.render_rgb, trainer)
 

@@ -619,7 +619,7 @@ def test_the_fixed_capacity_path_trains_and_checkpoints(tmp_path, monkeypatch, p
     calls: eager steps until twice the grid's warm-up, then fixed-capacity steps (refreshes a kind
     of their own), buffers grown, the counters the device kept, and a checkpoint that resumes
     eagerly from the batch size the device reached."""
-    monkeypatch.setattr(trainer_module, "_check_graphable", lambda *_: None)
+    monkeypatch.setattr(trainer_module, "_why_not_graphable", lambda *_: None)
     monkeypatch.setattr(trainer_module, "GraphedSteps", _EagerGraphs)
     monkeypatch.setattr(trainer_module, "CAPACITY_CHECK_EVERY", 1)
     monkeypatch.setattr(fixed_batch, "RAY_ROOM", 1.0)  # too few rays for the target: the path grows them
@@ -716,13 +716,41 @@ def test_cuda_graphs_are_refused_on_a_cpu_before_training(tmp_path):
     ("proposal", True, "cuda", "not with several processes"),
     ("proposal", False, "cpu", "the training images do not fit on the GPU")])
 def test_cuda_graphs_refusals_name_their_reason(sampler, several, images, reason):
-    from mixer_nerf.train.trainer import _check_graphable
+    """--cuda-graphs where a step cannot be replayed is refused, saying why; left unset it is off there."""
+    from mixer_nerf.train.trainer import replays_steps
 
     cfg = TrainConfig(sampler=sampler, cuda_graphs=True)
     with pytest.raises(ValueError, match=reason):
-        _check_graphable(cfg, torch.device("cuda"), several, torch.device(images))
-    for sampler in ("proposal", "occupancy"):
-        _check_graphable(TrainConfig(sampler=sampler), torch.device("cuda"), False, torch.device("cuda"))
+        replays_steps(cfg, torch.device("cuda"), several, torch.device(images))
+    unset = dataclasses.replace(cfg, cuda_graphs=None)
+    assert replays_steps(unset, torch.device("cuda"), several, torch.device(images)) is False
+
+
+@pytest.mark.parametrize("sampler", ["proposal", "occupancy"])
+def test_cuda_graphs_are_on_by_default_where_a_step_can_be_replayed(sampler):
+    from mixer_nerf.train.trainer import replays_steps
+
+    cuda = torch.device("cuda")
+    assert replays_steps(TrainConfig(sampler=sampler), cuda, False, cuda) is True
+    assert replays_steps(TrainConfig(sampler=sampler, cuda_graphs=False), cuda, False, cuda) is False
+    assert replays_steps(TrainConfig(sampler=sampler), torch.device("cpu"), False, torch.device("cpu")) is False
+
+
+def test_a_resumed_run_decides_cuda_graphs_anew(tmp_path):
+    """The checkpoint records what the run did (graphs on or off); a resume decides again for its own
+    machine and processes, unless told."""
+    from mixer_nerf.train.trainer import resume_config
+
+    saved = TrainConfig(sampler="proposal", cuda_graphs=True)
+    assert resume_config(saved, TrainConfig(out=str(tmp_path)), "ckpt", 0).cuda_graphs is None
+    told = TrainConfig(out=str(tmp_path), cuda_graphs=False)
+    assert resume_config(saved, told, "ckpt", 0).cuda_graphs is False
+
+
+def test_a_cpu_run_records_that_it_replayed_no_graphs(tmp_path):
+    trainer = Trainer(tiny_config(tmp_path, sampler="proposal", steps=1), log=quiet)
+    assert trainer.cfg.cuda_graphs is False and trainer.graphs is None
+    assert json.loads((tmp_path / "config.json").read_text())["train"]["cuda_graphs"] is False
 
 
 @pytest.mark.cuda

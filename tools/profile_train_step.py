@@ -53,8 +53,8 @@ def main() -> None:
     parser.add_argument("--bf16-density-passes", action=argparse.BooleanOptionalAction, default=None,
                         help="default: the trainer's (on CUDA)")
     parser.add_argument("--empty-space-weight", type=float, default=None, help="default: the trainer's")
-    parser.add_argument("--cuda-graphs", action="store_true",
-                        help="replay each step as a CUDA graph (the proposal or occupancy sampler)")
+    parser.add_argument("--cuda-graphs", action=argparse.BooleanOptionalAction, default=None,
+                        help="replay each step as a CUDA graph (default: the trainer's, on where a step can be)")
     parser.add_argument("--out", default=str(RESULTS / "train_step"),
                         help="write the tables to DIR/<device>_<scene>_<preset>_<precision>[_bf16pass][_graphs]_step<N>.txt "
                              "('' for none)")
@@ -97,7 +97,7 @@ def main() -> None:
     table = events.table(sort_by="self_cuda_time_total", row_limit=30, max_name_column_width=70)
     passes = "_bf16pass" * trainer.cfg.bf16_density_passes
     # named by the step profiled, before the host profile's steps
-    graphs = "_graphs" * args.cuda_graphs
+    graphs = "_graphs" * trainer.cfg.cuda_graphs
     name = f"{device_tag('cuda')}_{scene_tag(args.data)}_{args.preset}_{args.precision}{passes}{graphs}_step{trainer.step}.txt"
     table += "\n" + _kernels_by_op(trainer, args.steps)
     host = host_profile(trainer.train_step, args.steps, top=35)

@@ -30,7 +30,8 @@ class TrainConfig:
 
     ``None`` in ``precision``, ``device`` and ``bf16_density_passes`` means "pick for the machine"
     (see :meth:`resolved`): TF32 on CUDA (at equal time it beat bf16 autocast, docs/training.md),
-    bf16 density passes on CUDA, off on CPU.
+    bf16 density passes on CUDA, off on CPU. ``cuda_graphs=None`` is decided by the trainer, which
+    knows the sampler, the processes and where the images went: on wherever a step can be replayed.
     Learning rate: a linear warm-up over ``lr_warmup`` steps, ``lr`` held for the first ``lr_hold``
     of the run, then an exponential decay to ``lr_final`` at its end. The run's end is ``steps`` or,
     with a ``time_budget``, whichever of the two comes first: the schedule follows the training
@@ -171,10 +172,10 @@ class TrainConfig:
         0.0, "decoupled weight decay of MLCA's token- and channel-mixing matrices (presets C and D): "
         "after each step they are scaled by 1 - lr * W, which pulls the mixing toward the identity, "
         "the NeRF it extends (default 0: off)", metavar="W")
-    cuda_graphs: bool = option(
-        False, "proposal or occupancy sampler on a GPU: replay each training step as a CUDA graph, without "
-        "the host work between its kernels (needs the training images on the GPU and one process; "
-        "occupancy batches are padded to a fixed capacity)")
+    cuda_graphs: bool | None = option(
+        None, "proposal or occupancy sampler on a GPU: replay each training step as a CUDA graph, without "
+        "the host work between its kernels; occupancy batches are padded to a fixed capacity (default: on "
+        "where a step can be replayed: a GPU, one process, the training images on the GPU)")
     tensorboard: bool = option(
         False, "log losses, PSNR, learning rate, samples per ray, rays/s and validation renders to "
         "<out>/tensorboard (needs .[tensorboard])"

@@ -55,6 +55,8 @@ CAPACITY_CHECK_EVERY = 100
 """Steps between checks of whether fixed-capacity batches outgrew their buffers (a host sync each)."""
 DEVICE_SETTINGS = ("precision", "bf16_density_passes", "val_images")
 """Picked anew for the machine when a resumed run moves to another device type (unless typed)."""
+REPICKED_SETTINGS = ("cuda_graphs",)
+"""Picked anew at every resume (unless typed): how a step runs, not what it learns."""
 
 
 def typed_overrides(cfg: TrainConfig) -> dict[str, Any]:
@@ -86,7 +88,7 @@ def resume_config(saved: TrainConfig, cfg: TrainConfig, ckpt: Any, step: int) ->
     if not moved and (saved.device or "").startswith("cuda") and not torch.cuda.is_available():
         raise ValueError(f"{ckpt}: trained on {saved.device}, and torch sees no CUDA GPU here; "
                          "pass --device cpu to resume it on this machine")
-    fresh = {k: told.get(k) for k in DEVICE_SETTINGS} if moved else {}
+    fresh = {k: told.get(k) for k in REPICKED_SETTINGS + (DEVICE_SETTINGS if moved else ())}
     kept = {k: v for k, v in told.items() if k in RESUMABLE_OVERRIDES and k != "data"}
     return TrainConfig(**{**saved.to_dict(), **fresh, **kept, "out": cfg.out})
 
@@ -105,19 +107,27 @@ def _same(a: Any, b: Any) -> bool:
     return json.dumps(a, sort_keys=True, default=str) == json.dumps(b, sort_keys=True, default=str)
 
 
-def _check_graphable(cfg: TrainConfig, device: torch.device, several_processes: bool, images: torch.device) -> None:
-    """Refuse ``--cuda-graphs`` where a step cannot be replayed as a graph, saying why."""
+def _why_not_graphable(cfg: TrainConfig, device: torch.device, several_processes: bool,
+                       images: torch.device) -> str | None:
+    """Why a step of this run cannot be replayed as a CUDA graph; None if it can."""
     if device.type != "cuda":
-        why = "it needs a CUDA device"
-    elif cfg.sampler not in ("proposal", "occupancy"):
-        why = f"only the proposal and occupancy samplers' steps can keep their shapes (this run's sampler: {cfg.sampler})"
-    elif several_processes:
-        why = "not with several processes"
-    elif images.type != "cuda":
-        why = "the training images do not fit on the GPU (a step would copy its pixels from the host)"
-    else:
-        return
-    raise ValueError(f"--cuda-graphs: {why}")
+        return "it needs a CUDA device"
+    if cfg.sampler not in ("proposal", "occupancy"):
+        return f"only the proposal and occupancy samplers' steps can keep their shapes (this run's sampler: {cfg.sampler})"
+    if several_processes:
+        return "not with several processes"
+    if images.type != "cuda":
+        return "the training images do not fit on the GPU (a step would copy its pixels from the host)"
+    return None
+
+
+def replays_steps(cfg: TrainConfig, device: torch.device, several_processes: bool, images: torch.device) -> bool:
+    """``cfg.cuda_graphs`` decided: None is on wherever a step can be replayed; True where one
+    cannot is refused, saying why."""
+    why = _why_not_graphable(cfg, device, several_processes, images)
+    if cfg.cuda_graphs and why:
+        raise ValueError(f"--cuda-graphs: {why}")
+    return why is None if cfg.cuda_graphs is None else cfg.cuda_graphs
 
 
 class TrainingClock:
@@ -214,8 +224,8 @@ class Trainer:
         val_scene, self.val_split = held_out_split(folder, fmt, "val", cfg.downscale, cfg.val_holdout)
         self.val_scene = val_scene.to(self.device)
         self.cfg = cfg = resolve_sampler(cfg, self.train_scene.bbox, self.train_scene.ndc)
-        if cfg.cuda_graphs:
-            _check_graphable(cfg, self.device, self.ranks is not None, self.train_scene.images.device)
+        graphs = replays_steps(cfg, self.device, self.ranks is not None, self.train_scene.images.device)
+        self.cfg = cfg = dataclasses.replace(cfg, cuda_graphs=graphs)
         self.scene = scene_info(self.train_scene, folder, fmt, cfg)
         self.background = self.train_scene.background.to(self.device, torch.float32)
 
