@@ -3,7 +3,7 @@ precision, on packed samples as the occupancy sampler feeds them.
 
     python -m benchmarks.bench_field [--samples 65536] [--rays 3000] [--profile D] [--compile] [--out DIR]
 
-Writes ``<out>/<device>.md`` (default ``benchmarks/results/field/h100.md`` on an H100).
+Writes ``<out>/field_<device>.md`` (default ``benchmarks/results/train_step/field_h100.md`` on an H100).
 
 Each row times ``field(x, d, ray_indices, offsets)`` (SE's fused packed path, as in training)
 then ``backward`` of a loss on sigma and rgb (median of CUDA-event timings). ``--profile P`` adds
@@ -59,7 +59,7 @@ def main() -> None:
     parser.add_argument("--profile", default="D", help="preset to profile ('' for none)")
     parser.add_argument("--presets", default="ABCD", help="presets to time (the first is the baseline)")
     parser.add_argument("--compile", action="store_true", help="also time torch.compile'd fields")
-    parser.add_argument("--out", default=str(RESULTS / "field"))
+    parser.add_argument("--out", default=str(RESULTS / "train_step"))
     args = parser.parse_args()
 
     torch.backends.cuda.matmul.allow_tf32 = True
@@ -105,7 +105,7 @@ def main() -> None:
     print(text)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    (out / f"{device_tag(device)}.md").write_text(text + "\n")
+    (out / f"field_{device_tag(device)}.md").write_text(text + "\n")
 
 
 if __name__ == "__main__":

@@ -1,6 +1,6 @@
 """Training on 1 against N GPUs: samples per second, steps, time to a PSNR, held-out quality.
 
-    python -m benchmarks.distributed_scaling --runs runs --out benchmarks/results/distributed/h100x2 \
+    python -m benchmarks.distributed_scaling --runs runs --out benchmarks/results/train_step/distributed_h100x2 \
         --device "2x NVIDIA H100 80GB HBM3" lego_1gpu lego_2gpu fern_1gpu fern_2gpu
 
 Each name is a run folder of ``mixer-nerf train --devices N`` under ``--runs`` (its

