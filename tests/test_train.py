@@ -723,17 +723,18 @@ def test_cuda_graphs_refusals_name_their_reason(sampler, several, images, reason
     with pytest.raises(ValueError, match=reason):
         replays_steps(cfg, torch.device("cuda"), several, torch.device(images))
     unset = dataclasses.replace(cfg, cuda_graphs=None)
-    assert replays_steps(unset, torch.device("cuda"), several, torch.device(images)) is False
+    graphs, why = replays_steps(unset, torch.device("cuda"), several, torch.device(images))
+    assert graphs is False and reason in why
 
 
 @pytest.mark.parametrize("sampler", ["proposal", "occupancy"])
 def test_cuda_graphs_are_on_by_default_where_a_step_can_be_replayed(sampler):
     from mixer_nerf.train.trainer import replays_steps
 
-    cuda = torch.device("cuda")
-    assert replays_steps(TrainConfig(sampler=sampler), cuda, False, cuda) is True
-    assert replays_steps(TrainConfig(sampler=sampler, cuda_graphs=False), cuda, False, cuda) is False
-    assert replays_steps(TrainConfig(sampler=sampler), torch.device("cpu"), False, torch.device("cpu")) is False
+    cuda, cpu = torch.device("cuda"), torch.device("cpu")
+    assert replays_steps(TrainConfig(sampler=sampler), cuda, False, cuda) == (True, None)
+    assert replays_steps(TrainConfig(sampler=sampler, cuda_graphs=False), cuda, False, cuda) == (False, None)
+    assert replays_steps(TrainConfig(sampler=sampler), cpu, False, cpu) == (False, "it needs a CUDA device")
 
 
 def test_a_resumed_run_decides_cuda_graphs_anew(tmp_path):

@@ -121,13 +121,14 @@ def _why_not_graphable(cfg: TrainConfig, device: torch.device, several_processes
     return None
 
 
-def replays_steps(cfg: TrainConfig, device: torch.device, several_processes: bool, images: torch.device) -> bool:
-    """``cfg.cuda_graphs`` decided: None is on wherever a step can be replayed; True where one
-    cannot is refused, saying why."""
+def replays_steps(cfg: TrainConfig, device: torch.device, several_processes: bool,
+                  images: torch.device) -> tuple[bool, str | None]:
+    """``cfg.cuda_graphs`` decided, and why a step cannot be replayed (None if it can): None is on
+    wherever a step can be replayed; True where one cannot is refused, saying why."""
     why = _why_not_graphable(cfg, device, several_processes, images)
     if cfg.cuda_graphs and why:
         raise ValueError(f"--cuda-graphs: {why}")
-    return why is None if cfg.cuda_graphs is None else cfg.cuda_graphs
+    return (why is None if cfg.cuda_graphs is None else cfg.cuda_graphs), why
 
 
 class TrainingClock:
@@ -224,7 +225,10 @@ class Trainer:
         val_scene, self.val_split = held_out_split(folder, fmt, "val", cfg.downscale, cfg.val_holdout)
         self.val_scene = val_scene.to(self.device)
         self.cfg = cfg = resolve_sampler(cfg, self.train_scene.bbox, self.train_scene.ndc)
-        graphs = replays_steps(cfg, self.device, self.ranks is not None, self.train_scene.images.device)
+        graphs, why = replays_steps(cfg, self.device, self.ranks is not None, self.train_scene.images.device)
+        if self.device.type == "cuda" and cfg.cuda_graphs is None:
+            self.log("  note: " + ("steps replay as CUDA graphs (--no-cuda-graphs: eager steps)" if graphs
+                                   else f"eager steps, no CUDA graphs: {why}"))
         self.cfg = cfg = dataclasses.replace(cfg, cuda_graphs=graphs)
         self.scene = scene_info(self.train_scene, folder, fmt, cfg)
         self.background = self.train_scene.background.to(self.device, torch.float32)
