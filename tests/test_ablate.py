@@ -18,7 +18,7 @@ import pytest
 from test_cli import TINY_DEMO
 
 from mixer_nerf import cli, lpips_alex, metrics
-from mixer_nerf.ablation import AblationError, AblationPlan, parse_model_overrides, parse_presets, parse_seeds
+from mixer_nerf.ablation import AblationError, AblationPlan, parse_model_overrides, parse_presets, parse_seeds, runner
 from mixer_nerf.train import TrainConfig, Trainer
 from mixer_nerf.train import trainer as trainer_module
 
@@ -194,6 +194,31 @@ def test_missing_lpips_weights_refuse_the_ablation_before_anything(tmp_path, cap
     assert err.count("\n") == 1 and err.startswith("mixer-nerf: error: LPIPS unavailable: ")
     assert lpips_alex.INSTALL_COMMAND in err and "pass --no-lpips" in err
     assert not out.exists()
+
+
+def test_each_run_frees_its_trainer_before_the_next(tmp_path, monkeypatch):
+    """A finished run's trainer (reference cycles, CUDA graph pools on a GPU) is collected before
+    its evaluation and the next run, not whenever Python's cycle collector next runs."""
+    import gc
+    import weakref
+
+    trainers = []
+    init = trainer_module.Trainer.__init__
+
+    def recorded(self, *args, **kwargs):
+        init(self, *args, **kwargs)
+        trainers.append(weakref.ref(self))
+
+    monkeypatch.setattr(trainer_module.Trainer, "__init__", recorded)
+    monkeypatch.setattr(runner, "_scores", lambda *_, **__: {**runner._no_scores(),
+                                                           "alive": [t() is not None for t in trainers]})
+    gc.disable()
+    try:
+        assert ablate(tmp_path / "freed", "--presets", "A", "--seeds", "0,1", "--no-lpips") == 0
+    finally:
+        gc.enable()
+    records = [json.loads((tmp_path / "freed" / f"A_seed{s}" / "ablation_run.json").read_text()) for s in (0, 1)]
+    assert [r["alive"] for r in records] == [[False], [False, False]]
 
 
 def test_no_lpips_trains_and_scores_without_it(tmp_path, capsys, monkeypatch):

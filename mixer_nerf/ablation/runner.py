@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gc
 import json
 import math
 from collections.abc import Callable
@@ -163,6 +164,11 @@ def _train(cfg: TrainConfig, files: RunFiles, log: Callable[[str], None]) -> dic
     except NonFiniteError as e:  # the table shows the run as failed; the other runs go on
         log(f"  {e}")
         return _read_summary(files)
+    finally:
+        # A trainer sits in reference cycles: only the cycle collector frees its GPU memory (its
+        # CUDA graphs' pools among it), which this run's evaluation and the next run need.
+        del trainer
+        gc.collect()
 
 
 def _scores(plan: AblationPlan, cfg: TrainConfig, files: RunFiles, complete: bool) -> dict[str, Any]:
