@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import errno
+import gc
 import os
 import sys
 from collections.abc import Sequence
@@ -418,9 +419,12 @@ def _train(cfg: TrainConfig, resume: bool, overwrite: bool) -> dict[str, Any]:
     if not trainer.rank:
         print(f"training {c.steps} steps on {c.device} ({c.precision}, backend {c.backend}), preset {c.preset}, "
               f"{sampling_summary(c)} -> {trainer.files.root}")
-    summary = trainer.fit()
+    summary, rank = trainer.fit(), trainer.rank
     leave()  # every rank, before rank 0 evaluates alone
-    if trainer.rank:
+    # The trainer's GPU memory (CUDA graph pools among it) sits in reference cycles: freed for the evaluation.
+    del trainer
+    gc.collect()
+    if rank:
         return summary
     print(f"training {summary['status']} at step {summary['step']} after {summary['train_seconds']:.1f} s")
     return summary

@@ -245,6 +245,33 @@ def test_train_with_data_then_resume(tmp_path, capsys):
     assert cli.main([*argv, "--resume"]) == 0
 
 
+def test_train_frees_its_trainer_before_the_evaluation(tmp_path, monkeypatch):
+    """The trainer (reference cycles, CUDA graph pools on a GPU) is collected before the run's
+    evaluation, not whenever Python's cycle collector next runs."""
+    import gc
+    import weakref
+
+    from mixer_nerf.train import Trainer
+
+    trainers, alive = [], []
+    init = Trainer.__init__
+
+    def recorded(self, *args, **kwargs):
+        init(self, *args, **kwargs)
+        trainers.append(weakref.ref(self))
+
+    monkeypatch.setattr(Trainer, "__init__", recorded)
+    monkeypatch.setattr(cli, "_evaluate", lambda *_, **__: alive.append(trainers[0]() is not None))
+    scene = ensure_procedural_scene(resolution=16, n_train=4, n_val=2, n_test=2)
+    gc.disable()
+    try:
+        cli.main(["train", "--data", str(scene), "--steps", "1", "--batch-rays", "16", "--sampler", "proposal",
+                  "--out", str(tmp_path / "run"), *TINY_FLAGS])
+    finally:
+        gc.enable()
+    assert len(trainers) == 1 and alive == [False]
+
+
 # -- bad input --------------------------------------------------------------------------------------
 
 
