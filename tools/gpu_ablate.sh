@@ -3,13 +3,14 @@
 # resumed across calls:  bash tools/gpu_ablate.sh SCENE NAME PRESETS SEEDS BUDGET  (.data/SCENE, runs/NAME).
 # Returns the records without checkpoints, the checkpoints split into files under 15 MiB (a call
 # returns files up to 16 MiB: unpack them into runs/ and carry it where the machine went cold), the log.
-# DEADLINE (s from the start, default 555) stops the ablation in time to pack.
+# DEADLINE (s from the start, default 555) stops the ablation in time to pack. A call that carried no
+# .gpu_cache also returns the kernels' build as gpu_cache.tgz.
 set -u
 t0=$SECONDS
 scene=$1 name=$2 presets=$3 seeds=$4 budget=$5
 source tools/gpu_env.sh
 SKIP_NERFACC=1 OUT=/tmp/build_out bash tools/gpu_build.sh
-[ -f runs/.cache_sent ] || { cp /tmp/build_out/gpu_cache.tgz "$OUT"/ && mkdir -p runs && touch runs/.cache_sent; }
+[ -d .gpu_cache ] || cp /tmp/build_out/gpu_cache.tgz "$OUT"/  # the build, for a later call to carry
 echo "build done at $((SECONDS - t0)) s"
 left=$(( ${DEADLINE:-555} - (SECONDS - t0) ))
 timeout -s TERM "$left" python -m mixer_nerf ablate --data ".data/$scene" --presets "$presets" --seeds "$seeds" \
