@@ -40,6 +40,7 @@ from mixer_nerf.train import fixed_batch
 from mixer_nerf.train.fixed_batch import FixedBatch, FixedBatches, FixedCapacity
 from mixer_nerf.train.guard import NonFiniteGuard
 from mixer_nerf.train.logbook import CsvLog, plot_curves
+from mixer_nerf.train.loss_spikes import LossSpikeWatch
 from dispatch_count import dispatched_ops
 
 TINY_MODEL = {
@@ -297,6 +298,15 @@ def test_run_writes_logs_plot_summary_and_a_loadable_checkpoint(tmp_path):
     assert run.step == 6
     rays_o, rays_d = trainer.val_scene.rays_for_image(0)
     torch.testing.assert_close(run.render(rays_o, rays_d).color, trainer.render_rgb(rays_o, rays_d))
+
+
+def test_a_loss_spike_is_said_in_the_log(tmp_path):
+    lines: list[str] = []
+    trainer = Trainer(tiny_config(tmp_path), log=lines.append)
+    trainer.spikes = LossSpikeWatch(window=1)
+    trainer.spikes.observe(0, 1e-12)  # every real loss is a spike against this one
+    trainer.fit()
+    assert any(line.startswith("  note: loss spike at step 1: ") for line in lines), lines
 
 
 def test_time_budget_stops_training(tmp_path):

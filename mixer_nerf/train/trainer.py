@@ -36,6 +36,7 @@ from .fields import model_config, model_config_to_dict, model_notes
 from .graphed_steps import GraphedSteps
 from .guard import NonFiniteError, NonFiniteGuard
 from .logbook import CsvLog, TensorBoardLog, plot_curves
+from .loss_spikes import LossSpikeWatch
 from .marched_batches import MarchedBatches
 from .memory import FLOAT_BYTES, check_fits
 from .occupancy_batch import MarchedBatch, prepare_marched_batch
@@ -275,6 +276,7 @@ class Trainer:
         # A first-use JIT build of the kernels (a minute or more) happens here, not on the training clock.
         use_kernel(cfg.backend, self.device)
         self.guard = NonFiniteGuard(self.param_names, self.device)
+        self.spikes = LossSpikeWatch()
         self.check_every = 1 if self.device.type == "cpu" else min(cfg.log_every, 50)
         self.train_log, self.val_log = CsvLog(self.files.train_log), CsvLog(self.files.val_log)
         self.step, self.clock = 0, TrainingClock(self.device)
@@ -688,6 +690,9 @@ class Trainer:
             "grad_norm": self._grad_norm(),
         }
         self.train_log.append(row)
+        spike = self.spikes.observe(self.step, loss)
+        if spike:
+            self.log(f"  note: {spike}")
         if self.tensorboard is not None:
             scalars = {f"train/{k}": v for k, v in row.items() if k not in ("step", "seconds")}
             self.tensorboard.scalars(self.step, scalars)

@@ -1,0 +1,37 @@
+"""Loss-spike notes: a logged training loss far above the losses logged just before it.
+
+The optimiser can recover from a spike on the training views while the field stays broken for
+unseen ones (preset A on Fern at 600 s: docs/training.md), so the run says so when it happens,
+not only at its evaluation. Only logged losses are read: the log step synchronises anyway.
+"""
+
+from __future__ import annotations
+
+import statistics
+from collections import deque
+
+
+class LossSpikeWatch:
+    """Says a spike once, when a logged loss exceeds ``ratio`` x the median of the ``window`` losses
+    logged before it; quiet again once a loss is back under that bound."""
+
+    def __init__(self, ratio: float = 2.0, window: int = 10) -> None:
+        if ratio <= 1 or window < 1:
+            raise ValueError(f"need ratio > 1 and window >= 1, got ratio={ratio}, window={window}")
+        self.ratio = ratio
+        self._recent: deque[float] = deque(maxlen=window)
+        self._in_spike = False
+
+    def observe(self, step: int, loss: float) -> str | None:
+        """The note for ``loss`` logged at ``step``, or None."""
+        note = None
+        if len(self._recent) == self._recent.maxlen:
+            median = statistics.median(self._recent)
+            spiking = loss > self.ratio * median
+            if spiking and not self._in_spike:
+                note = (f"loss spike at step {step}: {loss:.4g} is {loss / median:.1f}x the median of the "
+                        f"{len(self._recent)} losses logged before; if validation PSNR falls and stays "
+                        "down, see docs/training.md, 'Learning-rate schedule'")
+            self._in_spike = spiking
+        self._recent.append(loss)
+        return note
