@@ -102,6 +102,22 @@ def test_table_gives_each_held_out_views_psnr_where_there_are_few(finished):
     assert "per held-out view" not in markdown({**table, "runs": other})  # the runs scored different views
 
 
+def test_table_names_the_steps_where_a_runs_loss_spiked(finished, tmp_path):
+    table = json.loads((finished / "table.json").read_text())
+    assert all(run["loss_spikes"] == [] for run in table["runs"])  # 4 logged losses: too few to judge
+    copy = tmp_path / "AD"
+    shutil.copytree(finished, copy)
+    losses = [0.002] * 12 + [0.009, 0.008, 0.002] + [0.002] * 5 + [0.01]
+    rows = "".join(f"{100 * (i + 1)},{v}\n" for i, v in enumerate(losses))
+    (copy / "A_seed0" / "train_log.csv").write_text("step,loss\n" + rows)
+    assert cli.main(["ablate", "--report", "--out", str(copy)]) == 0
+    spikes = [run["loss_spikes"] for run in json.loads((copy / "table.json").read_text())["runs"]]
+    assert spikes == [[1300, 2100], [], [], []]
+    assert "| 1,300, 2,100 |" in (copy / "ablation.md").read_text()
+    with (copy / "runs.csv").open() as f:
+        assert next(csv.DictReader(f))["loss_spikes"] == "1300 2100"
+
+
 def test_second_invocation_skips_finished_runs(finished, capsys):
     before = (finished / "D_seed0" / "checkpoint.pt").stat().st_mtime_ns
     assert ablate(finished, "--presets", "AD", "--seeds", "0,1", "--resume") == 0

@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from ..train.logbook import CsvLog
+from ..train.loss_spikes import spike_steps
 from ..train.output import atomic_path, write_text_atomic
 from .curves import plot_curves, val_curve
 from .plan import AblationPlan
@@ -21,7 +22,7 @@ DIGITS = (2, 4, 4)  # SSIM and LPIPS of converged runs differ in the fourth deci
 PRESET_COLUMNS = ["preset", "model", "seeds", *(f"{m}_{k}" for m in METRICS for k in ("mean", "spread")),
                   *(f"{m}_change_vs_A" for m in METRICS), "params", "steps_per_s", "seconds_to_target"]
 RUN_COLUMNS = ["preset", "seed", "status", "steps", "train_seconds", "steps_per_s", "params", *METRICS,
-               "seconds_to_target", "eval_split", "eval_views", "run"]
+               "seconds_to_target", "eval_split", "eval_views", "loss_spikes", "run"]
 MAX_VIEW_COLUMNS = 8  # per-view PSNR in the markdown for scenes with few held-out views (Fern: 3)
 
 
@@ -35,7 +36,8 @@ def build_table(plan: AblationPlan, records: list[dict[str, Any]]) -> dict[str, 
     curves = {(r["preset"], r["seed"]): val_curve(CsvLog(Path(r["run"]) / "val_log.csv")) for r in records}
     target = plan.target_psnr if plan.target_psnr is not None else _reachable_target(curves.values())
     runs = [{**r, "seconds_to_target": _seconds_to(curves[(r["preset"], r["seed"])], target),
-             "view_psnr": _view_psnr(Path(r["run"]))} for r in records]
+             "view_psnr": _view_psnr(Path(r["run"])), "loss_spikes": _loss_spikes(Path(r["run"]))}
+            for r in records]
     presets = [_preset_row(p, [r for r in runs if r["preset"] == p]) for p in plan.presets
                if any(r["preset"] == p for r in runs)]  # a report may hold presets not started yet
     reference = next((row for row in presets if row["preset"] == "A"), None)
@@ -95,13 +97,14 @@ def markdown(table: dict[str, Any]) -> str:
             *(_num(row[f"{m}_change_vs_A"], d, signed=True) for m, d in zip(METRICS, DIGITS)),
             _num(row["params"], 0), _num(row["steps_per_s"], 1), _num(row["seconds_to_target"], 1),
         ]) + " |")
-    lines += ["", "Runs:", "", f"| Preset | Seed | Status | Steps | Train s | Steps/s | PSNR | SSIM | LPIPS | s to {target} | Views |",
-              "|---|---|---|---|---|---|---|---|---|---|---|"]
+    lines += ["", "Runs:", "", "| Preset | Seed | Status | Steps | Train s | Steps/s | PSNR | SSIM | LPIPS | "
+              f"s to {target} | Views | Loss spikes at step |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in table["runs"]:
         lines.append("| " + " | ".join([
             r["preset"], str(r["seed"]), r["status"], str(r["steps"]), _num(r["train_seconds"], 1),
             _num(r["steps_per_s"], 1), *(_num(r[m], d) for m, d in zip(METRICS, DIGITS)),
             _num(r["seconds_to_target"], 1), f"{r['eval_views']} {r['eval_split'] or ''}".strip(),
+            ", ".join(f"{step:,}" for step in r["loss_spikes"]) or "-",
         ]) + " |")
     lines += _view_lines(table["runs"])
     if table["notes"]:
@@ -115,6 +118,12 @@ def _view_psnr(run: Path) -> dict[str, float] | None:
     if not path.is_file():
         return None
     return {image["name"]: image["psnr"] for image in json.loads(path.read_text())["images"]}
+
+
+def _loss_spikes(run: Path) -> list[int]:
+    """Steps of the run's ``train_log.csv`` at which its logged loss spiked (the trainer's note)."""
+    rows = CsvLog(run / "train_log.csv").rows()
+    return spike_steps((int(row["step"]), float(row["loss"])) for row in rows)
 
 
 def _view_lines(runs: list[dict[str, Any]]) -> list[str]:
@@ -180,4 +189,6 @@ def _write_csv(path: Path, columns: list[str], rows: list[dict[str, Any]]) -> No
     with atomic_path(path) as tmp, tmp.open("w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=columns, extrasaction="ignore")
         writer.writeheader()
-        writer.writerows(rows)
+        # A list (a run's loss-spike steps) as one space-separated cell
+        writer.writerows({k: " ".join(map(str, v)) if isinstance(v, list) else v for k, v in row.items()}
+                         for row in rows)

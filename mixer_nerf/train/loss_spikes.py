@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import statistics
 from collections import deque
+from collections.abc import Iterable
 
 
 class LossSpikeWatch:
@@ -35,3 +36,9 @@ class LossSpikeWatch:
             self._in_spike = spiking
         self._recent.append(loss)
         return note
+
+
+def spike_steps(logged: Iterable[tuple[int, float]]) -> list[int]:
+    """The steps a :class:`LossSpikeWatch` would say a spike at, over ``(step, loss)`` as logged."""
+    watch = LossSpikeWatch()
+    return [step for step, loss in logged if watch.observe(step, loss) is not None]
