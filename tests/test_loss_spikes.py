@@ -42,6 +42,12 @@ def test_each_separate_spike_is_said():
     assert [n.split(":")[0] for n in notes(loss)] == ["loss spike at step 3100", "loss spike at step 7100"]
 
 
+def test_zero_and_non_finite_losses_say_nothing_and_raise_nothing():
+    assert notes([0.0] * 10 + [0.01]) == []
+    assert notes([0.002] * 10 + [float("nan"), float("inf"), 0.002]) == []
+    assert len(notes([0.002] * 5 + [float("nan")] + [0.002] * 5 + [0.01])) == 1  # the window skips it
+
+
 def test_nothing_is_said_before_the_window_is_full():
     assert notes([0.001, 0.01, 0.1], window=3) == []
     assert len(notes([0.001, 0.001, 0.001, 0.01], window=3)) == 1

@@ -7,6 +7,7 @@ not only at its evaluation. Only logged losses are read: the log step synchronis
 
 from __future__ import annotations
 
+import math
 import statistics
 from collections import deque
 from collections.abc import Iterable
@@ -24,11 +25,14 @@ class LossSpikeWatch:
         self._in_spike = False
 
     def observe(self, step: int, loss: float) -> str | None:
-        """The note for ``loss`` logged at ``step``, or None."""
+        """The note for ``loss`` logged at ``step``, or None. A non-finite loss is the non-finite
+        guard's to report: it is passed over."""
+        if not math.isfinite(loss):
+            return None
         note = None
         if len(self._recent) == self._recent.maxlen:
             median = statistics.median(self._recent)
-            spiking = loss > self.ratio * median
+            spiking = median > 0 and loss > self.ratio * median  # a zero median has no ratio to give
             if spiking and not self._in_spike:
                 note = (f"loss spike at step {step}: {loss:.4g} is {loss / median:.1f}x the median of the "
                         f"{len(self._recent)} losses logged before; if validation PSNR falls and stays "
