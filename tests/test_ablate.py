@@ -102,14 +102,15 @@ def test_table_gives_each_held_out_views_psnr_where_there_are_few(finished):
     assert "per held-out view" not in markdown({**table, "runs": other})  # the runs scored different views
 
 
-def test_table_names_the_steps_where_a_runs_loss_spiked(finished, tmp_path):
+def test_table_names_the_steps_where_a_runs_colour_loss_spiked(finished, tmp_path):
     table = json.loads((finished / "table.json").read_text())
     assert all(run["loss_spikes"] == [] for run in table["runs"])  # 4 logged losses: too few to judge
     copy = tmp_path / "AD"
     shutil.copytree(finished, copy)
-    losses = [0.002] * 12 + [0.009, 0.008, 0.002] + [0.002] * 5 + [0.01]
-    rows = "".join(f"{100 * (i + 1)},{v}\n" for i, v in enumerate(losses))
-    (copy / "A_seed0" / "train_log.csv").write_text("step,loss\n" + rows)
+    mse = [0.002] * 12 + [0.009, 0.008, 0.002] + [0.002] * 5 + [0.01]
+    loss = [v + (0.05 if i == 5 else 0.0) for i, v in enumerate(mse)]  # a regulariser at step 600: no spike
+    rows = "".join(f"{100 * (i + 1)},{l},{-10 * math.log10(v)}\n" for i, (l, v) in enumerate(zip(loss, mse)))
+    (copy / "A_seed0" / "train_log.csv").write_text("step,loss,psnr\n" + rows)
     assert cli.main(["ablate", "--report", "--out", str(copy)]) == 0
     spikes = [run["loss_spikes"] for run in json.loads((copy / "table.json").read_text())["runs"]]
     assert spikes == [[1300, 2100], [], [], []]
@@ -432,6 +433,16 @@ def test_report_needs_only_the_folder(finished, tmp_path, capsys):
     assert [(r["preset"], r["seed"]) for r in json.loads((out / "table.json").read_text())["runs"]] == [("D", 1)]
     assert cli.main(["ablate", "--out", str(out), "--report", "--lr", "0.5"]) == 1
     assert "other settings (lr)" in capsys.readouterr().err
+
+
+def test_a_plan_from_before_a_setting_existed_matches_its_default(finished, tmp_path, capsys):
+    out = shutil.copytree(finished, tmp_path / "copy")
+    plan = json.loads((out / "ablation.json").read_text())
+    del plan["settings"]["spike_rollbacks"]
+    (out / "ablation.json").write_text(json.dumps(plan))
+    assert report(out) == 0
+    assert report(out, "--spike-rollbacks", "0") == 1
+    assert "other settings (spike_rollbacks)" in capsys.readouterr().err
 
 
 def test_report_leaves_out_runs_not_started(finished, tmp_path, capsys):

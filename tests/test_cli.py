@@ -94,6 +94,14 @@ def test_grad_clip_and_adam_eps_reach_the_config_of_train_and_ablate_and_default
         parse_train("--grad-clip", "0")
 
 
+def test_spike_rollbacks_reach_the_config_of_train_and_ablate():
+    assert parse_train().spike_rollbacks == 3
+    assert parse_train("--spike-rollbacks", "0").spike_rollbacks == 0
+    assert cli.build_parser().parse_args(["ablate", "--out", "x", "--spike-rollbacks", "1"]).spike_rollbacks == 1
+    with pytest.raises(ValueError, match="spike_rollbacks must be an integer >= 0"):
+        parse_train("--spike-rollbacks", "-1")
+
+
 def test_data_uses_the_full_defaults():
     cfg = parse_train("--data", "scenes/lego", "--preset", "A", "--time-budget", "30", "--ckpt-every", "7")
     assert cfg.data == "scenes/lego" and cfg.steps == 50_000 and cfg.batch_rays == 4096

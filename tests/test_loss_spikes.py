@@ -1,4 +1,5 @@
-"""LossSpikeWatch: a note once per spike of the logged training loss, none on ordinary training."""
+"""LossSpikeWatch: a note once per spike of the logged training loss, none on ordinary training;
+SpikeRollback: back to the trained state from before a spike, bit for bit, in place."""
 
 from __future__ import annotations
 
@@ -6,8 +7,9 @@ import re
 
 import numpy as np
 import pytest
+import torch
 
-from mixer_nerf.train.loss_spikes import LossSpikeWatch
+from mixer_nerf.train.loss_spikes import LossSpikeWatch, SpikeRollback
 
 
 def notes(losses, **kwargs) -> list[str]:
@@ -58,3 +60,100 @@ def test_bad_settings_are_refused(kwargs):
     with pytest.raises(ValueError, match="ratio"):
         LossSpikeWatch(**kwargs)
 
+
+def adam_run(steps: int):
+    """Two parameters of an Adam optimiser after ``steps`` random steps (state made), and a step."""
+    gen = torch.Generator().manual_seed(int(np.random.default_rng().integers(2**31)))
+    params = [torch.randn(5, 3, generator=gen, requires_grad=True), torch.randn(4, generator=gen, requires_grad=True)]
+    optimizer = torch.optim.Adam(params, lr=1e-2)
+
+    def step():
+        optimizer.zero_grad()
+        sum((p * torch.randn(p.shape, generator=gen)).sum() for p in params).backward()
+        optimizer.step()
+
+    for _ in range(steps):
+        step()
+    return params, optimizer, step
+
+
+def state_of(params, optimizer) -> list[torch.Tensor]:
+    return [p.detach().clone() for p in params] + [
+        v.clone() for p in params for v in optimizer.state[p].values() if isinstance(v, torch.Tensor)]
+
+
+def assert_state(params, optimizer, expected) -> None:
+    for got, want in zip(state_of(params, optimizer), expected, strict=True):
+        assert torch.equal(got, want)
+
+
+def test_a_rollback_writes_back_the_older_of_the_last_two_copies_in_place():
+    params, optimizer, step = adam_run(3)
+    rollback = SpikeRollback(params, optimizer, limit=2)
+    memory = [t.data_ptr() for t in rollback._tensors()]
+    rollback.keep(100)
+    for kept in (200, 300):
+        step()
+        rollback.keep(kept)  # the copy of 100 leaves the window: the one of 200 is the older
+    step()
+    assert rollback.restore() == 200
+    assert [t.data_ptr() for t in rollback._tensors()] == memory  # in place, as a CUDA graph replays it
+    assert rollback.used == 1 and rollback.left == 1
+
+
+def test_restored_parameters_and_optimiser_state_equal_the_copy_bit_for_bit():
+    params, optimizer, step = adam_run(4)
+    rollback = SpikeRollback(params, optimizer, limit=1)
+    rollback.keep(1)
+    expected = state_of(params, optimizer)
+    step()
+    rollback.keep(2)  # the newer copy: forgotten by the restore
+    for _ in range(3):
+        step()
+    assert rollback.restore() == 1
+    assert_state(params, optimizer, expected)
+    step()  # training goes on from there
+    assert rollback.restore() is None  # limit reached
+    assert rollback.used == 1
+
+
+def test_after_a_rollback_the_restored_copy_stays_the_one_to_go_back_to():
+    params, optimizer, step = adam_run(2)
+    rollback = SpikeRollback(params, optimizer, limit=3)
+    rollback.keep(10)
+    expected = state_of(params, optimizer)
+    step()
+    rollback.keep(20)
+    step()
+    assert rollback.restore() == 10
+    step()
+    assert rollback.restore() == 10  # a second spike before two new copies: back to the same state
+    assert_state(params, optimizer, expected)
+    step()
+    rollback.keep(30)
+    step()
+    rollback.keep(40)
+    assert rollback.restore() == 30
+
+
+def test_no_copy_and_no_limit_mean_no_rollback():
+    params, optimizer, step = adam_run(1)
+    assert SpikeRollback(params, optimizer, limit=2).restore() is None
+    off = SpikeRollback(params, optimizer, limit=0)
+    off.keep(1)  # keeps nothing: a run with rollbacks off pays no copies
+    assert not off._copies and off.restore() is None
+    with pytest.raises(ValueError, match="spike_rollbacks must be >= 0"):
+        SpikeRollback(params, optimizer, limit=-1)
+
+
+def test_a_copy_leaving_the_window_lends_its_buffers():
+    params, optimizer, step = adam_run(1)
+    rollback = SpikeRollback(params, optimizer, limit=1)
+    rollback.keep(1)
+    first = rollback._copies[0][2]
+    step()
+    rollback.keep(2)
+    step()
+    rollback.keep(3)
+    assert all(a is b for a, b in zip(rollback._copies[-1][2], first))
+    assert rollback._copies[0][0] == 2

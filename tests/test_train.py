@@ -309,6 +309,83 @@ def test_a_loss_spike_is_said_in_the_log(tmp_path):
     assert any(line.startswith("  note: loss spike at step 1: ") for line in lines), lines
 
 
+class SpikeAt:
+    """A loss-spike watch that says a spike at ``step`` and nowhere else."""
+
+    def __init__(self, step: int) -> None:
+        self.step = step
+
+    def observe(self, step: int, loss: float) -> str | None:
+        return f"loss spike at step {step}: made by the test" if step == self.step else None
+
+
+GRAPHED_PROPOSAL_STEPS = dict(sampler="proposal", proposal_rounds=(12, 8), proposal_samples=6, device="cuda",
+                              backend="auto", cuda_graphs=True)
+
+
+@pytest.mark.parametrize("settings", [
+    {},
+    pytest.param(GRAPHED_PROPOSAL_STEPS, marks=[pytest.mark.cuda, pytest.mark.skipif(
+        not torch.cuda.is_available(), reason="no CUDA GPU")]),
+], ids=["cpu", "cuda graphed proposal steps"])
+def test_a_loss_spike_takes_the_run_back_to_before_it_and_says_so(tmp_path, settings):
+    """Parameters and Adam's state (the fused, capturable one on CUDA) come back bit for bit, in the
+    memory a replayed graph reads; the run trains on."""
+    lines: list[str] = []
+    trainer = Trainer(tiny_config(tmp_path, steps=6, ckpt_every=6, val_every=6, **settings), log=lines.append)
+    trainer.spikes = SpikeAt(4)
+    kept, restored = {}, []
+    keep, restore = trainer.rollback.keep, trainer.rollback.restore
+
+    def keeping(step):
+        keep(step)
+        kept[step] = [t.detach().clone() for t in trainer.rollback._tensors()]
+
+    def restoring():
+        back = restore()
+        restored.append((back, [t.detach().clone() for t in trainer.rollback._tensors()]))
+        return back
+
+    trainer.rollback.keep, trainer.rollback.restore = keeping, restoring
+    memory = [t.data_ptr() for t in trainer.params]
+    trainer.fit()
+    assert [t.data_ptr() for t in trainer.params] == memory and all(torch.isfinite(p).all() for p in trainer.params)
+    assert sorted(kept) == [1, 2, 3, 5, 6]  # every logged step but the spike's
+    back, state = restored[0]
+    assert back == 2 and all(torch.equal(a, b) for a, b in zip(state, kept[2]))  # parameters and Adam state
+    assert "  note: loss spike at step 4: made by the test" in lines
+    assert "  note: back to the fields and optimiser of step 2, on with new batches (rollback 1 of 3; " \
+           "--spike-rollbacks)" in lines
+    assert load_checkpoint(tmp_path / "checkpoint.pt")["progress"]["spike_rollbacks"] == 1
+    resumed = Trainer(tiny_config(tmp_path, steps=8, val_every=6, spike_rollbacks=1, **settings), resume=True,
+                      log=quiet)
+    assert (resumed.rollback.used, resumed.rollback.left) == (1, 0)  # the count goes on; the limit may change
+
+
+def test_a_spike_with_no_rollback_left_or_none_kept_is_said(tmp_path):
+    lines: list[str] = []
+    trainer = Trainer(tiny_config(tmp_path, spike_rollbacks=0), log=lines.append)
+    trainer.spikes = SpikeAt(3)
+    trainer.fit()
+    assert "  note: loss spike at step 3: made by the test" in lines
+    assert not any("rollback" in line or "go back" in line for line in lines), lines
+    lines.clear()
+    trainer = Trainer(tiny_config(tmp_path / "first", spike_rollbacks=2), log=lines.append)
+    trainer.spikes = SpikeAt(1)
+    trainer.fit()
+    assert "  note: no state kept yet to go back to (one is kept at each logged step)" in lines
+
+
+def test_rollbacks_change_nothing_in_a_run_without_spikes(tmp_path):
+    params = []
+    for limit in (0, 3):
+        trainer = Trainer(tiny_config(tmp_path / str(limit), spike_rollbacks=limit), log=quiet)
+        trainer.spikes = SpikeAt(-1)
+        trainer.fit()
+        params.append([p.detach() for p in trainer.params])
+    assert all(torch.equal(a, b) for a, b in zip(*params))
+
+
 def test_time_budget_stops_training(tmp_path):
     summary = Trainer(tiny_config(tmp_path, steps=10_000, time_budget=0.5), log=quiet).fit()
     assert summary["status"] == "time budget reached"

@@ -91,9 +91,11 @@ class AblationPlan:
         if plan is None:
             return
         saved, settings = plan["settings"], self.settings()
-        # plans written before a setting joined PER_RUN_SETTINGS still hold it
+        # A plan written before a setting existed matches its default; one written before a setting
+        # joined PER_RUN_SETTINGS still holds it.
+        defaults = json.loads(json.dumps(TrainConfig().to_dict()))
         differs = sorted(k for k in (set(saved) | set(settings)) - set(PER_RUN_SETTINGS)
-                         if saved.get(k) != settings.get(k))
+                         if saved.get(k, defaults.get(k)) != settings.get(k))
         if differs:
             raise AblationError(f"{self.out / PLAN_FILE}: the ablation there was started with other settings "
                                 f"({', '.join(differs)})")

@@ -121,9 +121,10 @@ def _view_psnr(run: Path) -> dict[str, float] | None:
 
 
 def _loss_spikes(run: Path) -> list[int]:
-    """Steps of the run's ``train_log.csv`` at which its logged loss spiked (the trainer's note)."""
+    """Steps of the run's ``train_log.csv`` at which its logged colour loss (from ``psnr``) spiked:
+    the trainer's note."""
     rows = CsvLog(run / "train_log.csv").rows()
-    return spike_steps((int(row["step"]), float(row["loss"])) for row in rows)
+    return spike_steps((int(row["step"]), 10 ** (-float(row["psnr"]) / 10)) for row in rows)
 
 
 def _view_lines(runs: list[dict[str, Any]]) -> list[str]:

@@ -75,6 +75,10 @@ class TrainConfig:
         None, "scale the gradients of the trained networks (field and proposal networks) down so that "
         "their global norm is at most NORM before each optimizer step, against loss spikes in long runs "
         "(default: no clipping)", metavar="NORM")
+    spike_rollbacks: int = option(
+        3, "times a run may go back to its state of two log intervals before a loss spike (a logged colour "
+        "loss over twice the median of the ten logged before it) and go on with new batches; 0: never",
+        metavar="N")
     seed: int = option(0, "random seed")
     precision: str | None = option(
         None, "MLP precision (default: tf32 on CUDA, fp32 on CPU)", choices=PRECISIONS
@@ -252,6 +256,8 @@ class TrainConfig:
             raise ValueError(f"adam_eps must be positive and finite, got {self.adam_eps}")
         if self.grad_clip is not None and not 0 < self.grad_clip < math.inf:
             raise ValueError(f"grad_clip must be a positive, finite norm or None, got {self.grad_clip}")
+        if not (isinstance(self.spike_rollbacks, int) and self.spike_rollbacks >= 0):
+            raise ValueError(f"spike_rollbacks must be an integer >= 0, got {self.spike_rollbacks!r}")
         if self.time_budget is not None and not 0 < self.time_budget < math.inf:
             raise ValueError(f"time_budget must be a positive, finite number of seconds, got {self.time_budget}")
         for name in ("val_images", "render_samples", "target_samples"):  # None: chosen per machine

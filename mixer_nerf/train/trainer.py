@@ -36,7 +36,7 @@ from .fields import model_config, model_config_to_dict, model_notes
 from .graphed_steps import GraphedSteps
 from .guard import NonFiniteError, NonFiniteGuard
 from .logbook import CsvLog, TensorBoardLog, plot_curves
-from .loss_spikes import LossSpikeWatch
+from .loss_spikes import LossSpikeWatch, SpikeRollback
 from .marched_batches import MarchedBatches
 from .memory import FLOAT_BYTES, check_fits
 from .occupancy_batch import MarchedBatch, prepare_marched_batch
@@ -47,10 +47,10 @@ from .sampling import image_renderer, make_fields, occupancy_sampler, resolve_sa
 from .scenes import held_out_split, locate_scene, scene_info, scene_source
 
 RESUMABLE_OVERRIDES = ("steps", "time_budget", "device", "backend", "data", "render_samples", "ckpt_every",
-                       "log_every", "cuda_graphs", "progress")
+                       "log_every", "cuda_graphs", "spike_rollbacks", "progress")
 """Settings a resumed run may change: how long it trains (a longer ``steps`` stretches the
 learning-rate schedule to the new end), where it runs, where its scene now is, how much a
-render may hold at once and how often it saves and logs. Any other
+render may hold at once, how often it saves and logs, and how often it may roll back a spike. Any other
 setting that differs from the checkpoint is refused by name: the run continues as it began."""
 CAPACITY_CHECK_EVERY = 100
 """Steps between checks of whether fixed-capacity batches outgrew their buffers (a host sync each)."""
@@ -277,6 +277,7 @@ class Trainer:
         use_kernel(cfg.backend, self.device)
         self.guard = NonFiniteGuard(self.param_names, self.device)
         self.spikes = LossSpikeWatch()
+        self.rollback = SpikeRollback(self.params, self.optimizer, cfg.spike_rollbacks)
         self.check_every = 1 if self.device.type == "cpu" else min(cfg.log_every, 50)
         self.train_log, self.val_log = CsvLog(self.files.train_log), CsvLog(self.files.val_log)
         self.step, self.clock = 0, TrainingClock(self.device)
@@ -567,9 +568,10 @@ class Trainer:
                     self.guard.raise_if_bad()
                 if self.step % cfg.log_every == 0:
                     now = self.clock.pause()
-                    self._log_train(
+                    spike = self._log_train(
                         stats, rays_per_s=(self.rays_seen - mark_rays) / max(now - mark_time, 1e-9), bar=bar
                     )
+                    self._after_log(spike)
                     mark_rays, mark_time = self.rays_seen, now
                     self.clock.start()
                 if self.step % cfg.val_every == 0:
@@ -624,6 +626,7 @@ class Trainer:
                     "rays_seen": self.rays_seen,
                     "samples_seen": self.samples_seen,
                     "marched_seen": self.marched_seen,
+                    "spike_rollbacks": self.rollback.used,
                 },
             },
         )
@@ -649,6 +652,7 @@ class Trainer:
         self.rays_seen = int(progress.get("rays_seen", 0))
         self.samples_seen = int(progress.get("samples_seen", 0))
         self.marched_seen = int(progress.get("marched_seen", 0))
+        self.rollback.used = min(int(progress.get("spike_rollbacks", 0)), self.rollback.limit)
         self.clock = TrainingClock(self.device, float(state["elapsed"]))
         # Rows a killed run logged after its last checkpoint describe steps that will be redone.
         if not self.rank:
@@ -675,9 +679,10 @@ class Trainer:
         action()
         self.clock.start()
 
-    def _log_train(self, stats: dict[str, torch.Tensor], rays_per_s: float, bar: Any) -> None:
+    def _log_train(self, stats: dict[str, torch.Tensor], rays_per_s: float, bar: Any) -> str | None:
+        """Writes the step's row; returns the spike note of its colour loss (None: no spike, or a rank > 0)."""
         if self.rank:
-            return
+            return None
         loss, mse = stats["loss"].item(), stats["mse"].item()
         row = {
             "step": self.step,
@@ -690,13 +695,31 @@ class Trainer:
             "grad_norm": self._grad_norm(),
         }
         self.train_log.append(row)
-        spike = self.spikes.observe(self.step, loss)
-        if spike:
-            self.log(f"  note: {spike}")
         if self.tensorboard is not None:
             scalars = {f"train/{k}": v for k, v in row.items() if k not in ("step", "seconds")}
             self.tensorboard.scalars(self.step, scalars)
         bar.set_postfix(loss=f"{loss:.4f}", psnr=f"{row['psnr']:.2f}", rays_s=f"{rays_per_s:,.0f}")
+        # The colour loss, not the total: a regulariser added at some logged steps is no spike.
+        return self.spikes.observe(self.step, mse)
+
+    def _after_log(self, spike: str | None) -> None:
+        """At a logged step: keep the trained state for a later rollback or, at a spike, say it and
+        go back to the state kept before it (every rank alike: rank 0 read the loss)."""
+        spiked = spike is not None
+        if self.ranks is not None:
+            spiked = bool(self.ranks.decide(float(spiked)))
+        if not spiked:
+            self.rollback.keep(self.step)
+            return
+        back_to = self.rollback.restore()
+        self.log(f"  note: {spike}")
+        if back_to is not None:
+            self.log(f"  note: back to the fields and optimiser of step {back_to}, on with new batches "
+                     f"(rollback {self.rollback.used} of {self.rollback.limit}; --spike-rollbacks)")
+        elif self.rollback.limit and not self.rollback.left:
+            self.log(f"  note: no rollback left ({self.rollback.limit} used; --spike-rollbacks)")
+        elif self.rollback.limit:
+            self.log("  note: no state kept yet to go back to (one is kept at each logged step)")
 
     @torch.no_grad()
     def _grad_norm(self) -> float:
