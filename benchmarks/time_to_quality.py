@@ -217,7 +217,7 @@ def nerfacc_proposal_method(args, train, val, device) -> Method:
 
     def step_fn(step: int) -> dict:
         fields.train()
-        lr = cfg.lr * trainer._lr_factor()
+        lr = cfg.lr * trainer._lr_factor(trainer._progress())
         for group in (*optimizer.param_groups, *estimator.optimizer.param_groups):
             group["lr"] = lr
         rays_o, rays_d, target = trainer.sampler.sample()
@@ -255,7 +255,7 @@ def nerfacc_proposal_method(args, train, val, device) -> Method:
 TRAINER_OPTIONS = (
     "target_samples", "batch_rays", "precision", "lr", "lr_final", "lr_warmup", "lr_hold", "bf16_density_passes",
     "adam_eps", "early_stop_eps", "empty_space_weight", "grid_warmup", "grid_every", "grid_threshold", "step_size",
-    "proposal_width", "proposal_samples", "proposal_update_every", "proposal_jitter",
+    "proposal_width", "proposal_samples", "proposal_loss_weight", "proposal_update_every", "proposal_jitter",
     "proposal_weight_padding", "val_holdout", "grad_clip", "distortion_weight", "proposal_residual",
     "proposal_intervals", "cuda_graphs", "frequency_anneal", "mlca_weight_decay", "occlusion_weight", "occlusion_fraction")
 """Options of ours passed to TrainConfig only when given: unset, they keep the trainer's defaults."""
@@ -355,7 +355,7 @@ def main() -> None:
                         help="ours, proposal sampler: added to each proposal weight before resampling")
     # as `mixer-nerf train` has them (help and types from TrainConfig); unset, the trainer's defaults
     add_options(parser, ("--distortion-weight", "--adam-eps", "--val-holdout", "--grad-clip", "--proposal-residual",
-                         "--proposal-intervals", "--cuda-graphs", "--frequency-anneal",
+                         "--proposal-intervals", "--proposal-loss-weight", "--cuda-graphs", "--frequency-anneal",
                          "--mlca-weight-decay", "--occlusion-weight", "--occlusion-fraction"))
     parser.add_argument("--early-stop-eps", type=float,
                         help="ours, occupancy sampler: early ray termination (0: off; default: the trainer's)")

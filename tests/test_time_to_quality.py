@@ -55,15 +55,73 @@ def test_trainer_flags_reach_our_trainers_config_and_clip_only_ours(tmp_path, mo
     monkeypatch.setattr(mixer_nerf.train, "Trainer", trainer)
     argv = ["--device", "cpu", "--data", str(scene), "--out", str(tmp_path), "--grad-clip", "0.5",
             "--adam-eps", "1e-8", "--proposal-residual", "last", "--proposal-intervals", "between",
-            "--frequency-anneal", "0.25", "--mlca-weight-decay", "2"]
+            "--frequency-anneal", "0.25", "--mlca-weight-decay", "2", "--proposal-loss-weight", "0.02"]
     with pytest.raises(Built) as built:
         run(monkeypatch, "--method", "ours", *argv)
     (cfg,) = built.value.args
     assert (cfg.grad_clip, cfg.adam_eps, cfg.proposal_residual, cfg.proposal_intervals, cfg.frequency_anneal,
-            cfg.mlca_weight_decay) == (0.5, 1e-8, "last", "between", 0.25, 2.0)
+            cfg.mlca_weight_decay, cfg.proposal_loss_weight) == (0.5, 1e-8, "last", "between", 0.25, 2.0, 0.02)
     with pytest.raises(SystemExit):
         run(monkeypatch, "--method", "nerfacc-proposal", *argv)
     assert "--grad-clip needs --method ours" in capsys.readouterr().err
+
+
+def fake_nerfacc(monkeypatch) -> dict:
+    """The names of nerfacc 0.5.3 the nerfacc-proposal method calls, in plain PyTorch (even intervals,
+    the volume-rendering sum), so its glue around our trainer runs where nerfacc is not installed."""
+    import types
+
+    import torch
+
+    calls = {"updates": 0, "sampled": 0}
+
+    class PropNetEstimator(torch.nn.Module):
+        def __init__(self, optimizer):
+            super().__init__()
+            self.optimizer = optimizer
+
+        def sampling(self, prop_sigma_fns, prop_samples, num_samples, n_rays, near_plane, far_plane,
+                     sampling_type, stratified, requires_grad):
+            t = near_plane + (far_plane - near_plane) * torch.linspace(0, 1, num_samples + 1).expand(n_rays, -1)
+            for sigma_fn in prop_sigma_fns:
+                assert sigma_fn(t[:, :-1], t[:, 1:]).shape == (n_rays, num_samples)
+            calls["sampled"] += 1
+            return t[:, :-1], t[:, 1:]
+
+        def update_every_n_steps(self, trans, requires_grad, loss_scaler):
+            calls["updates"] += requires_grad
+
+    def rendering(t_starts, t_ends, rgb_sigma_fn, render_bkgd):
+        rgb, sigma = rgb_sigma_fn(t_starts, t_ends, None)
+        tau = sigma * (t_ends - t_starts)
+        trans = torch.exp(-(torch.cumsum(tau, -1) - tau))
+        weights = trans * -torch.expm1(-tau)
+        opacity = weights.sum(-1, keepdim=True)
+        color = (weights[..., None] * rgb).sum(-2) + (1 - opacity) * render_bkgd
+        return color, opacity, None, {"trans": trans}
+
+    prop_net = types.SimpleNamespace(get_proposal_requires_grad_fn=lambda: lambda step: step % 2 == 0)
+    estimators = types.SimpleNamespace(prop_net=prop_net)
+    module = types.SimpleNamespace(PropNetEstimator=PropNetEstimator, rendering=rendering, estimators=estimators)
+    for name, value in (("nerfacc", module), ("nerfacc.estimators", estimators),
+                        ("nerfacc.estimators.prop_net", prop_net)):
+        monkeypatch.setitem(sys.modules, name, value)
+    return calls
+
+
+def test_the_nerfacc_proposal_method_trains_our_networks_on_its_schedule(tmp_path, monkeypatch):
+    """The glue around nerfacc's estimator (learning rate from our schedule, its requires-grad
+    schedule, validation renders) on a CPU, with nerfacc's names faked."""
+    calls = fake_nerfacc(monkeypatch)
+    scene = ensure_procedural_scene(resolution=16, n_train=4, n_val=2, n_test=2)
+    overrides = [f"--model-override={k}={json.dumps(v)}" for k, v in TINY_DEMO["model_overrides"].items()]
+    run(monkeypatch, "--method", "nerfacc-proposal", "--device", "cpu", "--backend", "torch", "--data", str(scene),
+        "--label", "tiny", "--batch-rays", "16", "--proposal-samples", "8", "--checkpoints", "0.5",
+        "--out", str(tmp_path), *overrides)
+    (record,) = json.loads(next(tmp_path.glob("*_cpu.json")).read_text())
+    (point,) = record["curve"]
+    assert point["step"] > 0 and 0 < point["val_psnr"] < 100 and point["samples_per_ray"] == 8
+    assert calls["sampled"] > point["step"] and 0 < calls["updates"] < point["step"] + 1
 
 
 def test_a_val_holdout_on_a_blender_scene_is_refused_as_the_trainer_refuses_it(tmp_path, monkeypatch):

@@ -133,7 +133,9 @@ class TrainConfig:
     proposal_rounds: tuple[int, ...] = (128, 64)
     proposal_samples: int = 48
     proposal_width: int = 128  # hidden width of each proposal network (2 layers)
-    proposal_loss_weight: float = 1.0
+    proposal_loss_weight: float = option(
+        1.0, "proposal sampler: weight of the proposal networks' interval loss, summed over the main field's "
+        "samples of a ray (nerfacc's estimator averages over them: 1/48 of this at 48 samples)", metavar="W")
     # The three proposal defaults below are nerfacc's recipe: a Fern screen found them 1.3 dB ahead
     # of updating every step with per-sample jitter (benchmarks/results/time_to_quality/README.md).
     proposal_update_every: int = option(
@@ -149,7 +151,7 @@ class TrainConfig:
     # drop: a Fern val screen gave "last" no gain (docs/skipping.md)
     proposal_residual: str = option(
         "drop", "proposal sampler: a ray's transmittance left after its last interval is dropped (each "
-        "round's PDF is its weights normalised, as in nerfacc's estimator) or added to the last interval, "
+        "round's PDF is its weights normalised) or added to the last interval (nerfacc's estimator), "
         "in sampling and in the proposal loss", choices=RESIDUALS)
     proposal_intervals: str = option(
         "drawn", "proposal sampler: each round's interval edges are drawn from its PDF, or put halfway "

@@ -55,10 +55,9 @@ class ProposalOptions:
         equal steps in ``u``, as nerfacc's sampler; the default) or each by itself (``"per_sample"``).
     residual: what becomes of a ray's transmittance left after its last interval (1 - opacity)
         in each round and in the loss's target: ``"drop"`` it (a round's PDF is its weights
-        normalised; the default, and what nerfacc's estimator does: its positions span the CDF
-        from its first value to its last) or add it to the last interval's weight (``"last"``: a
-        CDF that ends at 1, so a ray its networks see as still transparent is sampled towards its
-        far end too).
+        normalised; the default) or add it to the last interval's weight (``"last"``: a CDF that
+        ends at 1, so a ray its networks see as still transparent is sampled towards its far end
+        too; nerfacc's estimator, whose CDF is 1 minus the exclusive transmittance, then 1).
     intervals: how a round's ``n`` intervals come from its PDF: ``"drawn"`` draws their ``n + 1``
         edges (the default), ``"between"`` draws ``n`` positions and puts the edges halfway between
         neighbours, the first and last half a spacing beyond, within the previous round's span
