@@ -357,6 +357,7 @@ def test_a_loss_spike_takes_the_run_back_to_before_it_and_says_so(tmp_path, sett
     assert "  note: back to the fields and optimiser of step 2, on with new batches (rollback 1 of 3; " \
            "--spike-rollbacks)" in lines
     assert load_checkpoint(tmp_path / "checkpoint.pt")["progress"]["spike_rollbacks"] == 1
+    assert json.loads((tmp_path / "summary.json").read_text())["spike_rollbacks"] == 1
     resumed = Trainer(tiny_config(tmp_path, steps=8, val_every=6, spike_rollbacks=1, **settings), resume=True,
                       log=quiet)
     assert (resumed.rollback.used, resumed.rollback.left) == (1, 0)  # the count goes on; the limit may change

@@ -751,6 +751,7 @@ class Trainer:
             "device": str(self.device),
             "processes": 1 if self.ranks is None else self.ranks.world_size,
             "precision": self.cfg.precision,
+            "spike_rollbacks": self.rollback.used,
         }
         write_text_atomic(self.files.summary, json.dumps(summary, indent=1))
         if self.tensorboard is not None:
