@@ -1,7 +1,7 @@
 """Run by tests/test_distributed.py under torchrun: trains (or resumes) the run a JSON TrainConfig
-file describes, rank ``--fail-rank`` raising just before step ``--fail-step``, then saves this
-rank's final fields (weights and occupancy grid) and a probe of the gradient mean to
-``rank<r>.pt`` in the run folder."""
+file describes, rank ``--fail-rank`` raising just before step ``--fail-step`` and rank 0 seeing a
+loss spike at step ``--spike-step``, then saves this rank's final fields (weights and occupancy
+grid), its spike rollbacks and a probe of the gradient mean to ``rank<r>.pt`` in the run folder."""
 
 from __future__ import annotations
 
@@ -20,6 +20,7 @@ def main() -> None:
     parser.add_argument("--resume", action="store_true")
     parser.add_argument("--fail-rank", type=int, default=-1)
     parser.add_argument("--fail-step", type=int, default=0)
+    parser.add_argument("--spike-step", type=int, default=0)
     args = parser.parse_args()
     cfg = TrainConfig(**json.loads(Path(args.config).read_text()))
     trainer = Trainer(cfg, resume=args.resume)
@@ -32,6 +33,10 @@ def main() -> None:
             return step()
 
         trainer.train_step = failing_step
+    if trainer.rank == 0 and args.spike_step:  # only rank 0 reads the loss
+        observe = trainer.spikes.observe
+        trainer.spikes.observe = lambda step, loss: (
+            f"loss spike at step {step}: injected" if step == args.spike_step else observe(step, loss))
     trainer.fit()
     # The gradient mean on its own: rank r's gradient is r + 1; the second parameter has none on rank 0.
     device = trainer.device
@@ -41,7 +46,8 @@ def main() -> None:
         probe[1].grad = torch.ones(2, device=device)
     trainer.ranks.start_gradient_mean(probe).finish()
     probed = [p.grad.cpu() for p in probe]
-    torch.save({"step": trainer.step, "fields": trainer.fields.state_dict(), "probe": probed},
+    torch.save({"step": trainer.step, "fields": trainer.fields.state_dict(), "probe": probed,
+                "rollbacks": trainer.rollback.used},
                Path(cfg.out) / f"rank{trainer.rank}.pt")
 
 

@@ -1,8 +1,9 @@
 """Training on 2 CPU processes (gloo) under torchrun: ranks stay bit-identical, a killed run
 resumes on 1 and on 2 processes, a failing rank stops the others; and one process is untouched.
 
-Each torchrun launch costs seconds of process start-up, so there are three: an uninterrupted
-run, the same run with a rank failing, and its resume through ``train --devices 2``.
+Each torchrun launch costs seconds of process start-up, so there are four: an uninterrupted
+run, the same run with a rank failing, its resume through ``train --devices 2``, and a run whose
+rank 0 sees a loss spike.
 """
 
 from __future__ import annotations
@@ -104,6 +105,15 @@ def test_nccl_ranks_stay_bit_identical(scene, tmp_path):
     result = torchrun(scene, tmp_path / "run", device="cuda", backend="auto")
     assert result.returncode == 0, result.stderr[-3000:]
     assert_identical(fields_of(tmp_path / "run" / "rank0.pt"), fields_of(tmp_path / "run" / "rank1.pt"))
+
+
+def test_a_spike_rank_0_sees_rolls_every_rank_back_alike(scene, tmp_path):
+    out = tmp_path / "run"
+    result = torchrun(scene, out, "--spike-step", "4")
+    assert result.returncode == 0, result.stderr[-3000:]
+    ranks = [torch.load(out / f"rank{r}.pt", map_location="cpu", weights_only=True) for r in (0, 1)]
+    assert [r["rollbacks"] for r in ranks] == [1, 1]
+    assert_identical(ranks[0]["fields"], ranks[1]["fields"])
 
 
 def test_gradients_are_averaged_over_ranks(uninterrupted):
