@@ -571,9 +571,9 @@ class Trainer:
                     spike = self._log_train(
                         stats, rays_per_s=(self.rays_seen - mark_rays) / max(now - mark_time, 1e-9), bar=bar
                     )
-                    self._after_log(spike)
                     mark_rays, mark_time = self.rays_seen, now
                     self.clock.start()
+                    self._after_log(spike)  # keeping and restoring state is training, on its clock
                 if self.step % cfg.val_every == 0:
                     self._paused(self._log_validation)
                 if self.step % cfg.ckpt_every == 0:
