@@ -13,7 +13,7 @@
 #   bench_base[:OPS] the same over the kernels of .baseline/csrc (see tools/gpu_build.sh), into
 #                 results/ops_baseline: an A/B of a kernel change on one card in one call
 #   long_run      python -m benchmarks.long_run_stability (--budget $LONG_RUN_BUDGET, default 400 s)
-#   ncu           Nsight Compute sections of the composite forward and backward kernels
+#   ncu           Nsight Compute (--set full) of the composite forward and backward kernels
 #   field         python -m benchmarks.bench_field $FIELD_ARGS (the MLP's cost per preset and precision)
 #   crash         tools/diagnose_exception_crash.py (in the background, alongside later stages)
 #   checks        tools/profile_checks.py (what the default value checks cost a composite step, and where)
@@ -83,9 +83,8 @@ for stage in "${stages[@]}"; do
       --out "$OUT/results/ops" ${ops:+--ops ${ops#:}} ;;
     long_run) step long_run 560 python -m benchmarks.long_run_stability \
       --out "$OUT/results/long_run_stability" --budget "${LONG_RUN_BUDGET:-400}" ;;
-    ncu) step ncu 240 ncu --kernel-name regex:composite --launch-skip 4 --launch-count 2 \
-      --section SpeedOfLight --section ComputeWorkloadAnalysis --section Occupancy --section WarpStateStats \
-      --section MemoryWorkloadAnalysis python tools/profile_composite.py
+    ncu) step ncu 240 ncu --set full --import-source no --kernel-name regex:composite --launch-skip 4 \
+      --launch-count 2 python tools/profile_composite.py
       tag=$(python -c "from benchmarks.harness import device_tag; print(device_tag('cuda'))")
       mkdir -p "$OUT/results/ops" && cp "$LOGS/ncu.log" "$OUT/results/ops/${tag}_composite_ncu.txt" ;;
     field) step field 400 python -m benchmarks.bench_field --out "$OUT/results/train_step" $FIELD_ARGS ;;

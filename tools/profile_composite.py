@@ -1,7 +1,7 @@
 """Run the composite kernels at the benchmark size for a profiler (e.g. Nsight Compute):
 
-    ncu --kernel-name regex:composite --launch-skip 4 --launch-count 2 --section SpeedOfLight \
-        --section ComputeWorkloadAnalysis --section WarpStateStats python tools/profile_composite.py
+    ncu --set full --import-source no --kernel-name regex:composite --launch-skip 4 --launch-count 2 \
+        python tools/profile_composite.py
 
 Three forward+backward calls of ``composite`` at R=65536, S=192, C=3 float32 (the ``bench_ops``
 case); skipping four launches profiles the third call's forward and backward kernels.

@@ -50,12 +50,13 @@ namespace {
 
 constexpr int kMaxWarpsPerBlock = 8;
 constexpr int kChannelsPerPass = 4;  // colour accumulators held in registers per forward pass
-// A warp takes a ray in chunks of up to kChunk samples, each lane a run of ceil(n / 32) <= kMaxRun
-// consecutive ones of a chunk of n: one scan per chunk, so a ray of <= 256 samples (every ray of
-// the default samplers) costs two warp scans in either pass instead of two per 32 or 64 samples,
-// which bounded both kernels by shuffle latency.
-constexpr int kMaxRun = 8;
-constexpr int kChunk = kWarpSize * kMaxRun;
+// Consecutive samples per lane (a run). Longer runs mean fewer shuffles per sample; measured on
+// an H100 at R=65536, S=192: forward 157 us with runs of 2 vs 177 us with 1; the backward, with
+// more live values per sample, is fastest with 1 (269 us vs 367 us with 2).
+constexpr int kForwardRun = 2;
+constexpr int kBackwardRun = 1;
+constexpr int kForwardChunk = kWarpSize * kForwardRun;
+constexpr int kBackwardChunk = kWarpSize * kBackwardRun;
 
 using ray_acc = double;  // what both passes compute in (see the file comment)
 
@@ -70,44 +71,39 @@ __device__ __forceinline__ NegExp neg_exp(ray_acc x) {
   }
 }
 
-// A lane's run in the chunk of a ray's samples from `base`: samples [first, first + valid).
-struct LaneRun {
-  int64_t first;
-  int valid;
-};
-
-__device__ __forceinline__ LaneRun lane_run(int64_t offset, int64_t count, int64_t base, int lane) {
-  const int64_t n = count - base < kChunk ? count - base : kChunk;
-  const int run = static_cast<int>((n + kWarpSize - 1) / kWarpSize);
-  const int64_t start = int64_t(lane) * run;
-  return {offset + base + start, static_cast<int>(start >= n ? 0 : (n - start < run ? n - start : run))};
-}
-
-// One sample's inputs and optical thickness (exact for float inputs: a double holds the product of
-// two floats).
-template <typename scalar_t>
-struct Sample {
+// A lane's run of K consecutive samples of a chunk. Samples past the ray's end hold
+// an empty interval (tau = 0, g = 0), the identity of both scans.
+template <typename scalar_t, int K>
+struct LaneSamples {
   using acc = acc_t<scalar_t>;
-  acc sigma, t_start, t_end;
-  ray_acc tau;
-  __device__ __forceinline__ Sample(const CompositeInputs<scalar_t>& in, int64_t i)
-      : sigma(in.sigmas[i]), t_start(in.t_starts[i]), t_end(in.t_ends[i]),
-        tau(ray_acc(sigma) * (ray_acc(t_end) - ray_acc(t_start))) {}
-  __device__ ray_acc length() const { return ray_acc(t_end) - ray_acc(t_start); }
-  __device__ ray_acc midpoint() const { return ray_acc(0.5) * (ray_acc(t_start) + ray_acc(t_end)); }
-};
-
-// Sum of tau over a lane's run; ORs the InvalidInput bits of its samples into *invalid if given.
-template <typename scalar_t>
-__device__ ray_acc run_optical_thickness(const CompositeInputs<scalar_t>& in, LaneRun run, int32_t* invalid) {
-  ray_acc total = 0;
-  for (int j = 0; j < run.valid; ++j) {
-    const Sample<scalar_t> s(in, run.first + j);
-    total += s.tau;
-    if (invalid) *invalid |= invalid_sample_bits(s.sigma, s.t_start, s.t_end);
+  int64_t first;  // index of the run's first sample
+  int valid;      // how many of the run's samples are in the ray
+  acc sigma[K] = {}, t_start[K] = {}, t_end[K] = {};
+  ray_acc tau[K] = {};  // exact for float inputs: a double holds the product of two floats
+  ray_acc total = 0;    // sum of tau over the run
+  __device__ LaneSamples(const CompositeInputs<scalar_t>& in, int64_t offset, int64_t count, int64_t k)
+      : first(offset + k), valid(static_cast<int>(k >= count ? 0 : (count - k < K ? count - k : K))) {
+#pragma unroll
+    for (int j = 0; j < K; ++j) {
+      if (j < valid) {
+        sigma[j] = in.sigmas[first + j];
+        t_start[j] = in.t_starts[first + j];
+        t_end[j] = in.t_ends[first + j];
+        tau[j] = ray_acc(sigma[j]) * (ray_acc(t_end[j]) - ray_acc(t_start[j]));
+        total += tau[j];
+      }
+    }
   }
-  return total;
-}
+  __device__ ray_acc midpoint(int j) const { return ray_acc(0.5) * (ray_acc(t_start[j]) + ray_acc(t_end[j])); }
+  __device__ int32_t invalid_bits() const {
+    int32_t bits = 0;
+#pragma unroll
+    for (int j = 0; j < K; ++j) {
+      if (j < valid) bits |= invalid_sample_bits(sigma[j], t_start[j], t_end[j]);
+    }
+    return bits;
+  }
+};
 
 // Optical depth before a lane's run given the optical depth `carry` before the chunk; advances
 // carry past the chunk. Exclusive by shuffling the inclusive scan up a lane: never subtracts.
@@ -121,9 +117,8 @@ __device__ __forceinline__ acc run_optical_depth(acc run_total, int lane, acc& c
 }
 
 // Forward of one ray by one warp: samples [offset, offset + count). Returns the InvalidInput
-// bits of the lane's samples. A lane reads its run twice (its optical thickness, then the
-// weights; the second read hits L1). Channels beyond kChannelsPerPass take further passes
-// (re-reading sigma/t beats spilling).
+// bits of the lane's samples. Channels beyond kChannelsPerPass take further passes (re-reading
+// sigma/t beats spilling).
 template <typename scalar_t>
 __device__ int32_t composite_forward_ray(const CompositeInputs<scalar_t>& in, const CompositeOutputs<scalar_t>& out,
                                          int64_t ray, int64_t offset, int64_t count, int lane) {
@@ -132,19 +127,20 @@ __device__ int32_t composite_forward_ray(const CompositeInputs<scalar_t>& in, co
   for (int64_t c0 = 0; c0 == 0 || c0 < C; c0 += kChannelsPerPass) {
     ray_acc color[kChannelsPerPass] = {};
     ray_acc depth = 0, optical_depth = 0;
-    for (int64_t base = 0; base < count; base += kChunk) {
-      const LaneRun run = lane_run(offset, count, base, lane);
-      const ray_acc thickness = run_optical_thickness(in, run, c0 == 0 ? &invalid : nullptr);
-      ray_acc transmittance = neg_exp<scalar_t>(run_optical_depth(thickness, lane, optical_depth)).exp;
-      for (int j = 0; j < run.valid; ++j) {
-        const int64_t i = run.first + j;
-        const Sample<scalar_t> s(in, i);
-        const NegExp sample = neg_exp<scalar_t>(s.tau);
+    for (int64_t base = 0; base < count; base += kForwardChunk) {
+      const LaneSamples<scalar_t, kForwardRun> s(in, offset, count, base + lane * kForwardRun);
+      if (c0 == 0) invalid |= s.invalid_bits();
+      ray_acc transmittance = neg_exp<scalar_t>(run_optical_depth(s.total, lane, optical_depth)).exp;
+#pragma unroll
+      for (int j = 0; j < kForwardRun; ++j) {
+        if (j >= s.valid) break;
+        const NegExp sample = neg_exp<scalar_t>(s.tau[j]);
         const ray_acc w = transmittance * sample.alpha;
-        transmittance *= sample.exp;  // <= kMaxRun products within a run: see the file comment
+        transmittance *= sample.exp;  // one product within a run: see the file comment
+        const int64_t i = s.first + j;
         if (c0 == 0) {
           out.weights[i] = static_cast<scalar_t>(w);
-          depth += w * s.midpoint();
+          depth += w * s.midpoint(j);
         }
         const scalar_t* rgb = in.rgbs + i * C + c0;
 #pragma unroll
@@ -174,32 +170,22 @@ __device__ int32_t composite_forward_ray(const CompositeInputs<scalar_t>& in, co
   return invalid;
 }
 
-// What the backward keeps of a sample between its forward and reverse walks over a lane's run:
-// T before the sample and g (the weight's total upstream gradient). Laid out [run index][lane] in
-// shared memory (conflict-free); alpha and exp(-tau) are recomputed instead (one neg_exp).
-struct Kept {
-  ray_acc transmittance, g;
-};
-using WarpStash = Kept[kMaxRun][kWarpSize];
+// Backward of one ray by one warp; chunk_start is this ray's scratch, one entry per chunk but the last.
 
-// Backward of one ray by one warp; chunk_start is this ray's scratch, one entry per chunk but the
-// last. Per chunk: each lane walks its run forward (T, w, g, the colour gradients, and the run's
-// map G_after -> G_before composed), a reverse warp scan composes the later runs' maps, then each
-// lane walks its run backward from G after the run, writing the sigma and t gradients.
 template <typename scalar_t>
 __device__ void composite_backward_ray(const CompositeInputs<scalar_t>& in, const CompositeGrads<scalar_t>& g,
                                        int64_t ray, int64_t offset, int64_t count, int lane,
-                                       ray_acc* chunk_start, WarpStash& stash) {
+                                       ray_acc* chunk_start) {
   using acc = acc_t<scalar_t>;
   const int64_t C = in.channels;
-  const int64_t chunks = (count + kChunk - 1) / kChunk;
+  const int64_t chunks = (count + kBackwardChunk - 1) / kBackwardChunk;
 
   // Optical depth before every chunk but the last; the reverse pass below starts there and
   // finds the total (hence T past the last sample) itself.
   ray_acc optical_depth = 0;
   for (int64_t q = 0; q + 1 < chunks; ++q) {
     if (lane == 0) chunk_start[q] = optical_depth;
-    optical_depth += warp_sum(run_optical_thickness(in, lane_run(offset, count, q * kChunk, lane), nullptr));
+    optical_depth += warp_sum(LaneSamples<scalar_t, kBackwardRun>(in, offset, count, q * kBackwardChunk + lane * kBackwardRun).total);
   }
   __syncwarp();  // orders lane 0's scratch writes before every lane's reads
   ray_acc total_optical_depth = optical_depth;  // final once the last chunk is added below
@@ -214,32 +200,39 @@ __device__ void composite_backward_ray(const CompositeInputs<scalar_t>& in, cons
   }
 
   for (int64_t q = chunks - 1; q >= 0; --q) {
-    const LaneRun run = lane_run(offset, count, q * kChunk, lane);
+    const LaneSamples<scalar_t, kBackwardRun> s(in, offset, count, q * kBackwardChunk + lane * kBackwardRun);
     const bool last = q == chunks - 1;
     ray_acc carry = last ? optical_depth : chunk_start[q];
-    ray_acc transmittance =
-        neg_exp<scalar_t>(run_optical_depth(run_optical_thickness(in, run, nullptr), lane, carry)).exp;
+    ray_acc transmittance = neg_exp<scalar_t>(run_optical_depth(s.total, lane, carry)).exp;
     if (last) total_optical_depth = carry;
-    // The run's map x -> a + b x: sample j's G_j = alpha_j g_j + exp(-tau_j) G_{j+1}, composed first to last.
-    ray_acc a = 0, b = 1;
-    for (int j = 0; j < run.valid; ++j) {
-      const int64_t i = run.first + j;
-      const Sample<scalar_t> s(in, i);
-      const NegExp sample = neg_exp<scalar_t>(s.tau);
-      const ray_acc w = transmittance * sample.alpha;
-      ray_acc g_in = grad_depth * s.midpoint() + (g.weights ? ray_acc(g.weights[i]) : ray_acc(0));
+    ray_acc alpha[kBackwardRun], decay[kBackwardRun], g_in[kBackwardRun], t_after[kBackwardRun], w[kBackwardRun];
+#pragma unroll
+    for (int j = 0; j < kBackwardRun; ++j) {
+      alpha[j] = 0, decay[j] = 1, g_in[j] = 0, t_after[j] = 0, w[j] = 0;
+      if (j >= s.valid) continue;
+      const NegExp sample = neg_exp<scalar_t>(s.tau[j]);
+      alpha[j] = sample.alpha;
+      decay[j] = sample.exp;
+      t_after[j] = transmittance * decay[j];  // a product, not exp(-(before + tau)): see the file comment
+      w[j] = transmittance * alpha[j];
+      transmittance = t_after[j];
+      const int64_t i = s.first + j;
+      g_in[j] = grad_depth * s.midpoint(j) + (g.weights ? ray_acc(g.weights[i]) : ray_acc(0));
       const scalar_t* rgb = in.rgbs + i * C;
       for (int64_t c = 0; c < C; ++c) {
         const ray_acc gc = grad_color ? ray_acc(grad_color[c]) : ray_acc(0);
-        g_in += gc * ray_acc(rgb[c]);
-        g.rgbs[i * C + c] = static_cast<scalar_t>(gc * w);
+        g_in[j] += gc * ray_acc(rgb[c]);
+        g.rgbs[i * C + c] = static_cast<scalar_t>(gc * w[j]);
       }
-      stash[j][lane] = {transmittance, g_in};
-      a += b * (sample.alpha * g_in);
-      b *= sample.exp;
-      transmittance *= sample.exp;  // a product, not exp(-(before + tau)): see the file comment
     }
-    // Reverse inclusive warp scan: lane l ends with runs l, l+1, ..., 31 composed.
+    // The run's map x -> a + b x (its samples' maps composed), then a reverse inclusive warp scan:
+    // lane l ends with runs l, l+1, ..., 31 composed.
+    ray_acc a = 0, b = 1;
+#pragma unroll
+    for (int j = kBackwardRun - 1; j >= 0; --j) {
+      a = alpha[j] * g_in[j] + decay[j] * a;
+      b *= decay[j];
+    }
 #pragma unroll
     for (int d = 1; d < kWarpSize; d <<= 1) {
       const ray_acc a_next = __shfl_down_sync(kFullMask, a, d);
@@ -253,18 +246,17 @@ __device__ void composite_backward_ray(const CompositeInputs<scalar_t>& in, cons
     const ray_acc a_later = __shfl_down_sync(kFullMask, a, 1), b_later = __shfl_down_sync(kFullMask, b, 1);
     ray_acc G_run = lane == kWarpSize - 1 ? G : a_later + b_later * G;
     G = __shfl_sync(kFullMask, a + b * G, 0);  // G before the chunk, for the next (earlier) chunk
-    for (int j = run.valid - 1; j >= 0; --j) {
-      const int64_t i = run.first + j;
-      const Sample<scalar_t> s(in, i);
-      const NegExp sample = neg_exp<scalar_t>(s.tau);
-      const Kept kept = stash[j][lane];
-      const ray_acc grad_tau = kept.transmittance * sample.exp * (kept.g - G_run);
-      G_run = sample.alpha * kept.g + sample.exp * G_run;
-      g.sigmas[i] = static_cast<scalar_t>(grad_tau * s.length());
+#pragma unroll
+    for (int j = kBackwardRun - 1; j >= 0; --j) {
+      if (j >= s.valid) continue;
+      const ray_acc grad_tau = t_after[j] * (g_in[j] - G_run);
+      G_run = alpha[j] * g_in[j] + decay[j] * G_run;
+      const int64_t i = s.first + j;
+      g.sigmas[i] = static_cast<scalar_t>(grad_tau * (ray_acc(s.t_end[j]) - ray_acc(s.t_start[j])));
       if (g.t_starts) {
-        const ray_acc from_depth = ray_acc(0.5) * grad_depth * kept.transmittance * sample.alpha;
-        g.t_starts[i] = static_cast<scalar_t>(from_depth - grad_tau * ray_acc(s.sigma));
-        g.t_ends[i] = static_cast<scalar_t>(from_depth + grad_tau * ray_acc(s.sigma));
+        const ray_acc from_depth = ray_acc(0.5) * grad_depth * w[j];
+        g.t_starts[i] = static_cast<scalar_t>(from_depth - grad_tau * ray_acc(s.sigma[j]));
+        g.t_ends[i] = static_cast<scalar_t>(from_depth + grad_tau * ray_acc(s.sigma[j]));
       }
     }
   }
@@ -290,22 +282,21 @@ __global__ void __launch_bounds__(kMaxWarpsPerBlock* kWarpSize, 4)
   if (invalid) atomicOr(out.invalid, invalid);  // only for bad input: no contention otherwise
 }
 
-// Scratch of the backward: ray r's chunk starts from span.offset / kChunk + r. A ray of
-// `count` samples from `offset` needs at most ceil(count / kChunk) entries, and the next
-// ray's first entry is at least floor(count / kChunk) + 1 further on, so rays never
-// overlap and N / kChunk + R entries hold them all.
-int64_t scratch_entries(int64_t N, int64_t R) { return N / kChunk + R; }
+// Scratch of the backward: ray r's chunk starts from span.offset / kBackwardChunk + r. A ray of
+// `count` samples from `offset` needs at most ceil(count / kBackwardChunk) entries, and the next
+// ray's first entry is at least floor(count / kBackwardChunk) + 1 further on, so rays never
+// overlap and N / kBackwardChunk + R entries hold them all.
+int64_t scratch_entries(int64_t N, int64_t R) { return N / kBackwardChunk + R; }
 
 template <typename scalar_t, typename Rays>
 __global__ void __launch_bounds__(kMaxWarpsPerBlock* kWarpSize)
     composite_bwd_kernel(CompositeInputs<scalar_t> in, CompositeGrads<scalar_t> g, int64_t R, Rays rays,
                          ray_acc* scratch) {
-  __shared__ WarpStash stash[kMaxWarpsPerBlock];
   const int64_t ray = int64_t(blockIdx.x) * (blockDim.x / kWarpSize) + threadIdx.x / kWarpSize;
   if (ray >= R) return;
   const composite_layout::RaySpan span = rays(ray);
   composite_backward_ray(in, g, ray, span.offset, span.count, threadIdx.x % kWarpSize,
-                         scratch + span.offset / kChunk + ray, stash[threadIdx.x / kWarpSize]);
+                         scratch + span.offset / kBackwardChunk + ray);
 }
 
 unsigned blocks_for(int64_t R) {
