@@ -217,7 +217,7 @@ def nerfacc_proposal_method(args, train, val, device) -> Method:
 
     def step_fn(step: int) -> dict:
         fields.train()
-        lr = cfg.lr * trainer._lr_factor(trainer._progress())
+        lr = trainer.learning_rate()
         for group in (*optimizer.param_groups, *estimator.optimizer.param_groups):
             group["lr"] = lr
         rays_o, rays_d, target = trainer.sampler.sample()

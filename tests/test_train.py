@@ -367,6 +367,7 @@ def test_a_spike_with_no_rollback_left_or_none_kept_is_said(tmp_path):
     lines: list[str] = []
     trainer = Trainer(tiny_config(tmp_path, spike_rollbacks=0), log=lines.append)
     trainer.spikes = SpikeAt(3)
+    trainer.rollback.keep = trainer.rollback.restore = None  # never called: nothing is kept or read back
     trainer.fit()
     assert "  note: loss spike at step 3: made by the test" in lines
     assert not any("rollback" in line or "go back" in line for line in lines), lines
@@ -495,13 +496,13 @@ def test_lr_warms_up_linearly_then_decays_exponentially(tmp_path):
 def test_lr_is_held_then_decays_by_steps_or_by_the_time_budget_whichever_is_further(tmp_path):
     cfg = tiny_config(tmp_path, steps=100, lr=1e-3, lr_final=1e-4, lr_warmup=0, lr_hold=0.5, time_budget=1000.0)
     trainer = Trainer(cfg, log=quiet)
-    assert trainer._lr_factor(trainer._progress()) == 1.0
+    assert trainer.learning_rate() == 1e-3
     trainer.step = 75  # three quarters of the steps: half-way through the decay
-    assert trainer._lr_factor(trainer._progress()) == pytest.approx(0.1**0.5)
+    assert trainer.learning_rate() == pytest.approx(1e-3 * 0.1**0.5)
     trainer.step, trainer.clock.elapsed = 10, 900.0  # nine tenths of the budget
-    assert trainer._lr_factor(trainer._progress()) == pytest.approx(0.1**0.8)
+    assert trainer.learning_rate() == pytest.approx(1e-3 * 0.1**0.8)
     trainer.clock.elapsed = 5000.0
-    assert trainer._lr_factor(trainer._progress()) == pytest.approx(0.1)
+    assert trainer.learning_rate() == pytest.approx(1e-4)
 
 
 def test_bf16_density_passes_decide_the_skipping_under_autocast(tmp_path):

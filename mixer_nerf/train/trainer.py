@@ -318,7 +318,7 @@ class Trainer:
         ``loss`` (coarse + fine MSE, or the marched pass's MSE) and ``mse`` (of the final colours)."""
         cfg = self.cfg
         progress = self._progress()
-        lr = cfg.lr * self._lr_factor(progress)
+        lr = self.learning_rate(progress)
         self._open_frequency_window(progress)
         for group in self.optimizer.param_groups:
             if cfg.cuda_graphs:
@@ -496,14 +496,15 @@ class Trainer:
         for weight in self.decayed:
             weight.mul_(scale)
 
-    def _lr_factor(self, progress: float) -> float:
-        """lr / cfg.lr for the coming step at ``progress`` (:meth:`_progress`): a linear warm-up over
-        ``cfg.lr_warmup`` steps, ``cfg.lr`` for the first ``cfg.lr_hold`` of the run, then an
-        exponential decay to ``cfg.lr_final`` at its end."""
+    def learning_rate(self, progress: float | None = None) -> float:
+        """The learning rate of the coming step at ``progress`` (default: the run's, :meth:`_progress`):
+        a linear warm-up over ``cfg.lr_warmup`` steps, ``cfg.lr`` for the first ``cfg.lr_hold`` of the
+        run, then an exponential decay to ``cfg.lr_final`` at its end."""
         cfg = self.cfg
+        progress = self._progress() if progress is None else progress
         decay = min(1.0, max(0.0, (progress - cfg.lr_hold) / (1.0 - cfg.lr_hold)))
         warmup = min(1.0, (self.step + 1) / cfg.lr_warmup) if cfg.lr_warmup else 1.0
-        return warmup * (cfg.lr_final / cfg.lr) ** decay
+        return cfg.lr * warmup * (cfg.lr_final / cfg.lr) ** decay
 
     def _open_frequency_window(self, progress: float) -> None:
         """With ``cfg.frequency_anneal``: the fields' octaves of PE(x) open linearly in the run's
@@ -706,6 +707,10 @@ class Trainer:
         """At a logged step: keep the trained state for a later rollback or, at a spike, say it and
         go back to the state kept before it (every rank alike: rank 0 read the loss)."""
         spiked = spike is not None
+        if not self.rollback.limit:  # nothing to go back to: no rank needs rank 0's reading
+            if spiked:
+                self.log(f"  note: {spike}")
+            return
         if self.ranks is not None:
             spiked = bool(self.ranks.decide(float(spiked)))
         if not spiked:
@@ -716,9 +721,9 @@ class Trainer:
         if back_to is not None:
             self.log(f"  note: back to the fields and optimiser of step {back_to}, on with new batches "
                      f"(rollback {self.rollback.used} of {self.rollback.limit}; --spike-rollbacks)")
-        elif self.rollback.limit and not self.rollback.left:
+        elif not self.rollback.left:
             self.log(f"  note: no rollback left ({self.rollback.limit} used; --spike-rollbacks)")
-        elif self.rollback.limit:
+        else:
             self.log("  note: no state kept yet to go back to (one is kept at each logged step)")
 
     @torch.no_grad()
