@@ -706,18 +706,17 @@ class Trainer:
     def _after_log(self, spike: str | None) -> None:
         """At a logged step: keep the trained state for a later rollback or, at a spike, say it and
         go back to the state kept before it (every rank alike: rank 0 read the loss)."""
-        spiked = spike is not None
+        if spike is not None:
+            self.log(f"  note: {spike}")
         if not self.rollback.limit:  # nothing to go back to: no rank needs rank 0's reading
-            if spiked:
-                self.log(f"  note: {spike}")
             return
+        spiked = spike is not None
         if self.ranks is not None:
             spiked = bool(self.ranks.decide(float(spiked)))
         if not spiked:
             self.rollback.keep(self.step)
             return
         back_to = self.rollback.restore()
-        self.log(f"  note: {spike}")
         if back_to is not None:
             self.log(f"  note: back to the fields and optimiser of step {back_to}, on with new batches "
                      f"(rollback {self.rollback.used} of {self.rollback.limit}; --spike-rollbacks)")
