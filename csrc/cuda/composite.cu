@@ -119,10 +119,10 @@ __device__ __forceinline__ acc run_optical_depth(acc run_total, int lane, acc& c
 // Forward of one ray by one warp: samples [offset, offset + count). Returns the InvalidInput
 // bits of the lane's samples. Channels beyond kChannelsPerPass take further passes (re-reading
 // sigma/t beats spilling).
-template <typename scalar_t>
+template <typename scalar_t, int kC>  // kC: as composite_backward_ray's
 __device__ int32_t composite_forward_ray(const CompositeInputs<scalar_t>& in, const CompositeOutputs<scalar_t>& out,
                                          int64_t ray, int64_t offset, int64_t count, int lane) {
-  const int64_t C = in.channels;
+  const int64_t C = kC > 0 ? kC : in.channels;
   int32_t invalid = 0;
   for (int64_t c0 = 0; c0 == 0 || c0 < C; c0 += kChannelsPerPass) {
     ray_acc color[kChannelsPerPass] = {};
@@ -172,12 +172,14 @@ __device__ int32_t composite_forward_ray(const CompositeInputs<scalar_t>& in, co
 
 // Backward of one ray by one warp; chunk_start is this ray's scratch, one entry per chunk but the last.
 
-template <typename scalar_t>
+// kC: the channel count compiled in (its loops unrolled, the colour gradient held in registers), or
+// 0 for any count, read from the inputs.
+template <typename scalar_t, int kC>
 __device__ void composite_backward_ray(const CompositeInputs<scalar_t>& in, const CompositeGrads<scalar_t>& g,
                                        int64_t ray, int64_t offset, int64_t count, int lane,
                                        ray_acc* chunk_start) {
   using acc = acc_t<scalar_t>;
-  const int64_t C = in.channels;
+  const int64_t C = kC > 0 ? kC : in.channels;
   const int64_t chunks = (count + kBackwardChunk - 1) / kBackwardChunk;
 
   // Optical depth before every chunk but the last; the reverse pass below starts there and
@@ -192,6 +194,10 @@ __device__ void composite_backward_ray(const CompositeInputs<scalar_t>& in, cons
 
   const scalar_t* grad_color = g.color ? g.color + ray * C : nullptr;
   const ray_acc grad_depth = g.depth ? ray_acc(g.depth[ray]) : ray_acc(0);
+  const bool weights_grad = g.weights != nullptr, t_grads = g.t_starts != nullptr;
+  ray_acc color_grad[kC > 0 ? kC : 1];
+#pragma unroll
+  for (int c = 0; c < kC; ++c) color_grad[c] = grad_color ? ray_acc(grad_color[c]) : ray_acc(0);
   // G past the last sample: the background seen with weight T_S, minus the opacity gradient.
   ray_acc G = g.opacity ? -ray_acc(g.opacity[ray]) : ray_acc(0);
   if (in.background && grad_color) {
@@ -217,12 +223,21 @@ __device__ void composite_backward_ray(const CompositeInputs<scalar_t>& in, cons
       w[j] = transmittance * alpha[j];
       transmittance = t_after[j];
       const int64_t i = s.first + j;
-      g_in[j] = grad_depth * s.midpoint(j) + (g.weights ? ray_acc(g.weights[i]) : ray_acc(0));
+      g_in[j] = grad_depth * s.midpoint(j) + (weights_grad ? ray_acc(g.weights[i]) : ray_acc(0));
       const scalar_t* rgb = in.rgbs + i * C;
-      for (int64_t c = 0; c < C; ++c) {
-        const ray_acc gc = grad_color ? ray_acc(grad_color[c]) : ray_acc(0);
-        g_in[j] += gc * ray_acc(rgb[c]);
-        g.rgbs[i * C + c] = static_cast<scalar_t>(gc * w[j]);
+      scalar_t* rgb_grad = g.rgbs + i * C;
+      if constexpr (kC > 0) {
+#pragma unroll
+        for (int c = 0; c < kC; ++c) {
+          g_in[j] += color_grad[c] * ray_acc(rgb[c]);
+          rgb_grad[c] = static_cast<scalar_t>(color_grad[c] * w[j]);
+        }
+      } else {
+        for (int64_t c = 0; c < C; ++c) {
+          const ray_acc gc = grad_color ? ray_acc(grad_color[c]) : ray_acc(0);
+          g_in[j] += gc * ray_acc(rgb[c]);
+          rgb_grad[c] = static_cast<scalar_t>(gc * w[j]);
+        }
       }
     }
     // The run's map x -> a + b x (its samples' maps composed), then a reverse inclusive warp scan:
@@ -253,7 +268,7 @@ __device__ void composite_backward_ray(const CompositeInputs<scalar_t>& in, cons
       G_run = alpha[j] * g_in[j] + decay[j] * G_run;
       const int64_t i = s.first + j;
       g.sigmas[i] = static_cast<scalar_t>(grad_tau * (ray_acc(s.t_end[j]) - ray_acc(s.t_start[j])));
-      if (g.t_starts) {
+      if (t_grads) {
         const ray_acc from_depth = ray_acc(0.5) * grad_depth * w[j];
         g.t_starts[i] = static_cast<scalar_t>(from_depth - grad_tau * ray_acc(s.sigma[j]));
         g.t_ends[i] = static_cast<scalar_t>(from_depth + grad_tau * ray_acc(s.sigma[j]));
@@ -268,7 +283,7 @@ __device__ void composite_backward_ray(const CompositeInputs<scalar_t>& in, cons
   }
 }
 
-template <typename scalar_t, typename Rays>
+template <typename scalar_t, int kC, typename Rays>
 // 4 blocks per SM: 64 registers (80 without the bound capped occupancy at 3 blocks, and the
 // forward is latency-bound), at the cost of <= 48 bytes of spills.
 __global__ void __launch_bounds__(kMaxWarpsPerBlock* kWarpSize, 4)
@@ -277,7 +292,7 @@ __global__ void __launch_bounds__(kMaxWarpsPerBlock* kWarpSize, 4)
   if (ray >= R) return;  // whole warps leave together: the shuffles below see full warps
   const composite_layout::RaySpan span = rays(ray);
   const int lane = threadIdx.x % kWarpSize;
-  int32_t invalid = composite_forward_ray(in, out, ray, span.offset, span.count, lane);
+  int32_t invalid = composite_forward_ray<scalar_t, kC>(in, out, ray, span.offset, span.count, lane);
   if (lane == 0 && !rays.well_formed(ray, R)) invalid |= kBadOffsets;
   if (invalid) atomicOr(out.invalid, invalid);  // only for bad input: no contention otherwise
 }
@@ -288,14 +303,14 @@ __global__ void __launch_bounds__(kMaxWarpsPerBlock* kWarpSize, 4)
 // overlap and N / kBackwardChunk + R entries hold them all.
 int64_t scratch_entries(int64_t N, int64_t R) { return N / kBackwardChunk + R; }
 
-template <typename scalar_t, typename Rays>
+template <typename scalar_t, int kC, typename Rays>
 __global__ void __launch_bounds__(kMaxWarpsPerBlock* kWarpSize)
     composite_bwd_kernel(CompositeInputs<scalar_t> in, CompositeGrads<scalar_t> g, int64_t R, Rays rays,
                          ray_acc* scratch) {
   const int64_t ray = int64_t(blockIdx.x) * (blockDim.x / kWarpSize) + threadIdx.x / kWarpSize;
   if (ray >= R) return;
   const composite_layout::RaySpan span = rays(ray);
-  composite_backward_ray(in, g, ray, span.offset, span.count, threadIdx.x % kWarpSize,
+  composite_backward_ray<scalar_t, kC>(in, g, ray, span.offset, span.count, threadIdx.x % kWarpSize,
                          scratch + span.offset / kBackwardChunk + ray);
 }
 
@@ -316,8 +331,10 @@ struct Cuda {
     if (R == 0) return outputs;
     MIXER_NERF_DISPATCH_FLOATING(tensors.sigmas.scalar_type(), "composite_fwd_cuda", [&] {
       const auto out = outputs_of<scalar_t>(outputs);
-      composite_fwd_kernel<scalar_t><<<blocks_for(R), kMaxWarpsPerBlock * kWarpSize, 0,
-                                       c10::cuda::getCurrentCUDAStream()>>>(
+      // RGB, what every renderer composites, with its channels compiled in; any other count read.
+      auto* kernel = tensors.rgbs.size(-1) == 3 ? composite_fwd_kernel<scalar_t, 3, Rays>
+                                                : composite_fwd_kernel<scalar_t, 0, Rays>;
+      kernel<<<blocks_for(R), kMaxWarpsPerBlock * kWarpSize, 0, c10::cuda::getCurrentCUDAStream()>>>(
           tensors.pointers<scalar_t>(), out, R, rays);
       C10_CUDA_KERNEL_LAUNCH_CHECK();
     });
@@ -332,8 +349,10 @@ struct Cuda {
     const c10::cuda::CUDAGuard device_guard(sigmas.device());
     const at::Tensor scratch = at::empty({scratch_entries(sigmas.numel(), R)}, sigmas.options().dtype(at::kDouble));
     MIXER_NERF_DISPATCH_FLOATING(sigmas.scalar_type(), "composite_bwd_cuda", [&] {
-      composite_bwd_kernel<scalar_t><<<blocks_for(R), kMaxWarpsPerBlock * kWarpSize, 0,
-                                       c10::cuda::getCurrentCUDAStream()>>>(
+      // RGB, what every renderer composites, with its channels compiled in; any other count read.
+      auto* kernel = tensors.rgbs.size(-1) == 3 ? composite_bwd_kernel<scalar_t, 3, Rays>
+                                                : composite_bwd_kernel<scalar_t, 0, Rays>;
+      kernel<<<blocks_for(R), kMaxWarpsPerBlock * kWarpSize, 0, c10::cuda::getCurrentCUDAStream()>>>(
           tensors.pointers<scalar_t>(), grads.pointers<scalar_t>(up), R, rays, scratch.data_ptr<ray_acc>());
       C10_CUDA_KERNEL_LAUNCH_CHECK();
     });
