@@ -238,10 +238,12 @@ int64_t ray_grain(int64_t samples, int64_t rays) {
 // The composite ops' CPU kernels, for CompositeOps (composite.h).
 struct Cpu {
   static constexpr at::DeviceType kind = at::kCPU;
+  // The CPU backward finds a ray's optical depths itself (one thread walks the whole ray).
+  static int64_t chunk_optical_depth_entries(int64_t, int64_t) { return 0; }
 
   template <typename Rays>
   static CompositeForward forward(const CompositeTensors& tensors, int64_t R, Rays rays) {
-    auto outputs = empty_outputs(tensors.sigmas, tensors.rgbs, R);
+    auto outputs = empty_outputs(tensors.sigmas, tensors.rgbs, R, 0);
     const int64_t C = tensors.rgbs.size(-1);
     std::atomic<int32_t> invalid{0};
     MIXER_NERF_DISPATCH_FLOATING(tensors.sigmas.scalar_type(), "composite_fwd_cpu", [&] {
@@ -257,13 +259,13 @@ struct Cpu {
         invalid.fetch_or(bits, std::memory_order_relaxed);
       });
     });
-    std::get<4>(outputs).fill_(invalid.load());
+    std::get<5>(outputs).fill_(invalid.load());
     return outputs;
   }
 
   template <typename Rays>
-  static void backward(const Upstream& up, const CompositeTensors& tensors, CompositeGradTensors& grads, int64_t R,
-                       Rays rays) {
+  static void backward(const Upstream& up, const CompositeTensors& tensors, const at::Tensor& /*chunk_optical_depths*/,
+                       CompositeGradTensors& grads, int64_t R, Rays rays) {
     MIXER_NERF_DISPATCH_FLOATING(tensors.sigmas.scalar_type(), "composite_bwd_cpu", [&] {
       const auto in = tensors.pointers<scalar_t>();
       const auto g = grads.pointers<scalar_t>(up);

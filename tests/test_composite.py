@@ -385,7 +385,8 @@ def test_check_values_false_skips_value_checks():
 
 
 def op_samples(gen, device="cpu"):
-    """(fwd args, bwd args) for opcheck: every optional present and absent at least once."""
+    """(fwd args, bwd args) for opcheck: every optional present and absent at least once (the
+    kernels must be loaded: the backward's arguments include a forward output)."""
     samples = []
     for background, which, interval in [
         ("none", (True,) * 4, True),
@@ -394,7 +395,8 @@ def op_samples(gen, device="cpu"):
     ]:
         inputs = make_inputs(3, 6, 3, gen, background, dtype=torch.float32, device=device)
         upstream = random_upstream(inputs, gen, which)
-        samples.append((inputs, [*upstream, *inputs, interval]))
+        chunk_optical_depths = torch.ops.mixer_nerf.composite_fwd(*inputs)[4]
+        samples.append((inputs, [*upstream, *inputs, chunk_optical_depths, interval]))
     return samples
 
 
@@ -410,6 +412,19 @@ def test_opcheck_cpu(gen):
 # CUDA kernel
 
 on_cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU")
+
+
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=[pytest.mark.cuda, on_cuda])])
+@needs_kernels
+def test_backward_rejects_optical_depths_of_other_inputs(gen, device):
+    """The backward reads the forward's chunk_optical_depths: another size or dtype is an error."""
+    composite(*[t.to(device) for t in valid_inputs()], backend="kernel")
+    _, bwd_args = op_samples(gen, device)[0]
+    depths = bwd_args[-2]
+    for wrong in (torch.zeros(depths.numel() + 1, dtype=depths.dtype, device=device), depths.float()):
+        bwd_args[-2] = wrong
+        with pytest.raises(RuntimeError, match="chunk_optical_depths"):
+            torch.ops.mixer_nerf.composite_bwd(*bwd_args)
 
 
 def check_cuda(gen, inputs, rel=F32_REL, fn=composite, num_rays=None):
@@ -771,7 +786,8 @@ def packed_op_samples(gen, device="cpu"):
     ]:
         inputs, offsets = make_packed([3, 0, 5, 1], 3, gen, background, dtype=torch.float32, device=device)
         upstream = random_upstream(inputs, gen, which, num_rays=4)
-        samples.append(([*inputs, offsets], [*upstream, *inputs, offsets, interval]))
+        chunk_optical_depths = torch.ops.mixer_nerf.composite_packed_fwd(*inputs, offsets)[4]
+        samples.append(([*inputs, offsets], [*upstream, *inputs, offsets, chunk_optical_depths, interval]))
     return samples
 
 

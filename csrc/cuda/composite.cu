@@ -8,9 +8,10 @@
 //             the last chunk to the first as a reverse warp scan of affine maps x -> a + b x;
 //             dL/dtau_j = T_{j+1} (g_j - G_{j+1}).
 // The backward needs the optical depth at the start of every chunk while walking chunks in
-// reverse; subtracting sums would cancel after a 1e10-long interval, so a first forward pass
-// keeps one value per chunk but the last in global scratch (a ray of <= 32 samples skips that
-// pass; packed rays are mostly that short). No atomics.
+// reverse; subtracting sums would cancel after a 1e10-long interval, so the forward, which scans
+// them anyway, writes one per backward chunk (the op's chunk_optical_depths output, saved for the
+// backward: a second pass over sigma and t would cost the backward a sixth of its instructions).
+// No atomics.
 //
 // Like the CPU kernel, both passes compute in double for every input dtype (ray_acc) and round
 // each output once: G starts at O(1) and is multiplied S times by exp(-tau_j), which rounds to 1
@@ -116,21 +117,29 @@ __device__ __forceinline__ acc run_optical_depth(acc run_total, int lane, acc& c
   return before;
 }
 
-// Forward of one ray by one warp: samples [offset, offset + count). Returns the InvalidInput
-// bits of the lane's samples. Channels beyond kChannelsPerPass take further passes (re-reading
-// sigma/t beats spilling).
+static_assert(kBackwardChunk % kForwardRun == 0, "a backward chunk starts at some lane's run");
+
+// Forward of one ray by one warp: samples [offset, offset + count); chunk_start is this ray's
+// entries of chunk_optical_depths. Returns the InvalidInput bits of the lane's samples. Channels
+// beyond kChannelsPerPass take further passes (re-reading sigma/t beats spilling).
 template <typename scalar_t, int kC>  // kC: as composite_backward_ray's
 __device__ int32_t composite_forward_ray(const CompositeInputs<scalar_t>& in, const CompositeOutputs<scalar_t>& out,
-                                         int64_t ray, int64_t offset, int64_t count, int lane) {
+                                         int64_t ray, int64_t offset, int64_t count, int lane,
+                                         ray_acc* chunk_start) {
   const int64_t C = kC > 0 ? kC : in.channels;
   int32_t invalid = 0;
   for (int64_t c0 = 0; c0 == 0 || c0 < C; c0 += kChannelsPerPass) {
     ray_acc color[kChannelsPerPass] = {};
     ray_acc depth = 0, optical_depth = 0;
     for (int64_t base = 0; base < count; base += kForwardChunk) {
-      const LaneSamples<scalar_t, kForwardRun> s(in, offset, count, base + lane * kForwardRun);
-      if (c0 == 0) invalid |= s.invalid_bits();
-      ray_acc transmittance = neg_exp<scalar_t>(run_optical_depth(s.total, lane, optical_depth)).exp;
+      const int64_t k = base + lane * kForwardRun;
+      const LaneSamples<scalar_t, kForwardRun> s(in, offset, count, k);
+      const ray_acc before = run_optical_depth(s.total, lane, optical_depth);
+      if (c0 == 0) {
+        invalid |= s.invalid_bits();
+        if (k % kBackwardChunk == 0 && k < count) chunk_start[k / kBackwardChunk] = before;
+      }
+      ray_acc transmittance = neg_exp<scalar_t>(before).exp;
 #pragma unroll
       for (int j = 0; j < kForwardRun; ++j) {
         if (j >= s.valid) break;
@@ -170,27 +179,18 @@ __device__ int32_t composite_forward_ray(const CompositeInputs<scalar_t>& in, co
   return invalid;
 }
 
-// Backward of one ray by one warp; chunk_start is this ray's scratch, one entry per chunk but the last.
+// Backward of one ray by one warp; chunk_start holds the optical depth before each chunk (the forward's).
 
 // kC: the channel count compiled in (its loops unrolled, the colour gradient held in registers), or
 // 0 for any count, read from the inputs.
 template <typename scalar_t, int kC>
 __device__ void composite_backward_ray(const CompositeInputs<scalar_t>& in, const CompositeGrads<scalar_t>& g,
                                        int64_t ray, int64_t offset, int64_t count, int lane,
-                                       ray_acc* chunk_start) {
+                                       const ray_acc* chunk_start) {
   using acc = acc_t<scalar_t>;
   const int64_t C = kC > 0 ? kC : in.channels;
   const int64_t chunks = (count + kBackwardChunk - 1) / kBackwardChunk;
-
-  // Optical depth before every chunk but the last; the reverse pass below starts there and
-  // finds the total (hence T past the last sample) itself.
-  ray_acc optical_depth = 0;
-  for (int64_t q = 0; q + 1 < chunks; ++q) {
-    if (lane == 0) chunk_start[q] = optical_depth;
-    optical_depth += warp_sum(LaneSamples<scalar_t, kBackwardRun>(in, offset, count, q * kBackwardChunk + lane * kBackwardRun).total);
-  }
-  __syncwarp();  // orders lane 0's scratch writes before every lane's reads
-  ray_acc total_optical_depth = optical_depth;  // final once the last chunk is added below
+  ray_acc total_optical_depth = 0;  // found with the last chunk (T past the last sample)
 
   const scalar_t* grad_color = g.color ? g.color + ray * C : nullptr;
   const ray_acc grad_depth = g.depth ? ray_acc(g.depth[ray]) : ray_acc(0);
@@ -208,7 +208,7 @@ __device__ void composite_backward_ray(const CompositeInputs<scalar_t>& in, cons
   for (int64_t q = chunks - 1; q >= 0; --q) {
     const LaneSamples<scalar_t, kBackwardRun> s(in, offset, count, q * kBackwardChunk + lane * kBackwardRun);
     const bool last = q == chunks - 1;
-    ray_acc carry = last ? optical_depth : chunk_start[q];
+    ray_acc carry = chunk_start[q];
     ray_acc transmittance = neg_exp<scalar_t>(run_optical_depth(s.total, lane, carry)).exp;
     if (last) total_optical_depth = carry;
     ray_acc alpha[kBackwardRun], decay[kBackwardRun], g_in[kBackwardRun], t_after[kBackwardRun], w[kBackwardRun];
@@ -283,6 +283,14 @@ __device__ void composite_backward_ray(const CompositeInputs<scalar_t>& in, cons
   }
 }
 
+// chunk_optical_depths: ray r's chunks from span.offset / kBackwardChunk + r. A ray of `count`
+// samples from `offset` needs at most ceil(count / kBackwardChunk) entries, and the next ray's
+// first entry is at least floor(count / kBackwardChunk) + 1 further on, so rays never overlap and
+// N / kBackwardChunk + R entries hold them all.
+__device__ __forceinline__ int64_t chunk_entries_before(composite_layout::RaySpan span, int64_t ray) {
+  return span.offset / kBackwardChunk + ray;
+}
+
 template <typename scalar_t, int kC, typename Rays>
 // 4 blocks per SM: 64 registers (80 without the bound capped occupancy at 3 blocks, and the
 // forward is latency-bound), at the cost of <= 48 bytes of spills.
@@ -292,26 +300,21 @@ __global__ void __launch_bounds__(kMaxWarpsPerBlock* kWarpSize, 4)
   if (ray >= R) return;  // whole warps leave together: the shuffles below see full warps
   const composite_layout::RaySpan span = rays(ray);
   const int lane = threadIdx.x % kWarpSize;
-  int32_t invalid = composite_forward_ray<scalar_t, kC>(in, out, ray, span.offset, span.count, lane);
+  int32_t invalid = composite_forward_ray<scalar_t, kC>(in, out, ray, span.offset, span.count, lane,
+                                                        out.chunk_optical_depths + chunk_entries_before(span, ray));
   if (lane == 0 && !rays.well_formed(ray, R)) invalid |= kBadOffsets;
   if (invalid) atomicOr(out.invalid, invalid);  // only for bad input: no contention otherwise
 }
 
-// Scratch of the backward: ray r's chunk starts from span.offset / kBackwardChunk + r. A ray of
-// `count` samples from `offset` needs at most ceil(count / kBackwardChunk) entries, and the next
-// ray's first entry is at least floor(count / kBackwardChunk) + 1 further on, so rays never
-// overlap and N / kBackwardChunk + R entries hold them all.
-int64_t scratch_entries(int64_t N, int64_t R) { return N / kBackwardChunk + R; }
-
 template <typename scalar_t, int kC, typename Rays>
 __global__ void __launch_bounds__(kMaxWarpsPerBlock* kWarpSize)
     composite_bwd_kernel(CompositeInputs<scalar_t> in, CompositeGrads<scalar_t> g, int64_t R, Rays rays,
-                         ray_acc* scratch) {
+                         const ray_acc* chunk_optical_depths) {
   const int64_t ray = int64_t(blockIdx.x) * (blockDim.x / kWarpSize) + threadIdx.x / kWarpSize;
   if (ray >= R) return;
   const composite_layout::RaySpan span = rays(ray);
   composite_backward_ray<scalar_t, kC>(in, g, ray, span.offset, span.count, threadIdx.x % kWarpSize,
-                         scratch + span.offset / kBackwardChunk + ray);
+                         chunk_optical_depths + chunk_entries_before(span, ray));
 }
 
 unsigned blocks_for(int64_t R) {
@@ -323,11 +326,12 @@ unsigned blocks_for(int64_t R) {
 // The composite ops' CUDA kernels, for CompositeOps (composite.h).
 struct Cuda {
   static constexpr at::DeviceType kind = at::kCUDA;
+  static int64_t chunk_optical_depth_entries(int64_t N, int64_t R) { return N / kBackwardChunk + R; }
 
   template <typename Rays>
   static CompositeForward forward(const CompositeTensors& tensors, int64_t R, Rays rays) {
     const c10::cuda::CUDAGuard device_guard(tensors.sigmas.device());
-    auto outputs = empty_outputs(tensors.sigmas, tensors.rgbs, R);
+    auto outputs = empty_outputs(tensors.sigmas, tensors.rgbs, R, chunk_optical_depth_entries(tensors.sigmas.numel(), R));
     if (R == 0) return outputs;
     MIXER_NERF_DISPATCH_FLOATING(tensors.sigmas.scalar_type(), "composite_fwd_cuda", [&] {
       const auto out = outputs_of<scalar_t>(outputs);
@@ -342,18 +346,17 @@ struct Cuda {
   }
 
   template <typename Rays>
-  static void backward(const Upstream& up, const CompositeTensors& tensors, CompositeGradTensors& grads, int64_t R,
-                       Rays rays) {
+  static void backward(const Upstream& up, const CompositeTensors& tensors, const at::Tensor& chunk_optical_depths,
+                       CompositeGradTensors& grads, int64_t R, Rays rays) {
     if (R == 0) return;
     const at::Tensor& sigmas = tensors.sigmas;
     const c10::cuda::CUDAGuard device_guard(sigmas.device());
-    const at::Tensor scratch = at::empty({scratch_entries(sigmas.numel(), R)}, sigmas.options().dtype(at::kDouble));
     MIXER_NERF_DISPATCH_FLOATING(sigmas.scalar_type(), "composite_bwd_cuda", [&] {
       // RGB, what every renderer composites, with its channels compiled in; any other count read.
       auto* kernel = tensors.rgbs.size(-1) == 3 ? composite_bwd_kernel<scalar_t, 3, Rays>
                                                 : composite_bwd_kernel<scalar_t, 0, Rays>;
       kernel<<<blocks_for(R), kMaxWarpsPerBlock * kWarpSize, 0, c10::cuda::getCurrentCUDAStream()>>>(
-          tensors.pointers<scalar_t>(), grads.pointers<scalar_t>(up), R, rays, scratch.data_ptr<ray_acc>());
+          tensors.pointers<scalar_t>(), grads.pointers<scalar_t>(up), R, rays, chunk_optical_depths.const_data_ptr<ray_acc>());
       C10_CUDA_KERNEL_LAUNCH_CHECK();
     });
   }

@@ -73,7 +73,7 @@ def composite(
     _validate(sigmas, rgbs, t_starts, t_ends, background, check_values and not deferred)
     if not kernel:
         return CompositeResult(*composite_reference(sigmas, rgbs, t_starts, t_ends, background))
-    *result, invalid = _COMPOSITE(sigmas, rgbs, t_starts, t_ends, background)
+    *result, _chunk_optical_depths, invalid = _COMPOSITE(sigmas, rgbs, t_starts, t_ends, background)
     if deferred:
         deferred_checks.watch(invalid, "composite", INVALID_INPUT)
     return CompositeResult(*result)
@@ -115,7 +115,7 @@ def composite_packed(
         return CompositeResult(
             *composite_packed_reference(sigmas, rgbs, t_starts, t_ends, offsets, background)
         )
-    *result, invalid = _COMPOSITE_PACKED(sigmas, rgbs, t_starts, t_ends, background, offsets)
+    *result, _chunk_optical_depths, invalid = _COMPOSITE_PACKED(sigmas, rgbs, t_starts, t_ends, background, offsets)
     if deferred:
         deferred_checks.watch(invalid, "composite_packed", INVALID_INPUT)
     return CompositeResult(*result)
@@ -181,6 +181,16 @@ def _check_samples(sigmas, rgbs, t_starts, t_ends, background, num_rays: int, ch
             raise ValueError(INTERVALS_MESSAGE)
 
 
+_CUDA_CHUNK = 32
+"""Samples per chunk of the CUDA backward (``kBackwardChunk`` in csrc/cuda/composite.cu)."""
+
+
+def _chunk_optical_depth_entries(sigmas: torch.Tensor, num_rays: int) -> int:
+    """How many optical depths the forward keeps for the backward: one per chunk of each ray on a
+    GPU (at most ``N // chunk + R``), none on the CPU, whose backward finds them itself."""
+    return sigmas.numel() // _CUDA_CHUNK + num_rays if sigmas.device.type == "cuda" else 0
+
+
 def _composite_fwd_fake(sigmas, rgbs, t_starts, t_ends, background, *layout):
     num_rays = layout[0].shape[0] - 1 if layout else sigmas.shape[0]
     return (
@@ -188,6 +198,7 @@ def _composite_fwd_fake(sigmas, rgbs, t_starts, t_ends, background, *layout):
         sigmas.new_empty(num_rays),
         sigmas.new_empty(num_rays),
         torch.empty_like(sigmas),
+        sigmas.new_empty(_chunk_optical_depth_entries(sigmas, num_rays), dtype=torch.float64),
         sigmas.new_empty(1, dtype=torch.int32),
     )
 
@@ -202,9 +213,9 @@ def _composite_bwd_fake(
     t_starts,
     t_ends,
     background,
-    *layout_and_flag,
+    *layout_depths_and_flag,
 ):
-    interval_grads = layout_and_flag[-1]
+    interval_grads = layout_depths_and_flag[-1]
     grad_t_starts = torch.empty_like(t_starts) if interval_grads else None
     grad_t_ends = torch.empty_like(t_ends) if interval_grads else None
     grad_background = None if background is None else torch.empty_like(background)
@@ -216,10 +227,20 @@ def _interval_grads(needs_input_grad: tuple[bool, ...]) -> tuple[bool]:
     return (needs_input_grad[2] or needs_input_grad[3],)
 
 
-_COMPOSITE = KernelOp(
-    "composite_fwd", _composite_fwd_fake, "composite_bwd", _composite_bwd_fake, _interval_grads, aux_outputs=1
+class _Composite(KernelOp):
+    """The backward kernel takes the forward's ``chunk_optical_depths`` output after the inputs."""
+
+    def save(self, ctx, inputs: tuple, outputs: tuple) -> None:
+        super().save(ctx, (*inputs, outputs[4]), outputs)
+
+    def backward(self, ctx, *grads) -> tuple:
+        return super().backward(ctx, *grads)[:-1]  # the optical depths were no input
+
+
+_COMPOSITE = _Composite(
+    "composite_fwd", _composite_fwd_fake, "composite_bwd", _composite_bwd_fake, _interval_grads, aux_outputs=2
 )
-_COMPOSITE_PACKED = KernelOp(
+_COMPOSITE_PACKED = _Composite(
     "composite_packed_fwd", _composite_fwd_fake, "composite_packed_bwd", _composite_bwd_fake, _interval_grads,
-    aux_outputs=1,
+    aux_outputs=2,
 )
