@@ -13,9 +13,10 @@ build() {  # build LOG LABEL: our kernels from the current folder, on $PYTHONPAT
   echo "nerfacc build rc=$? $((SECONDS - t0))s") &
 # .baseline/csrc (e.g. `git archive REV csrc | tar -x -C .baseline`): the kernels to compare
 # against, built beside ours in a copy of the tree (tools/gpu_check.sh bench_base runs there).
+# Where the ops' schemas changed, archive REV's mixer_nerf too: what .baseline holds replaces the copy's.
 if [ -d .baseline/csrc ]; then
   rm -rf "$BASELINE_TREE" && mkdir -p "$BASELINE_TREE" && cp -r mixer_nerf benchmarks tools "$BASELINE_TREE"/ \
-    && cp -r .baseline/csrc "$BASELINE_TREE"/csrc
+    && cp -r .baseline/. "$BASELINE_TREE"/
   (cd "$BASELINE_TREE" && PYTHONPATH=$BASELINE_PYTHONPATH build baseline_build baseline) &
 fi
 build build mixer_nerf
