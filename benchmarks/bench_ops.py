@@ -35,15 +35,16 @@ def fmt(value: float | None, spec: str) -> str:
 
 
 def table(results: list[Result], copy_gbps: float | None) -> str:
-    head = "| op | mode | size | variant | ms | GB/s | % of copy | max abs err | max rel err | kernel speedup |"
-    lines = [head, "|---|---|---|---|---:|---:|---:|---:|---:|---|"]
+    head = ("| op | mode | size | variant | ms | GB/s | % of copy | ms queued | max abs err | max rel err "
+            "| kernel speedup |")
+    lines = [head, "|---|---|---|---|---:|---:|---:|---:|---:|---:|---|"]
     for r in results:
         pct = None if (r.gbps is None or not copy_gbps) else 100 * r.gbps / copy_gbps
         speed = ", ".join(f"{v:.1f}x vs {k}" for k, v in r.speedups.items())
         ms = fmt(r.ms, ".3f") if r.error is None else f"failed: {r.error}"
         lines.append(
             f"| {r.op} | {r.mode} | {r.size} | {r.variant} | {ms} | {fmt(r.gbps, '.0f')} | {fmt(pct, '.0f')} "
-            f"| {fmt(r.max_abs_err, '.2e')} | {fmt(r.max_rel_err, '.2e')} | {speed} |"
+            f"| {fmt(r.queued_ms, '.3f')} | {fmt(r.max_abs_err, '.2e')} | {fmt(r.max_rel_err, '.2e')} | {speed} |"
         )
     return "\n".join(lines)
 
@@ -93,7 +94,9 @@ def write_results(results: list[Result], device: torch.device, repeats: int, cop
     """Write ``<device>.md``, ``.json`` and the time-against-error plot ``.png``; return the markdown."""
     stamp = datetime.date.today().isoformat()
     header = (f"# Op benchmarks on {device_name(device)}, {stamp}\n\ntorch {torch.__version__}; "
-              f"median of {repeats} runs; errors against a float64 reference (rel: scaled by each output's max |truth|)"
+              f"median of {repeats} runs, each after a synchronisation (host work included); ms queued: the mean "
+              f"of {repeats} calls queued back to back, synchronised once (GPU only); errors against a float64 "
+              "reference (rel: scaled by each output's max |truth|)"
               + (f"; device copy bandwidth {copy_gbps:.0f} GB/s (read + write)" if copy_gbps else "")
               + "\n\nCommand: `python -m benchmarks.bench_ops " + f"--device {device.type} --repeats {repeats}`\n\n")
     text = header + table(results, copy_gbps) + "\n"

@@ -3,7 +3,10 @@
 A :class:`Case` is one op at one size in one mode; its variants (our kernel, the eager reference,
 the reference under ``torch.compile``, nerfacc, accuracy-trading variants) run in the same process
 on the same inputs. Each is timed (median of CUDA-event timings on GPU, of ``perf_counter`` on CPU)
-and compared with a float64 truth; achieved bandwidth is ``min_bytes / time``.
+and compared with a float64 truth; achieved bandwidth is ``min_bytes / time``. On a GPU each is
+timed twice: one call at a time, the GPU idle before each (what a call costs end to end, host work
+included), and queued back to back with one synchronisation at the end (what a training loop sees
+when its host keeps ahead of the GPU: the GPU's time, unless the host is the slower).
 """
 
 from __future__ import annotations
@@ -49,6 +52,7 @@ class Result:
     max_abs_err: float | None
     max_rel_err: float | None
     error: str | None = None
+    queued_ms: float | None = None  # mean of calls queued back to back (GPU only)
     speedups: dict[str, float] = field(default_factory=dict)
 
 
@@ -122,6 +126,20 @@ def time_ms(fn: Callable[[], Any], device: torch.device, repeats: int, warmup: i
     return statistics.median(samples)
 
 
+def queued_ms(fn: Callable[[], Any], device: torch.device, calls: int) -> float | None:
+    """Mean milliseconds per call of ``calls`` calls queued without synchronising (GPU only)."""
+    if device.type != "cuda":
+        return None
+    torch.cuda.synchronize(device)
+    start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
+    start.record()
+    for _ in range(calls):
+        fn()
+    end.record()
+    end.synchronize()
+    return start.elapsed_time(end) / calls
+
+
 def host_profile(step: Callable[[], Any], steps: int, top: int) -> str:
     """Python functions by own host time over ``steps`` calls of ``step`` (cProfile, the ``top``
     first), after each of which the host waits for the GPU: the host's cost of a step with nothing
@@ -162,7 +180,8 @@ def run_case(case: Case, device: torch.device, repeats: int, warmup: int) -> lis
             del out
             ms = time_ms(variant.fn, device, repeats, warmup)
             gbps = case.min_bytes / (ms * 1e-3) / 1e9
-            results.append(Result(case.op, case.mode, case.size, variant.name, ms, gbps, abs_err, rel_err))
+            results.append(Result(case.op, case.mode, case.size, variant.name, ms, gbps, abs_err, rel_err,
+                                  queued_ms=queued_ms(variant.fn, device, repeats)))
         except Exception as exc:  # a peer that fails to build or run is reported, not fatal
             results.append(Result(case.op, case.mode, case.size, variant.name, None, None, None, None,
                                   error=f"{type(exc).__name__}: {str(exc).splitlines()[0][:160]}"))

@@ -300,8 +300,13 @@ __global__ void __launch_bounds__(kMaxWarpsPerBlock* kWarpSize, 4)
   if (ray >= R) return;  // whole warps leave together: the shuffles below see full warps
   const composite_layout::RaySpan span = rays(ray);
   const int lane = threadIdx.x % kWarpSize;
-  int32_t invalid = composite_forward_ray<scalar_t, kC>(in, out, ray, span.offset, span.count, lane,
-                                                        out.chunk_optical_depths + chunk_entries_before(span, ray));
+  ray_acc* chunk_start = out.chunk_optical_depths + chunk_entries_before(span, ray);
+  int32_t invalid = composite_forward_ray<scalar_t, kC>(in, out, ray, span.offset, span.count, lane, chunk_start);
+  // A zero in the ray's entry past its chunks, where it has one: every output element is written.
+  const int64_t owned = chunk_entries_before({span.offset + span.count, 0}, ray + 1) - chunk_entries_before(span, ray);
+  for (int64_t q = (span.count + kBackwardChunk - 1) / kBackwardChunk + lane; q < owned; q += kWarpSize) {
+    chunk_start[q] = 0;
+  }
   if (lane == 0 && !rays.well_formed(ray, R)) invalid |= kBadOffsets;
   if (invalid) atomicOr(out.invalid, invalid);  // only for bad input: no contention otherwise
 }
