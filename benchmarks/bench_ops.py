@@ -40,7 +40,10 @@ def table(results: list[Result], copy_gbps: float | None) -> str:
     lines = [head, "|---|---|---|---|---:|---:|---:|---:|---:|---:|---|"]
     for r in results:
         pct = None if (r.gbps is None or not copy_gbps) else 100 * r.gbps / copy_gbps
-        speed = ", ".join(f"{v:.1f}x vs {k}" for k, v in r.speedups.items())
+        speed = ", ".join(
+            f"{v:.1f}x" + (f" (queued {r.queued_speedups[k]:.1f}x)" if k in r.queued_speedups else "") + f" vs {k}"
+            for k, v in r.speedups.items()
+        )
         ms = fmt(r.ms, ".3f") if r.error is None else f"failed: {r.error}"
         lines.append(
             f"| {r.op} | {r.mode} | {r.size} | {r.variant} | {ms} | {fmt(r.gbps, '.0f')} | {fmt(pct, '.0f')} "

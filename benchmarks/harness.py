@@ -53,7 +53,8 @@ class Result:
     max_rel_err: float | None
     error: str | None = None
     queued_ms: float | None = None  # mean of calls queued back to back (GPU only)
-    speedups: dict[str, float] = field(default_factory=dict)
+    speedups: dict[str, float] = field(default_factory=dict)  # other variant -> its ms / ours
+    queued_speedups: dict[str, float] = field(default_factory=dict)  # the same, queued
 
 
 VENDOR_WORDS = {"nvidia", "geforce", "tesla", "quadro", "amd", "instinct", "radeon"}
@@ -187,11 +188,14 @@ def run_case(case: Case, device: torch.device, repeats: int, warmup: int) -> lis
                                   error=f"{type(exc).__name__}: {str(exc).splitlines()[0][:160]}"))
         if device.type == "cuda":
             torch.cuda.empty_cache()
-    # speedups of our kernel, or of our default call where a case has no bare-kernel variant
-    timed = {r.variant: r for r in results if r.ms}
-    ours = timed.get("kernel", timed.get("ours, defaults"))
-    if ours is not None:
-        for r in results:
-            if r.ms and r is not ours:
-                ours.speedups[r.variant] = r.ms / ours.ms
+    # speedups of our kernel against every other variant, and of our default call (what a user
+    # runs) against the peers
+    timed = [r for r in results if r.ms]
+    for ours in (r for r in timed if r.variant in ("kernel", "ours, defaults")):
+        for r in timed:
+            if r is ours or r.variant == "kernel":
+                continue
+            ours.speedups[r.variant] = r.ms / ours.ms
+            if r.queued_ms and ours.queued_ms:
+                ours.queued_speedups[r.variant] = r.queued_ms / ours.queued_ms
     return results

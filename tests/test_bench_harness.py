@@ -24,10 +24,11 @@ def test_a_case_with_a_truth_reports_each_variants_error():
     assert result.max_abs_err is not None and result.max_abs_err < 1e-6
 
 
-def test_speedups_are_our_kernels_or_else_our_default_calls():
+def test_speedups_are_our_kernels_and_our_default_calls_against_the_others():
     x = torch.rand(64)
     both = [Variant("kernel", lambda: x * 2), Variant("ours, defaults", lambda: x * 2), Variant("torch", lambda: x + x)]
-    kernel, defaults, _ = run_case(Case("op", "fwd", "64", both, None, 512), torch.device("cpu"), 2, 1)
-    assert set(kernel.speedups) == {"ours, defaults", "torch"} and not defaults.speedups
+    kernel, defaults, peer = run_case(Case("op", "fwd", "64", both, None, 512), torch.device("cpu"), 2, 1)
+    assert set(kernel.speedups) == {"ours, defaults", "torch"} and set(defaults.speedups) == {"torch"}
+    assert not peer.speedups and not kernel.queued_speedups  # nothing is queued on a CPU
     (defaults, _) = run_case(Case("op", "fwd", "64", both[1:], None, 512), torch.device("cpu"), 2, 1)
     assert set(defaults.speedups) == {"torch"}
