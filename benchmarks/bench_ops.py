@@ -97,8 +97,8 @@ def write_results(results: list[Result], device: torch.device, repeats: int, cop
     """Write ``<device>.md``, ``.json`` and the time-against-error plot ``.png``; return the markdown."""
     stamp = datetime.date.today().isoformat()
     header = (f"# Op benchmarks on {device_name(device)}, {stamp}\n\ntorch {torch.__version__}; "
-              f"median of {repeats} runs, each after a synchronisation (host work included); ms queued: the mean "
-              f"of {repeats} calls queued back to back, synchronised once (GPU only); errors against a float64 "
+              f"median of {repeats} runs, each after a synchronisation (host work included); ms queued: per call "
+              f"of {repeats} calls queued back to back and synchronised once, the median of 5 such batches (GPU only); errors against a float64 "
               "reference (rel: scaled by each output's max |truth|)"
               + (f"; device copy bandwidth {copy_gbps:.0f} GB/s (read + write)" if copy_gbps else "")
               + "\n\nCommand: `python -m benchmarks.bench_ops " + f"--device {device.type} --repeats {repeats}`\n\n")

@@ -127,18 +127,22 @@ def time_ms(fn: Callable[[], Any], device: torch.device, repeats: int, warmup: i
     return statistics.median(samples)
 
 
-def queued_ms(fn: Callable[[], Any], device: torch.device, calls: int) -> float | None:
-    """Mean milliseconds per call of ``calls`` calls queued without synchronising (GPU only)."""
+def queued_ms(fn: Callable[[], Any], device: torch.device, calls: int, batches: int = 5) -> float | None:
+    """Milliseconds per call of ``calls`` calls queued without synchronising, the median over
+    ``batches`` such batches (a host hiccup spoils one batch, not the result; GPU only)."""
     if device.type != "cuda":
         return None
-    torch.cuda.synchronize(device)
-    start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
-    start.record()
-    for _ in range(calls):
-        fn()
-    end.record()
-    end.synchronize()
-    return start.elapsed_time(end) / calls
+    means = []
+    for _ in range(batches):
+        torch.cuda.synchronize(device)
+        start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
+        start.record()
+        for _ in range(calls):
+            fn()
+        end.record()
+        end.synchronize()
+        means.append(start.elapsed_time(end) / calls)
+    return statistics.median(means)
 
 
 def host_profile(step: Callable[[], Any], steps: int, top: int) -> str:
