@@ -40,14 +40,13 @@ def table(results: list[Result], copy_gbps: float | None) -> str:
     lines = [head, "|---|---|---|---|---:|---:|---:|---:|---:|---:|---|"]
     for r in results:
         pct = None if (r.gbps is None or not copy_gbps) else 100 * r.gbps / copy_gbps
-        speed = ", ".join(
-            f"{v:.1f}x" + (f" (queued {r.queued_speedups[k]:.1f}x)" if k in r.queued_speedups else "") + f" vs {k}"
-            for k, v in r.speedups.items()
-        )
+        queued = {k: f" (queued {v:.1f}x)" for k, v in r.queued_speedups.items()}
+        speed = ", ".join(f"{v:.1f}x{queued.get(k, '')} vs {k}" for k, v in r.speedups.items())
         ms = fmt(r.ms, ".3f") if r.error is None else f"failed: {r.error}"
         lines.append(
             f"| {r.op} | {r.mode} | {r.size} | {r.variant} | {ms} | {fmt(r.gbps, '.0f')} | {fmt(pct, '.0f')} "
-            f"| {fmt(r.queued_ms, '.3f')} | {fmt(r.max_abs_err, '.2e')} | {fmt(r.max_rel_err, '.2e')} | {speed} |"
+            f"| {fmt(r.queued_ms, '.3f')} | {fmt(r.max_abs_err, '.2e')} | {fmt(r.max_rel_err, '.2e')} "
+            f"| {speed} |"
         )
     return "\n".join(lines)
 
@@ -97,9 +96,9 @@ def write_results(results: list[Result], device: torch.device, repeats: int, cop
     """Write ``<device>.md``, ``.json`` and the time-against-error plot ``.png``; return the markdown."""
     stamp = datetime.date.today().isoformat()
     header = (f"# Op benchmarks on {device_name(device)}, {stamp}\n\ntorch {torch.__version__}; "
-              f"median of {repeats} runs, each after a synchronisation (host work included); ms queued: per call "
-              f"of {repeats} calls queued back to back and synchronised once, the median of 5 such batches (GPU only); errors against a float64 "
-              "reference (rel: scaled by each output's max |truth|)"
+              f"median of {repeats} runs, each after a synchronisation (host work included); ms queued: "
+              f"per call of {repeats} calls queued back to back and synchronised once, the median of 5 such "
+              "batches (GPU only); errors against a float64 reference (rel: scaled by each output's max |truth|)"
               + (f"; device copy bandwidth {copy_gbps:.0f} GB/s (read + write)" if copy_gbps else "")
               + "\n\nCommand: `python -m benchmarks.bench_ops " + f"--device {device.type} --repeats {repeats}`\n\n")
     text = header + table(results, copy_gbps) + "\n"
