@@ -5,7 +5,7 @@ the reference under ``torch.compile``, nerfacc, accuracy-trading variants) run i
 on the same inputs. Each is timed (median of CUDA-event timings on GPU, of ``perf_counter`` on CPU)
 and compared with a float64 truth; achieved bandwidth is ``min_bytes / time``. On a GPU each is
 timed twice: one call at a time, the GPU idle before each (what a call costs end to end, host work
-included), and queued back to back with one synchronisation at the end (what a training loop sees
+included), and queued back to back with one synchronisation per batch (what a training loop sees
 when its host keeps ahead of the GPU: the GPU's time, unless the host is the slower).
 """
 
@@ -52,7 +52,7 @@ class Result:
     max_abs_err: float | None
     max_rel_err: float | None
     error: str | None = None
-    queued_ms: float | None = None  # mean of calls queued back to back (GPU only)
+    queued_ms: float | None = None  # per call, queued back to back (GPU only; see queued_ms)
     speedups: dict[str, float] = field(default_factory=dict)  # other variant -> its ms / ours
     queued_speedups: dict[str, float] = field(default_factory=dict)  # the same, queued
 
