@@ -4,9 +4,12 @@
 // contiguous memory; per-lane sums over a run replace shuffles). The math and its numerics are
 // those of csrc/composite.cpp (read its file comment first):
 //   forward:  T_i = exp(-(carry + exclusive scan of tau)), w_i = T_i * -expm1(-tau_i);
-//   backward: G_j = alpha_j g_j + exp(-tau_j) G_{j+1} is an affine recurrence, evaluated from
-//             the last chunk to the first as a reverse warp scan of affine maps x -> a + b x;
-//             dL/dtau_j = T_{j+1} (g_j - G_{j+1}).
+//   backward: dL/dtau_j = T_{j+1} g_j - S_{j+1}, S_{j+1} = sum_{k>j} w_k g_k + T_S G_end, a
+//             suffix sum evaluated from the last chunk to the first as a reverse warp scan.
+//             The CPU kernel's affine recurrence G_j = alpha_j g_j + exp(-tau_j) G_{j+1} (with
+//             T_{j+1} G_{j+1} = S_{j+1}) is the same quantity; in double both round to the same
+//             float32 gradients on every error-budget distribution, and a scan step here moves
+//             one double where the affine maps' composition moves two.
 // The backward needs the optical depth at the start of every chunk while walking chunks in
 // reverse; subtracting sums would cancel after a 1e10-long interval, so the forward, which scans
 // them anyway, writes one per backward chunk (the op's chunk_optical_depths output, saved for the
@@ -190,7 +193,6 @@ __device__ void composite_backward_ray(const CompositeInputs<scalar_t>& in, cons
   using acc = acc_t<scalar_t>;
   const int64_t C = kC > 0 ? kC : in.channels;
   const int64_t chunks = (count + kBackwardChunk - 1) / kBackwardChunk;
-  ray_acc total_optical_depth = 0;  // found with the last chunk (T past the last sample)
 
   const scalar_t* grad_color = g.color ? g.color + ray * C : nullptr;
   const ray_acc grad_depth = g.depth ? ray_acc(g.depth[ray]) : ray_acc(0);
@@ -199,28 +201,31 @@ __device__ void composite_backward_ray(const CompositeInputs<scalar_t>& in, cons
 #pragma unroll
   for (int c = 0; c < kC; ++c) color_grad[c] = grad_color ? ray_acc(grad_color[c]) : ray_acc(0);
   // G past the last sample: the background seen with weight T_S, minus the opacity gradient.
-  ray_acc G = g.opacity ? -ray_acc(g.opacity[ray]) : ray_acc(0);
+  ray_acc G_end = g.opacity ? -ray_acc(g.opacity[ray]) : ray_acc(0);
   if (in.background && grad_color) {
     const scalar_t* bg = in.background + ray * in.background_stride;
-    for (int64_t c = 0; c < C; ++c) G += ray_acc(grad_color[c]) * ray_acc(bg[c]);
+    for (int64_t c = 0; c < C; ++c) G_end += ray_acc(grad_color[c]) * ray_acc(bg[c]);
   }
+  ray_acc transmittance_end = 0;  // T_S, found with the last chunk
+  ray_acc after_chunk = 0;        // S past the chunk: sum of w_k g_k over later samples, plus T_S G_end
 
   for (int64_t q = chunks - 1; q >= 0; --q) {
     const LaneSamples<scalar_t, kBackwardRun> s(in, offset, count, q * kBackwardChunk + lane * kBackwardRun);
-    const bool last = q == chunks - 1;
     ray_acc carry = chunk_start[q];
     ray_acc transmittance = neg_exp<scalar_t>(run_optical_depth(s.total, lane, carry)).exp;
-    if (last) total_optical_depth = carry;
-    ray_acc alpha[kBackwardRun], decay[kBackwardRun], g_in[kBackwardRun], t_after[kBackwardRun], w[kBackwardRun];
+    if (q == chunks - 1) {  // carry is now the ray's optical depth
+      transmittance_end = neg_exp<scalar_t>(carry).exp;
+      after_chunk = transmittance_end * G_end;
+    }
+    ray_acc g_in[kBackwardRun], t_after[kBackwardRun], w[kBackwardRun];
+    ray_acc run_sum = 0;  // sum of w_k g_k over the lane's run
 #pragma unroll
     for (int j = 0; j < kBackwardRun; ++j) {
-      alpha[j] = 0, decay[j] = 1, g_in[j] = 0, t_after[j] = 0, w[j] = 0;
+      g_in[j] = 0, t_after[j] = 0, w[j] = 0;
       if (j >= s.valid) continue;
       const NegExp sample = neg_exp<scalar_t>(s.tau[j]);
-      alpha[j] = sample.alpha;
-      decay[j] = sample.exp;
-      t_after[j] = transmittance * decay[j];  // a product, not exp(-(before + tau)): see the file comment
-      w[j] = transmittance * alpha[j];
+      t_after[j] = transmittance * sample.exp;  // a product, not exp(-(before + tau)): see the file comment
+      w[j] = transmittance * sample.alpha;
       transmittance = t_after[j];
       const int64_t i = s.first + j;
       g_in[j] = grad_depth * s.midpoint(j) + (weights_grad ? ray_acc(g.weights[i]) : ray_acc(0));
@@ -239,33 +244,19 @@ __device__ void composite_backward_ray(const CompositeInputs<scalar_t>& in, cons
           rgb_grad[c] = static_cast<scalar_t>(gc * w[j]);
         }
       }
+      run_sum += w[j] * g_in[j];
     }
-    // The run's map x -> a + b x (its samples' maps composed), then a reverse inclusive warp scan:
-    // lane l ends with runs l, l+1, ..., 31 composed.
-    ray_acc a = 0, b = 1;
-#pragma unroll
-    for (int j = kBackwardRun - 1; j >= 0; --j) {
-      a = alpha[j] * g_in[j] + decay[j] * a;
-      b *= decay[j];
-    }
-#pragma unroll
-    for (int d = 1; d < kWarpSize; d <<= 1) {
-      const ray_acc a_next = __shfl_down_sync(kFullMask, a, d);
-      const ray_acc b_next = __shfl_down_sync(kFullMask, b, d);
-      if (lane + d < kWarpSize) {
-        a += b * a_next;
-        b *= b_next;
-      }
-    }
-    // G after this lane's run: the later lanes' composition applied to G after the chunk.
-    const ray_acc a_later = __shfl_down_sync(kFullMask, a, 1), b_later = __shfl_down_sync(kFullMask, b, 1);
-    ray_acc G_run = lane == kWarpSize - 1 ? G : a_later + b_later * G;
-    G = __shfl_sync(kFullMask, a + b * G, 0);  // G before the chunk, for the next (earlier) chunk
+    // S past this lane's run: S past the chunk plus the later lanes' run sums (a reverse warp scan,
+    // shifted down a lane: never a subtraction).
+    const ray_acc suffix = warp_reverse_inclusive_sum(run_sum, lane);
+    const ray_acc later = __shfl_down_sync(kFullMask, suffix, 1);
+    ray_acc after_sample = after_chunk + (lane == kWarpSize - 1 ? ray_acc(0) : later);
+    after_chunk += __shfl_sync(kFullMask, suffix, 0);
 #pragma unroll
     for (int j = kBackwardRun - 1; j >= 0; --j) {
       if (j >= s.valid) continue;
-      const ray_acc grad_tau = t_after[j] * (g_in[j] - G_run);
-      G_run = alpha[j] * g_in[j] + decay[j] * G_run;
+      const ray_acc grad_tau = t_after[j] * g_in[j] - after_sample;
+      after_sample += w[j] * g_in[j];
       const int64_t i = s.first + j;
       g.sigmas[i] = static_cast<scalar_t>(grad_tau * (ray_acc(s.t_end[j]) - ray_acc(s.t_start[j])));
       if (t_grads) {
@@ -276,7 +267,6 @@ __device__ void composite_backward_ray(const CompositeInputs<scalar_t>& in, cons
     }
   }
   if (g.background_rows) {
-    const ray_acc transmittance_end = neg_exp<scalar_t>(total_optical_depth).exp;
     for (int64_t c = lane; c < C; c += kWarpSize) {
       g.background_rows[ray * C + c] = static_cast<acc>(grad_color ? ray_acc(grad_color[c]) * transmittance_end : ray_acc(0));
     }

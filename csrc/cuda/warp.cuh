@@ -18,6 +18,17 @@ __device__ __forceinline__ T warp_inclusive_sum(T x, int lane) {
   return x;
 }
 
+// Sum of x over lanes lane..31 (the same scan down the warp).
+template <typename T>
+__device__ __forceinline__ T warp_reverse_inclusive_sum(T x, int lane) {
+#pragma unroll
+  for (int d = 1; d < kWarpSize; d <<= 1) {
+    const T y = __shfl_down_sync(kFullMask, x, d);
+    if (lane + d < kWarpSize) x += y;
+  }
+  return x;
+}
+
 // Sum of x over the warp, the same value in every lane: each butterfly step adds the same two
 // numbers everywhere, so no lane's rounding differs.
 template <typename T>
