@@ -238,8 +238,8 @@ int64_t ray_grain(int64_t samples, int64_t rays) {
 // The composite ops' CPU kernels, for CompositeOps (composite.h).
 struct Cpu {
   static constexpr at::DeviceType kind = at::kCPU;
-  // The CPU backward finds a ray's optical depths itself (one thread walks the whole ray).
-  static int64_t chunk_optical_depth_entries(int64_t, int64_t) { return 0; }
+  // The CPU backward finds a ray's transmittances itself (one thread walks the whole ray).
+  static int64_t chunk_transmittance_entries(int64_t, int64_t) { return 0; }
 
   template <typename Rays>
   static CompositeForward forward(const CompositeTensors& tensors, int64_t R, Rays rays) {
@@ -264,7 +264,7 @@ struct Cpu {
   }
 
   template <typename Rays>
-  static void backward(const Upstream& up, const CompositeTensors& tensors, const at::Tensor& /*chunk_optical_depths*/,
+  static void backward(const Upstream& up, const CompositeTensors& tensors, const at::Tensor& /*chunk_transmittances*/,
                        CompositeGradTensors& grads, int64_t R, Rays rays) {
     MIXER_NERF_DISPATCH_FLOATING(tensors.sigmas.scalar_type(), "composite_bwd_cpu", [&] {
       const auto in = tensors.pointers<scalar_t>();

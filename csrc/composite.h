@@ -34,7 +34,7 @@ struct CompositeOutputs {
   scalar_t* depth;    // (R)
   scalar_t* opacity;  // (R)
   scalar_t* weights;  // (N)
-  double* chunk_optical_depths;  // the device's entries (see CompositeForward), nullptr where it has none
+  double* chunk_transmittances;  // the device's entries (see CompositeForward), nullptr where it has none
   int32_t* invalid;   // (1): the InvalidInput bits of the values the forward read
 };
 
@@ -157,8 +157,8 @@ const scalar_t* data_or_null(const std::optional<at::Tensor>& t) {
   return t ? t->const_data_ptr<scalar_t>() : nullptr;
 }
 
-// What a forward returns: color (R, C), depth (R), opacity (R), weights like sigmas, the optical
-// depths its backward starts from (float64, Device::chunk_optical_depth_entries(N, R) of them: the
+// What a forward returns: color (R, C), depth (R), opacity (R), weights like sigmas, the
+// transmittances its backward starts from (float64, Device::chunk_transmittance_entries(N, R) of them: the
 // CUDA kernels keep one per chunk of a ray, the CPU none), invalid (1) int32 (InvalidInput bits); and a
 // backward: the gradients of sigmas, rgbs, t_starts, t_ends (absent without interval_grads) and
 // background (absent without one).
@@ -167,18 +167,18 @@ using CompositeBackward =
     std::tuple<at::Tensor, at::Tensor, std::optional<at::Tensor>, std::optional<at::Tensor>, std::optional<at::Tensor>>;
 
 inline CompositeForward empty_outputs(const at::Tensor& sigmas, const at::Tensor& rgbs, int64_t rays,
-                                      int64_t chunk_optical_depth_entries) {
+                                      int64_t chunk_transmittance_entries) {
   return {at::empty({rays, rgbs.size(-1)}, sigmas.options()), at::empty({rays}, sigmas.options()),
           at::empty({rays}, sigmas.options()), at::empty_like(sigmas),
-          at::empty({chunk_optical_depth_entries}, sigmas.options().dtype(at::kDouble)),
+          at::empty({chunk_transmittance_entries}, sigmas.options().dtype(at::kDouble)),
           at::zeros({1}, sigmas.options().dtype(at::kInt))};
 }
 
 template <typename scalar_t>
 CompositeOutputs<scalar_t> outputs_of(CompositeForward& outputs) {
-  auto& [color, depth, opacity, weights, chunk_optical_depths, invalid] = outputs;
+  auto& [color, depth, opacity, weights, chunk_transmittances, invalid] = outputs;
   return {color.data_ptr<scalar_t>(), depth.data_ptr<scalar_t>(), opacity.data_ptr<scalar_t>(),
-          weights.data_ptr<scalar_t>(), chunk_optical_depths.numel() ? chunk_optical_depths.data_ptr<double>() : nullptr,
+          weights.data_ptr<scalar_t>(), chunk_transmittances.numel() ? chunk_transmittances.data_ptr<double>() : nullptr,
           invalid.data_ptr<int32_t>()};
 }
 
@@ -236,16 +236,16 @@ struct CompositeOps {
 
   template <typename Rays>
   static CompositeBackward backward(const Upstream& up, const CompositeTensors& in,
-                                    const at::Tensor& chunk_optical_depths, bool interval_grads, int64_t R,
+                                    const at::Tensor& chunk_transmittances, bool interval_grads, int64_t R,
                                     Rays rays) {
     check_composite_inputs(in.sigmas, in.rgbs, in.t_starts, in.t_ends, in.background, R, Device::kind);
     check_upstream(up, in.sigmas, in.rgbs, R, Device::kind);
-    MIXER_NERF_CHECK_INPUT(chunk_optical_depths, Device::kind);
-    MIXER_NERF_CHECK(chunk_optical_depths.scalar_type() == at::kDouble && chunk_optical_depths.dim() == 1 &&
-                         chunk_optical_depths.size(0) == Device::chunk_optical_depth_entries(in.sigmas.numel(), R),
-                     "composite_bwd: chunk_optical_depths must be the forward's output for these inputs");
+    MIXER_NERF_CHECK_INPUT(chunk_transmittances, Device::kind);
+    MIXER_NERF_CHECK(chunk_transmittances.scalar_type() == at::kDouble && chunk_transmittances.dim() == 1 &&
+                         chunk_transmittances.size(0) == Device::chunk_transmittance_entries(in.sigmas.numel(), R),
+                     "composite_bwd: chunk_transmittances must be the forward's output for these inputs");
     CompositeGradTensors grads(in.sigmas, in.rgbs, in.background, R, interval_grads);
-    Device::backward(up, in, chunk_optical_depths, grads, R, rays);
+    Device::backward(up, in, chunk_transmittances, grads, R, rays);
     return grads.finish(in.background);
   }
 
@@ -262,10 +262,10 @@ struct CompositeOps {
                                      const std::optional<at::Tensor>& grad_weights, const at::Tensor& sigmas,
                                      const at::Tensor& rgbs, const at::Tensor& t_starts, const at::Tensor& t_ends,
                                      const std::optional<at::Tensor>& background,
-                                     const at::Tensor& chunk_optical_depths, bool interval_grads) {
+                                     const at::Tensor& chunk_transmittances, bool interval_grads) {
     check_dense(sigmas);
     return backward({grad_color, grad_depth, grad_opacity, grad_weights}, {sigmas, rgbs, t_starts, t_ends, background},
-                    chunk_optical_depths, interval_grads, sigmas.size(0), composite_layout::DenseRays{sigmas.size(1)});
+                    chunk_transmittances, interval_grads, sigmas.size(0), composite_layout::DenseRays{sigmas.size(1)});
   }
 
   static CompositeForward packed_fwd(const at::Tensor& sigmas, const at::Tensor& rgbs, const at::Tensor& t_starts,
@@ -282,10 +282,10 @@ struct CompositeOps {
                                       const std::optional<at::Tensor>& grad_weights, const at::Tensor& sigmas,
                                       const at::Tensor& rgbs, const at::Tensor& t_starts, const at::Tensor& t_ends,
                                       const std::optional<at::Tensor>& background, const at::Tensor& offsets,
-                                      const at::Tensor& chunk_optical_depths, bool interval_grads) {
+                                      const at::Tensor& chunk_transmittances, bool interval_grads) {
     const int64_t R = check_packed(sigmas, offsets, Device::kind);
     return backward({grad_color, grad_depth, grad_opacity, grad_weights}, {sigmas, rgbs, t_starts, t_ends, background},
-                    chunk_optical_depths, interval_grads, R, composite_layout::PackedRays{offsets.const_data_ptr<int64_t>(), sigmas.size(0), R});
+                    chunk_transmittances, interval_grads, R, composite_layout::PackedRays{offsets.const_data_ptr<int64_t>(), sigmas.size(0), R});
   }
 
   static void register_ops(torch::Library& m) {

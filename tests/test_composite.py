@@ -395,8 +395,8 @@ def op_samples(gen, device="cpu"):
     ]:
         inputs = make_inputs(3, 6, 3, gen, background, dtype=torch.float32, device=device)
         upstream = random_upstream(inputs, gen, which)
-        chunk_optical_depths = torch.ops.mixer_nerf.composite_fwd(*inputs)[4]
-        samples.append((inputs, [*upstream, *inputs, chunk_optical_depths, interval]))
+        chunk_transmittances = torch.ops.mixer_nerf.composite_fwd(*inputs)[4]
+        samples.append((inputs, [*upstream, *inputs, chunk_transmittances, interval]))
     return samples
 
 
@@ -416,14 +416,14 @@ on_cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU"
 
 @pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=[pytest.mark.cuda, on_cuda])])
 @needs_kernels
-def test_backward_rejects_optical_depths_of_other_inputs(gen, device):
-    """The backward reads the forward's chunk_optical_depths: another size or dtype is an error."""
+def test_backward_rejects_transmittances_of_other_inputs(gen, device):
+    """The backward reads the forward's chunk_transmittances: another size or dtype is an error."""
     composite(*[t.to(device) for t in valid_inputs()], backend="kernel")
     _, bwd_args = op_samples(gen, device)[0]
     depths = bwd_args[-2]
     for wrong in (torch.zeros(depths.numel() + 1, dtype=depths.dtype, device=device), depths.float()):
         bwd_args[-2] = wrong
-        with pytest.raises(RuntimeError, match="chunk_optical_depths"):
+        with pytest.raises(RuntimeError, match="chunk_transmittances"):
             torch.ops.mixer_nerf.composite_bwd(*bwd_args)
 
 
@@ -786,8 +786,8 @@ def packed_op_samples(gen, device="cpu"):
     ]:
         inputs, offsets = make_packed([3, 0, 5, 1], 3, gen, background, dtype=torch.float32, device=device)
         upstream = random_upstream(inputs, gen, which, num_rays=4)
-        chunk_optical_depths = torch.ops.mixer_nerf.composite_packed_fwd(*inputs, offsets)[4]
-        samples.append(([*inputs, offsets], [*upstream, *inputs, offsets, chunk_optical_depths, interval]))
+        chunk_transmittances = torch.ops.mixer_nerf.composite_packed_fwd(*inputs, offsets)[4]
+        samples.append(([*inputs, offsets], [*upstream, *inputs, offsets, chunk_transmittances, interval]))
     return samples
 
 

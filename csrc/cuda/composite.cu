@@ -10,11 +10,10 @@
 //             T_{j+1} G_{j+1} = S_{j+1}) is the same quantity; in double both round to the same
 //             float32 gradients on every error-budget distribution, and a scan step here moves
 //             one double where the affine maps' composition moves two.
-// The backward needs the optical depth at the start of every chunk while walking chunks in
-// reverse; subtracting sums would cancel after a 1e10-long interval, so the forward, which scans
-// them anyway, writes one per backward chunk (the op's chunk_optical_depths output, saved for the
-// backward: a second pass over sigma and t would cost the backward a sixth of its instructions).
-// No atomics.
+// The backward needs T at the start of every chunk while walking chunks in reverse; dividing
+// would fail where T underflows, so the forward, which finds T = exp(-optical depth) there anyway,
+// writes one per backward chunk (the op's chunk_transmittances output, saved for the backward: a
+// second pass over sigma and t would cost the backward a sixth of its instructions). No atomics.
 //
 // Like the CPU kernel, both passes compute in double for every input dtype (ray_acc) and round
 // each output once: G starts at O(1) and is multiplied S times by exp(-tau_j), which rounds to 1
@@ -28,9 +27,10 @@
 // range reduction: the backward was instruction-bound on them) are, for non-double inputs, one
 // branch-free polynomial giving exp(-x) and -expm1(-x) together (neg_exp.cuh, ~2^-47 relative
 // error, 2^-23 below a float32 ulp); float64 inputs keep libm. Per sample one such evaluation
-// gives alpha_i and exp(-tau_i); T at the start of a lane's run is exp(-optical depth), never a
-// long product, and T past a sample is that times exp(-tau_i) (at most kForwardRun products,
-// each within an ulp of double; the same for float64 inputs). exp(-tau) is exact for thin
+// gives alpha_i and exp(-tau_i); in the forward T at the start of a lane's run is exp(-optical
+// depth), never a long product, and T past a sample is that times exp(-tau_i) (at most kForwardRun
+// products); in the backward T is the chunk's times at most 32 such factors (a product scan that
+// replaces an exp per sample), within 2^-42 relative of the truth, 2^-18 of a float32 ulp. exp(-tau) is exact for thin
 // samples (1 - alpha to double precision) and exactly 0 for tau = 1e18.
 // The doubles cost FP64 math, not memory traffic (benchmarks/results/ops/).
 #include <torch/library.h>
@@ -113,7 +113,7 @@ struct LaneSamples {
 // carry past the chunk. Exclusive by shuffling the inclusive scan up a lane: never subtracts.
 template <typename acc>
 __device__ __forceinline__ acc run_optical_depth(acc run_total, int lane, acc& carry) {
-  const acc inclusive = warp_inclusive_sum(run_total, lane);
+  const acc inclusive = warp_inclusive_scan(run_total, lane);
   const acc exclusive = __shfl_up_sync(kFullMask, inclusive, 1);
   const acc before = carry + (lane == 0 ? acc(0) : exclusive);
   carry += __shfl_sync(kFullMask, inclusive, kWarpSize - 1);
@@ -123,7 +123,7 @@ __device__ __forceinline__ acc run_optical_depth(acc run_total, int lane, acc& c
 static_assert(kBackwardChunk % kForwardRun == 0, "a backward chunk starts at some lane's run");
 
 // Forward of one ray by one warp: samples [offset, offset + count); chunk_start is this ray's
-// entries of chunk_optical_depths. Returns the InvalidInput bits of the lane's samples. Channels
+// entries of chunk_transmittances. Returns the InvalidInput bits of the lane's samples. Channels
 // beyond kChannelsPerPass take further passes (re-reading sigma/t beats spilling).
 template <typename scalar_t, int kC>  // kC: as composite_backward_ray's
 __device__ int32_t composite_forward_ray(const CompositeInputs<scalar_t>& in, const CompositeOutputs<scalar_t>& out,
@@ -137,12 +137,11 @@ __device__ int32_t composite_forward_ray(const CompositeInputs<scalar_t>& in, co
     for (int64_t base = 0; base < count; base += kForwardChunk) {
       const int64_t k = base + lane * kForwardRun;
       const LaneSamples<scalar_t, kForwardRun> s(in, offset, count, k);
-      const ray_acc before = run_optical_depth(s.total, lane, optical_depth);
+      ray_acc transmittance = neg_exp<scalar_t>(run_optical_depth(s.total, lane, optical_depth)).exp;
       if (c0 == 0) {
         invalid |= s.invalid_bits();
-        if (k % kBackwardChunk == 0 && k < count) chunk_start[k / kBackwardChunk] = before;
+        if (k % kBackwardChunk == 0 && k < count) chunk_start[k / kBackwardChunk] = transmittance;
       }
-      ray_acc transmittance = neg_exp<scalar_t>(before).exp;
 #pragma unroll
       for (int j = 0; j < kForwardRun; ++j) {
         if (j >= s.valid) break;
@@ -182,7 +181,7 @@ __device__ int32_t composite_forward_ray(const CompositeInputs<scalar_t>& in, co
   return invalid;
 }
 
-// Backward of one ray by one warp; chunk_start holds the optical depth before each chunk (the forward's).
+// Backward of one ray by one warp; chunk_start holds the transmittance before each chunk (the forward's).
 
 // kC: the channel count compiled in (its loops unrolled, the colour gradient held in registers), or
 // 0 for any count, read from the inputs.
@@ -211,10 +210,19 @@ __device__ void composite_backward_ray(const CompositeInputs<scalar_t>& in, cons
 
   for (int64_t q = chunks - 1; q >= 0; --q) {
     const LaneSamples<scalar_t, kBackwardRun> s(in, offset, count, q * kBackwardChunk + lane * kBackwardRun);
-    ray_acc carry = chunk_start[q];
-    ray_acc transmittance = neg_exp<scalar_t>(run_optical_depth(s.total, lane, carry)).exp;
-    if (q == chunks - 1) {  // carry is now the ray's optical depth
-      transmittance_end = neg_exp<scalar_t>(carry).exp;
+    NegExp sample[kBackwardRun];
+    ray_acc run_decay = 1;  // exp(-tau) over the lane's run
+#pragma unroll
+    for (int j = 0; j < kBackwardRun; ++j) {
+      sample[j] = j < s.valid ? neg_exp<scalar_t>(s.tau[j]) : NegExp{1, 0};
+      run_decay *= sample[j].exp;
+    }
+    // T before the lane's run: the chunk's (the forward's) times the earlier runs' decays.
+    const ray_acc decay_through = warp_inclusive_scan(run_decay, lane, Times{});
+    const ray_acc decay_before = __shfl_up_sync(kFullMask, decay_through, 1);
+    ray_acc transmittance = chunk_start[q] * (lane == 0 ? ray_acc(1) : decay_before);
+    if (q == chunks - 1) {
+      transmittance_end = chunk_start[q] * __shfl_sync(kFullMask, decay_through, kWarpSize - 1);
       after_chunk = transmittance_end * G_end;
     }
     ray_acc g_in[kBackwardRun], t_after[kBackwardRun], w[kBackwardRun];
@@ -223,9 +231,8 @@ __device__ void composite_backward_ray(const CompositeInputs<scalar_t>& in, cons
     for (int j = 0; j < kBackwardRun; ++j) {
       g_in[j] = 0, t_after[j] = 0, w[j] = 0;
       if (j >= s.valid) continue;
-      const NegExp sample = neg_exp<scalar_t>(s.tau[j]);
-      t_after[j] = transmittance * sample.exp;  // a product, not exp(-(before + tau)): see the file comment
-      w[j] = transmittance * sample.alpha;
+      t_after[j] = transmittance * sample[j].exp;
+      w[j] = transmittance * sample[j].alpha;
       transmittance = t_after[j];
       const int64_t i = s.first + j;
       g_in[j] = grad_depth * s.midpoint(j) + (weights_grad ? ray_acc(g.weights[i]) : ray_acc(0));
@@ -248,7 +255,7 @@ __device__ void composite_backward_ray(const CompositeInputs<scalar_t>& in, cons
     }
     // S past this lane's run: S past the chunk plus the later lanes' run sums (a reverse warp scan,
     // shifted down a lane: never a subtraction).
-    const ray_acc suffix = warp_reverse_inclusive_sum(run_sum, lane);
+    const ray_acc suffix = warp_reverse_inclusive_scan(run_sum, lane);
     const ray_acc later = __shfl_down_sync(kFullMask, suffix, 1);
     ray_acc after_sample = after_chunk + (lane == kWarpSize - 1 ? ray_acc(0) : later);
     after_chunk += __shfl_sync(kFullMask, suffix, 0);
@@ -273,7 +280,7 @@ __device__ void composite_backward_ray(const CompositeInputs<scalar_t>& in, cons
   }
 }
 
-// chunk_optical_depths: ray r's chunks from span.offset / kBackwardChunk + r. A ray of `count`
+// chunk_transmittances: ray r's chunks from span.offset / kBackwardChunk + r. A ray of `count`
 // samples from `offset` needs at most ceil(count / kBackwardChunk) entries, and the next ray's
 // first entry is at least floor(count / kBackwardChunk) + 1 further on, so rays never overlap and
 // N / kBackwardChunk + R entries hold them all.
@@ -290,7 +297,7 @@ __global__ void __launch_bounds__(kMaxWarpsPerBlock* kWarpSize, 4)
   if (ray >= R) return;  // whole warps leave together: the shuffles below see full warps
   const composite_layout::RaySpan span = rays(ray);
   const int lane = threadIdx.x % kWarpSize;
-  ray_acc* chunk_start = out.chunk_optical_depths + chunk_entries_before(span, ray);
+  ray_acc* chunk_start = out.chunk_transmittances + chunk_entries_before(span, ray);
   int32_t invalid = composite_forward_ray<scalar_t, kC>(in, out, ray, span.offset, span.count, lane, chunk_start);
   // A zero in the ray's entry past its chunks, where it has one: every output element is written.
   const int64_t owned = chunk_entries_before({span.offset + span.count, 0}, ray + 1) - chunk_entries_before(span, ray);
@@ -304,12 +311,12 @@ __global__ void __launch_bounds__(kMaxWarpsPerBlock* kWarpSize, 4)
 template <typename scalar_t, int kC, typename Rays>
 __global__ void __launch_bounds__(kMaxWarpsPerBlock* kWarpSize)
     composite_bwd_kernel(CompositeInputs<scalar_t> in, CompositeGrads<scalar_t> g, int64_t R, Rays rays,
-                         const ray_acc* chunk_optical_depths) {
+                         const ray_acc* chunk_transmittances) {
   const int64_t ray = int64_t(blockIdx.x) * (blockDim.x / kWarpSize) + threadIdx.x / kWarpSize;
   if (ray >= R) return;
   const composite_layout::RaySpan span = rays(ray);
   composite_backward_ray<scalar_t, kC>(in, g, ray, span.offset, span.count, threadIdx.x % kWarpSize,
-                         chunk_optical_depths + chunk_entries_before(span, ray));
+                         chunk_transmittances + chunk_entries_before(span, ray));
 }
 
 unsigned blocks_for(int64_t R) {
@@ -321,12 +328,12 @@ unsigned blocks_for(int64_t R) {
 // The composite ops' CUDA kernels, for CompositeOps (composite.h).
 struct Cuda {
   static constexpr at::DeviceType kind = at::kCUDA;
-  static int64_t chunk_optical_depth_entries(int64_t N, int64_t R) { return N / kBackwardChunk + R; }
+  static int64_t chunk_transmittance_entries(int64_t N, int64_t R) { return N / kBackwardChunk + R; }
 
   template <typename Rays>
   static CompositeForward forward(const CompositeTensors& tensors, int64_t R, Rays rays) {
     const c10::cuda::CUDAGuard device_guard(tensors.sigmas.device());
-    auto outputs = empty_outputs(tensors.sigmas, tensors.rgbs, R, chunk_optical_depth_entries(tensors.sigmas.numel(), R));
+    auto outputs = empty_outputs(tensors.sigmas, tensors.rgbs, R, chunk_transmittance_entries(tensors.sigmas.numel(), R));
     if (R == 0) return outputs;
     MIXER_NERF_DISPATCH_FLOATING(tensors.sigmas.scalar_type(), "composite_fwd_cuda", [&] {
       const auto out = outputs_of<scalar_t>(outputs);
@@ -341,7 +348,7 @@ struct Cuda {
   }
 
   template <typename Rays>
-  static void backward(const Upstream& up, const CompositeTensors& tensors, const at::Tensor& chunk_optical_depths,
+  static void backward(const Upstream& up, const CompositeTensors& tensors, const at::Tensor& chunk_transmittances,
                        CompositeGradTensors& grads, int64_t R, Rays rays) {
     if (R == 0) return;
     const at::Tensor& sigmas = tensors.sigmas;
@@ -351,7 +358,7 @@ struct Cuda {
       auto* kernel = tensors.rgbs.size(-1) == 3 ? composite_bwd_kernel<scalar_t, 3, Rays>
                                                 : composite_bwd_kernel<scalar_t, 0, Rays>;
       kernel<<<blocks_for(R), kMaxWarpsPerBlock * kWarpSize, 0, c10::cuda::getCurrentCUDAStream()>>>(
-          tensors.pointers<scalar_t>(), grads.pointers<scalar_t>(up), R, rays, chunk_optical_depths.const_data_ptr<ray_acc>());
+          tensors.pointers<scalar_t>(), grads.pointers<scalar_t>(up), R, rays, chunk_transmittances.const_data_ptr<ray_acc>());
       C10_CUDA_KERNEL_LAUNCH_CHECK();
     });
   }

@@ -311,7 +311,7 @@ __global__ void sample_pdf_backward_kernel(int64_t rays, WarpLayout layout, Rows
   grad_t above = 0;
   for (int base = 0; base < B; base += kWarpSize) {
     const int i = B - 1 - base - lane;
-    const grad_t inclusive = warp_inclusive_sum(i >= 0 ? bin_a[i] : grad_t(0), lane);
+    const grad_t inclusive = warp_inclusive_scan(i >= 0 ? bin_a[i] : grad_t(0), lane);
     const grad_t below = __shfl_up_sync(kFullMask, inclusive, 1);  // every lane: the mask says all 32
     const grad_t exclusive = lane == 0 ? grad_t(0) : below;
     if (i >= 0) {

@@ -7,24 +7,33 @@ namespace mixer_nerf {
 constexpr int kWarpSize = 32;
 constexpr unsigned kFullMask = 0xffffffffu;
 
-// Sum of x over lanes 0..lane (Hillis-Steele scan up the warp).
-template <typename T>
-__device__ __forceinline__ T warp_inclusive_sum(T x, int lane) {
+struct Plus {
+  template <typename T>
+  __device__ __forceinline__ T operator()(T a, T b) const { return a + b; }
+};
+struct Times {
+  template <typename T>
+  __device__ __forceinline__ T operator()(T a, T b) const { return a * b; }
+};
+
+// x of lanes 0..lane combined by `op` (associative): a Hillis-Steele scan up the warp.
+template <typename T, typename Op = Plus>
+__device__ __forceinline__ T warp_inclusive_scan(T x, int lane, Op op = {}) {
 #pragma unroll
   for (int d = 1; d < kWarpSize; d <<= 1) {
     const T y = __shfl_up_sync(kFullMask, x, d);
-    if (lane >= d) x += y;
+    if (lane >= d) x = op(y, x);
   }
   return x;
 }
 
-// Sum of x over lanes lane..31 (the same scan down the warp).
-template <typename T>
-__device__ __forceinline__ T warp_reverse_inclusive_sum(T x, int lane) {
+// x of lanes lane..31 combined by `op`: the same scan down the warp.
+template <typename T, typename Op = Plus>
+__device__ __forceinline__ T warp_reverse_inclusive_scan(T x, int lane, Op op = {}) {
 #pragma unroll
   for (int d = 1; d < kWarpSize; d <<= 1) {
     const T y = __shfl_down_sync(kFullMask, x, d);
-    if (lane + d < kWarpSize) x += y;
+    if (lane + d < kWarpSize) x = op(x, y);
   }
   return x;
 }

@@ -73,7 +73,7 @@ def composite(
     _validate(sigmas, rgbs, t_starts, t_ends, background, check_values and not deferred)
     if not kernel:
         return CompositeResult(*composite_reference(sigmas, rgbs, t_starts, t_ends, background))
-    *result, _chunk_optical_depths, invalid = _COMPOSITE(sigmas, rgbs, t_starts, t_ends, background)
+    *result, _chunk_transmittances, invalid = _COMPOSITE(sigmas, rgbs, t_starts, t_ends, background)
     if deferred:
         deferred_checks.watch(invalid, "composite", INVALID_INPUT)
     return CompositeResult(*result)
@@ -115,7 +115,7 @@ def composite_packed(
         return CompositeResult(
             *composite_packed_reference(sigmas, rgbs, t_starts, t_ends, offsets, background)
         )
-    *result, _chunk_optical_depths, invalid = _COMPOSITE_PACKED(sigmas, rgbs, t_starts, t_ends, background, offsets)
+    *result, _chunk_transmittances, invalid = _COMPOSITE_PACKED(sigmas, rgbs, t_starts, t_ends, background, offsets)
     if deferred:
         deferred_checks.watch(invalid, "composite_packed", INVALID_INPUT)
     return CompositeResult(*result)
@@ -185,8 +185,8 @@ _CUDA_CHUNK = 32
 """Samples per chunk of the CUDA backward (``kBackwardChunk`` in csrc/cuda/composite.cu)."""
 
 
-def _chunk_optical_depth_entries(sigmas: torch.Tensor, num_rays: int) -> int:
-    """How many optical depths the forward keeps for the backward: one per chunk of each ray on a
+def _chunk_transmittance_entries(sigmas: torch.Tensor, num_rays: int) -> int:
+    """How many transmittances the forward keeps for the backward: one per chunk of each ray on a
     GPU (at most ``N // chunk + R``), none on the CPU, whose backward finds them itself."""
     return sigmas.numel() // _CUDA_CHUNK + num_rays if sigmas.device.type == "cuda" else 0
 
@@ -198,7 +198,7 @@ def _composite_fwd_fake(sigmas, rgbs, t_starts, t_ends, background, *layout):
         sigmas.new_empty(num_rays),
         sigmas.new_empty(num_rays),
         torch.empty_like(sigmas),
-        sigmas.new_empty(_chunk_optical_depth_entries(sigmas, num_rays), dtype=torch.float64),
+        sigmas.new_empty(_chunk_transmittance_entries(sigmas, num_rays), dtype=torch.float64),
         sigmas.new_empty(1, dtype=torch.int32),
     )
 
@@ -228,13 +228,13 @@ def _interval_grads(needs_input_grad: tuple[bool, ...]) -> tuple[bool]:
 
 
 class _Composite(KernelOp):
-    """The backward kernel takes the forward's ``chunk_optical_depths`` output after the inputs."""
+    """The backward kernel takes the forward's ``chunk_transmittances`` output after the inputs."""
 
     def save(self, ctx, inputs: tuple, outputs: tuple) -> None:
         super().save(ctx, (*inputs, outputs[4]), outputs)
 
     def backward(self, ctx, *grads) -> tuple:
-        return super().backward(ctx, *grads)[:-1]  # the optical depths were no input
+        return super().backward(ctx, *grads)[:-1]  # the transmittances were no input
 
 
 _COMPOSITE = _Composite(
