@@ -1,9 +1,10 @@
 // composite and composite_packed (volume rendering) on CUDA: one warp per ray, in either layout
 // (a ray is a span of samples, ray_layout.h). A ray's samples go in chunks of
 // 32 runs, each lane holding a run of consecutive samples (the warp's loads cover
-// contiguous memory; per-lane sums over a run replace shuffles). The math and its numerics are
-// those of csrc/composite.cpp (read its file comment first):
-//   forward:  T_i = exp(-(carry + exclusive scan of tau)), w_i = T_i * -expm1(-tau_i);
+// contiguous memory; per-lane sums over a run replace shuffles). The quantities are those of
+// csrc/composite.cpp (read its file comment first), in forms that suit a warp's scans:
+//   forward:  T_i = carry * exclusive product scan of exp(-tau), w_i = T_i * -expm1(-tau_i),
+//             opacity = -expm1(-sum of tau) (not 1 - T: exact for thin rays);
 //   backward: dL/dtau_j = T_{j+1} g_j - S_{j+1}, S_{j+1} = sum_{k>j} w_k g_k + T_S G_end, a
 //             suffix sum evaluated from the last chunk to the first as a reverse warp scan.
 //             The CPU kernel's affine recurrence G_j = alpha_j g_j + exp(-tau_j) G_{j+1} (with
@@ -11,8 +12,8 @@
 //             float32 gradients on every error-budget distribution, and a scan step here moves
 //             one double where the affine maps' composition moves two.
 // The backward needs T at the start of every chunk while walking chunks in reverse; dividing
-// would fail where T underflows, so the forward, which finds T = exp(-optical depth) there anyway,
-// writes one per backward chunk (the op's chunk_transmittances output, saved for the backward: a
+// would fail where T underflows, so the forward, which finds T there anyway, writes one per
+// backward chunk (the op's chunk_transmittances output, saved for the backward: a
 // second pass over sigma and t would cost the backward a sixth of its instructions). No atomics.
 //
 // Like the CPU kernel, both passes compute in double for every input dtype (ray_acc) and round
@@ -27,11 +28,11 @@
 // range reduction: the backward was instruction-bound on them) are, for non-double inputs, one
 // branch-free polynomial giving exp(-x) and -expm1(-x) together (neg_exp.cuh, ~2^-47 relative
 // error, 2^-23 below a float32 ulp); float64 inputs keep libm. Per sample one such evaluation
-// gives alpha_i and exp(-tau_i); in the forward T at the start of a lane's run is exp(-optical
-// depth), never a long product, and T past a sample is that times exp(-tau_i) (at most kForwardRun
-// products); in the backward T is the chunk's times at most 32 such factors (a product scan that
-// replaces an exp per sample), within 2^-42 relative of the truth, 2^-18 of a float32 ulp. exp(-tau) is exact for thin
-// samples (1 - alpha to double precision) and exactly 0 for tau = 1e18.
+// gives alpha_i and exp(-tau_i), and T is a product of exp(-tau) (scans of products, one per chunk,
+// in place of an exp of the optical depth per lane): each factor is within 2^-47 of the truth, so
+// T_i is within i * 2^-47 (2^-39 at i = 192, 2^-34 at 8192), far below a float32 ulp (2^-24) and
+// exactly 0 past a sample with tau >= 708. Not float32's classic prod(1 - alpha + 1e-10): every
+// factor is exp(-tau) itself, in double, exact for thin samples (1 - alpha to double precision).
 // The doubles cost FP64 math, not memory traffic (benchmarks/results/ops/).
 #include <torch/library.h>
 
@@ -109,14 +110,13 @@ struct LaneSamples {
   }
 };
 
-// Optical depth before a lane's run given the optical depth `carry` before the chunk; advances
-// carry past the chunk. Exclusive by shuffling the inclusive scan up a lane: never subtracts.
-template <typename acc>
-__device__ __forceinline__ acc run_optical_depth(acc run_total, int lane, acc& carry) {
-  const acc inclusive = warp_inclusive_scan(run_total, lane);
-  const acc exclusive = __shfl_up_sync(kFullMask, inclusive, 1);
-  const acc before = carry + (lane == 0 ? acc(0) : exclusive);
-  carry += __shfl_sync(kFullMask, inclusive, kWarpSize - 1);
+// T before a lane's run given T before the chunk (`carry`) and the run's product of exp(-tau);
+// advances carry past the chunk. Exclusive by shuffling the inclusive product scan up a lane.
+__device__ __forceinline__ ray_acc run_transmittance(ray_acc run_decay, int lane, ray_acc& carry) {
+  const ray_acc inclusive = warp_inclusive_scan(run_decay, lane, Times{});
+  const ray_acc exclusive = __shfl_up_sync(kFullMask, inclusive, 1);
+  const ray_acc before = carry * (lane == 0 ? ray_acc(1) : exclusive);
+  carry *= __shfl_sync(kFullMask, inclusive, kWarpSize - 1);
   return before;
 }
 
@@ -133,11 +133,21 @@ __device__ int32_t composite_forward_ray(const CompositeInputs<scalar_t>& in, co
   int32_t invalid = 0;
   for (int64_t c0 = 0; c0 == 0 || c0 < C; c0 += kChannelsPerPass) {
     ray_acc color[kChannelsPerPass] = {};
-    ray_acc depth = 0, optical_depth = 0;
+    ray_acc depth = 0;
+    ray_acc lane_optical_depth = 0;  // over the lane's runs: summed over the warp for the opacity
+    ray_acc transmittance_before_chunk = 1;
     for (int64_t base = 0; base < count; base += kForwardChunk) {
       const int64_t k = base + lane * kForwardRun;
       const LaneSamples<scalar_t, kForwardRun> s(in, offset, count, k);
-      ray_acc transmittance = neg_exp<scalar_t>(run_optical_depth(s.total, lane, optical_depth)).exp;
+      NegExp sample[kForwardRun];
+      ray_acc run_decay = 1;  // exp(-tau) over the lane's run
+#pragma unroll
+      for (int j = 0; j < kForwardRun; ++j) {
+        sample[j] = j < s.valid ? neg_exp<scalar_t>(s.tau[j]) : NegExp{1, 0};
+        run_decay *= sample[j].exp;
+      }
+      lane_optical_depth += s.total;
+      ray_acc transmittance = run_transmittance(run_decay, lane, transmittance_before_chunk);
       if (c0 == 0) {
         invalid |= s.invalid_bits();
         if (k % kBackwardChunk == 0 && k < count) chunk_start[k / kBackwardChunk] = transmittance;
@@ -145,9 +155,8 @@ __device__ int32_t composite_forward_ray(const CompositeInputs<scalar_t>& in, co
 #pragma unroll
       for (int j = 0; j < kForwardRun; ++j) {
         if (j >= s.valid) break;
-        const NegExp sample = neg_exp<scalar_t>(s.tau[j]);
-        const ray_acc w = transmittance * sample.alpha;
-        transmittance *= sample.exp;  // one product within a run: see the file comment
+        const ray_acc w = transmittance * sample[j].alpha;
+        transmittance *= sample[j].exp;
         const int64_t i = s.first + j;
         if (c0 == 0) {
           out.weights[i] = static_cast<scalar_t>(w);
@@ -160,7 +169,7 @@ __device__ int32_t composite_forward_ray(const CompositeInputs<scalar_t>& in, co
         }
       }
     }
-    const NegExp ray_end = neg_exp<scalar_t>(optical_depth);
+    const NegExp ray_end = neg_exp<scalar_t>(warp_sum(lane_optical_depth));
     const scalar_t* bg = in.background ? in.background + ray * in.background_stride : nullptr;
 #pragma unroll
     for (int c = 0; c < kChannelsPerPass; ++c) {
@@ -217,12 +226,10 @@ __device__ void composite_backward_ray(const CompositeInputs<scalar_t>& in, cons
       sample[j] = j < s.valid ? neg_exp<scalar_t>(s.tau[j]) : NegExp{1, 0};
       run_decay *= sample[j].exp;
     }
-    // T before the lane's run: the chunk's (the forward's) times the earlier runs' decays.
-    const ray_acc decay_through = warp_inclusive_scan(run_decay, lane, Times{});
-    const ray_acc decay_before = __shfl_up_sync(kFullMask, decay_through, 1);
-    ray_acc transmittance = chunk_start[q] * (lane == 0 ? ray_acc(1) : decay_before);
+    ray_acc transmittance_after_chunk = chunk_start[q];
+    ray_acc transmittance = run_transmittance(run_decay, lane, transmittance_after_chunk);
     if (q == chunks - 1) {
-      transmittance_end = chunk_start[q] * __shfl_sync(kFullMask, decay_through, kWarpSize - 1);
+      transmittance_end = transmittance_after_chunk;
       after_chunk = transmittance_end * G_end;
     }
     ray_acc g_in[kBackwardRun], t_after[kBackwardRun], w[kBackwardRun];
