@@ -214,7 +214,7 @@ __device__ void composite_backward_ray(const CompositeInputs<scalar_t>& in, cons
     const scalar_t* bg = in.background + ray * in.background_stride;
     for (int64_t c = 0; c < C; ++c) G_end += ray_acc(grad_color[c]) * ray_acc(bg[c]);
   }
-  ray_acc transmittance_end = 0;  // T_S, found with the last chunk
+  ray_acc transmittance_end = 1;  // T_S: 1 for a ray without samples, else found with the last chunk
   ray_acc after_chunk = 0;        // S past the chunk: sum of w_k g_k over later samples, plus T_S G_end
 
   for (int64_t q = chunks - 1; q >= 0; --q) {
