@@ -17,7 +17,13 @@ import argparse
 
 import torch
 
-from benchmarks.error_budget import cast, composite_inputs, composite_truth, forward_and_grads, relative_errors
+from benchmarks.error_budget import (
+    cast,
+    composite_inputs,
+    composite_truth,
+    forward_and_grads,
+    relative_errors,
+)
 
 
 def main() -> None:
@@ -39,8 +45,9 @@ def main() -> None:
         t_after, w = T * decay, T * alpha
         T_S = T[:, -1] * decay[:, -1]
         color = (w[..., None] * rgbs).sum(1) + torch.exp(-tau.sum(1))[:, None] * background
-        depth = (w * 0.5 * (t_starts + t_ends)).sum(1)
-        g = grad_depth[:, None] * 0.5 * (t_starts + t_ends) + grad_weights + (grad_color[:, None] * rgbs).sum(-1)
+        midpoints = 0.5 * (t_starts + t_ends)
+        g = grad_depth[:, None] * midpoints + grad_weights + (grad_color[:, None] * rgbs).sum(-1)
+        depth = (w * midpoints).sum(1)
         G_end = (grad_color * background).sum(-1) - grad_opacity
         suffix, affine = torch.empty_like(tau), torch.empty_like(tau)
         after, G = T_S * G_end, G_end.clone()
