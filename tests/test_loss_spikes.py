@@ -26,7 +26,9 @@ def falling_loss(rng, n=400) -> np.ndarray:
 def test_ordinary_training_says_nothing():
     rng = np.random.default_rng()
     assert notes(falling_loss(rng)) == []
-    assert notes(0.002 * (1 + 0.2 * rng.standard_normal(500))) == []
+    # a flat loss with falling_loss's noise: at 20% a 2x ratio to the median of 10 came up in
+    # 1.8% of runs, at 15% in none of 4000
+    assert notes(0.002 * (1 + 0.15 * rng.standard_normal(500))) == []
 
 
 def test_a_spike_is_said_once_with_its_step_and_ratio():
