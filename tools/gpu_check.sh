@@ -13,7 +13,9 @@
 #   bench_base[:OPS] the same over the kernels of .baseline/csrc (see tools/gpu_build.sh), into
 #                 results/ops_baseline: an A/B of a kernel change on one card in one call
 #   long_run      python -m benchmarks.long_run_stability (--budget $LONG_RUN_BUDGET, default 400 s)
-#   ncu           Nsight Compute (--set full) of the composite forward and backward kernels
+#   ncu[_packed]  Nsight Compute (--set full) of the composite forward and backward kernels (_packed:
+#                 composite_packed's, on bench_ops' packed case)
+#   ncu_base[_packed] the same over the kernels of .baseline/csrc, its log only: the A/B of a kernel change
 #   field         python -m benchmarks.bench_field $FIELD_ARGS (the MLP's cost per preset and precision)
 #   crash         tools/diagnose_exception_crash.py (in the background, alongside later stages)
 #   checks        tools/profile_checks.py (what the default value checks cost a composite step, and where)
@@ -83,10 +85,14 @@ for stage in "${stages[@]}"; do
       --out "$OUT/results/ops" ${ops:+--ops ${ops#:}} ;;
     long_run) step long_run 560 python -m benchmarks.long_run_stability \
       --out "$OUT/results/long_run_stability" --budget "${LONG_RUN_BUDGET:-400}" ;;
-    ncu) step ncu 240 ncu --set full --import-source no --kernel-name regex:composite --launch-skip 4 \
-      --launch-count 2 python tools/profile_composite.py
+    # ncu_base before ncu: the pattern ncu* would take it.
+    ncu_base*) layout=${stage#ncu_base}; [ -d "$BASELINE_TREE/csrc" ] || { echo "$stage: no .baseline/csrc" >>"$summary"; continue; }
+      ( cd "$BASELINE_TREE" && export PYTHONPATH=$BASELINE_PYTHONPATH && step "$stage" 240 ncu --set full --import-source no \
+        --kernel-name regex:composite --launch-skip 4 --launch-count 2 python tools/profile_composite.py ${layout:+--packed} ) ;;
+    ncu*) layout=${stage#ncu}; step "$stage" 240 ncu --set full --import-source no --kernel-name regex:composite \
+      --launch-skip 4 --launch-count 2 python tools/profile_composite.py ${layout:+--packed}
       tag=$(python -c "from benchmarks.harness import device_tag; print(device_tag('cuda'))")
-      mkdir -p "$OUT/results/ops" && cp "$LOGS/ncu.log" "$OUT/results/ops/${tag}_composite_ncu.txt" ;;
+      mkdir -p "$OUT/results/ops" && cp "$LOGS/$stage.log" "$OUT/results/ops/${tag}_composite${layout}_ncu.txt" ;;
     field) step field 400 python -m benchmarks.bench_field --out "$OUT/results/train_step" $FIELD_ARGS ;;
     checks) step checks 120 python tools/profile_checks.py ;;
     train_step) for preset in ${STEP_PRESETS:-A D}; do
