@@ -420,8 +420,8 @@ def test_backward_rejects_transmittances_of_other_inputs(gen, device):
     """The backward reads the forward's chunk_transmittances: another size or dtype is an error."""
     composite(*[t.to(device) for t in valid_inputs()], backend="kernel")
     _, bwd_args = op_samples(gen, device)[0]
-    depths = bwd_args[-2]
-    for wrong in (torch.zeros(depths.numel() + 1, dtype=depths.dtype, device=device), depths.float()):
+    saved = bwd_args[-2]
+    for wrong in (torch.zeros(saved.numel() + 1, dtype=saved.dtype, device=device), saved.float()):
         bwd_args[-2] = wrong
         with pytest.raises(RuntimeError, match="chunk_transmittances"):
             torch.ops.mixer_nerf.composite_bwd(*bwd_args)
