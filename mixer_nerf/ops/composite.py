@@ -213,9 +213,9 @@ def _composite_bwd_fake(
     t_starts,
     t_ends,
     background,
-    *layout_depths_and_flag,
+    *layout_transmittances_and_flag,
 ):
-    interval_grads = layout_depths_and_flag[-1]
+    interval_grads = layout_transmittances_and_flag[-1]
     grad_t_starts = torch.empty_like(t_starts) if interval_grads else None
     grad_t_ends = torch.empty_like(t_ends) if interval_grads else None
     grad_background = None if background is None else torch.empty_like(background)
