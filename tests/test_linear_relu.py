@@ -66,13 +66,26 @@ def test_only_the_needed_gradients_are_computed(gen):
     torch.testing.assert_close(grad, torch.autograd.grad(linear_relu_reference(x, weight, bias).sum(), [weight])[0])
 
 
-def test_auto_on_the_cpu_and_under_autocast_is_the_reference(gen):
+def test_auto_on_the_cpu_is_the_reference(gen):
     x, weight, bias = layer(gen, (10,), 8, 4, torch.float32)
     assert torch.equal(linear_relu(x, weight, bias), linear_relu_reference(x, weight, bias))
+
+
+def test_under_autocast_the_fused_passes_run_in_its_dtype(gen):
+    """The fused GEMM in bf16 where autocast would run F.linear in bf16: the output in bf16, the
+    float32 leaves' gradients back through the casts, both as the eager path's within bf16's
+    rounding (2^-8 relative; a unit that sits at the ReLU's edge may flip, so the loose atol)."""
+    x, weight, bias = layer(gen, (64,), 48, 32, torch.float32)
+    upstream = torch.randn(64, 32, generator=gen)
     with torch.autocast("cpu", dtype=torch.bfloat16):
-        got = linear_relu(x, weight, bias, backend="kernel")
-        want = linear_relu_reference(x, weight, bias)
-    assert got.dtype == want.dtype == torch.bfloat16 and torch.equal(got, want)
+        fused = outputs_and_grads(lambda *a: linear_relu(*a, backend="kernel"), x, weight, bias, upstream)
+        eager = outputs_and_grads(linear_relu_reference, x, weight, bias, upstream)
+    assert fused[0].dtype == eager[0].dtype == torch.bfloat16
+    for got, want in zip(fused, eager, strict=True):
+        assert got.dtype == want.dtype
+        scale = want.abs().max().item()
+        torch.testing.assert_close(got.float(), want.float(), rtol=2**-6, atol=2**-6 * scale)
+    assert [g.dtype for g in fused[1:]] == [torch.float32] * 3
 
 
 @pytest.mark.parametrize("args, error, match", [

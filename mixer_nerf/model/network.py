@@ -123,10 +123,11 @@ class MixerNeRF(nn.Module):
         self._check_matches_parameters(x)
         direction, trunk_direction, spread = self._directions(x, d, ray_indices, offsets, ray_directions)
         features = self._trunk_features(x, trunk_direction, ray_indices, num_rays, offsets)
-        out = self.head(features)
-        sigma = self._activate_density(out[..., 0], x.dtype)
+        # split, not two slices: the backward is one cat, where slices' were two zero-filled copies and an add
+        raw, feature = self.head(features).split([1, self.cfg.width], dim=-1)
+        sigma = self._activate_density(raw.squeeze(-1), x.dtype)
         view_term = spread(self.view_direction(self.direction_mixer(direction)))  # per ray when d is
-        hidden = torch.relu(self.view_feature(out[..., 1:]) + view_term)
+        hidden = torch.relu(self.view_feature(feature) + view_term)
         rgb = torch.sigmoid(self.rgb(hidden).to(x.dtype))
         return sigma, rgb
 

@@ -10,6 +10,8 @@ Saves what the eager path saves (``x`` and the output, whose sign is the mask). 
 
 from __future__ import annotations
 
+import contextlib
+
 import torch
 
 from ._checks import check_backend, check_floating, check_same_device, check_same_dtype, check_shape
@@ -19,10 +21,11 @@ from .linear_relu_reference import linear_relu_reference
 def linear_relu(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, backend: str = "auto") -> torch.Tensor:
     """``relu(x W^T + b)``: x ``(..., in)``, weight ``(out, in)``, bias ``(out,)`` -> ``(..., out)``.
 
-    ``backend``: ``"auto"`` the fused passes on CUDA outside autocast (under autocast, as for a
-    CPU, the eager path, whose casts autocast decides), ``"kernel"`` the fused passes anywhere,
-    ``"torch"`` the reference. Raises ValueError/TypeError naming the argument for bad shapes,
-    dtypes or devices.
+    ``backend``: ``"auto"`` the fused passes on CUDA (the reference on a CPU), ``"kernel"`` the
+    fused passes anywhere, ``"torch"`` the reference. Under autocast the fused passes run in
+    autocast's dtype, as ``F.linear`` would (x, weight and bias cast to it; the output in it; the
+    gradients flow back through the casts). Raises ValueError/TypeError naming the argument for
+    bad shapes, dtypes or devices.
     """
     check_backend(backend)
     for name, t in (("x", x), ("weight", weight), ("bias", bias)):
@@ -35,9 +38,13 @@ def linear_relu(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, backe
     autocast = torch.is_autocast_enabled(x.device.type)
     if not autocast:
         check_same_dtype(x=x, weight=weight, bias=bias)
-    if autocast or backend == "torch" or (backend == "auto" and not x.is_cuda):
+    if backend == "torch" or (backend == "auto" and not x.is_cuda):
         return linear_relu_reference(x, weight, bias)
-    out = _LinearReLU.apply(x.reshape(-1, x.shape[-1]), weight, bias)
+    if autocast:  # the fused GEMM in the reduced dtype: the eager path would add bias and ReLU passes
+        dtype = torch.get_autocast_dtype(x.device.type)
+        x, weight, bias = x.to(dtype), weight.to(dtype), bias.to(dtype)
+    with torch.autocast(x.device.type, enabled=False) if autocast else contextlib.nullcontext():
+        out = _LinearReLU.apply(x.reshape(-1, x.shape[-1]), weight, bias)
     return out.reshape(*x.shape[:-1], weight.shape[0])
 
 
