@@ -259,6 +259,30 @@ def test_relu_density_option():
     torch.testing.assert_close(model(x, d)[0], torch.relu(raw))
 
 
+@pytest.mark.parametrize("width", [32, 31])
+def test_padded_head_gives_what_its_linear_gives(width):
+    """The head as one GEMM with rows padded to 8 values (and its outputs reordered) computes what
+    ``nn.Linear`` then slicing does: outputs and every parameter's gradient, to rounding."""
+    torch.manual_seed(0)
+    model = randomize_(small_model("D", width=width, backend="torch")).double()
+    x, d = (t.double() for t in random_rays(6, 5))
+
+    def sliced(features):
+        out = model.head(features)
+        return out[..., 1:], out[..., 0]
+
+    results = []
+    for head in (model._head, sliced):
+        model.zero_grad()
+        model._head = head
+        sigma, rgb = model(x, d)
+        (sigma.square().sum() + rgb.sum()).backward()
+        results.append([sigma, rgb] + [p.grad.clone() for p in model.parameters()])
+        del model._head
+    for got, want in zip(*results, strict=True):
+        torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-12)
+
+
 @pytest.mark.parametrize("preset", "AD")
 def test_per_ray_per_sample_and_expanded_directions_agree(preset):
     model = randomize_(small_model(preset))

@@ -123,9 +123,8 @@ class MixerNeRF(nn.Module):
         self._check_matches_parameters(x)
         direction, trunk_direction, spread = self._directions(x, d, ray_indices, offsets, ray_directions)
         features = self._trunk_features(x, trunk_direction, ray_indices, num_rays, offsets)
-        # split, not two slices: the backward is one cat, where slices' were two zero-filled copies and an add
-        raw, feature = self.head(features).split([1, self.cfg.width], dim=-1)
-        sigma = self._activate_density(raw.squeeze(-1), x.dtype)
+        feature, raw = self._head(features)
+        sigma = self._activate_density(raw, x.dtype)
         view_term = spread(self.view_direction(self.direction_mixer(direction)))  # per ray when d is
         hidden = torch.relu(self.view_feature(feature) + view_term)
         rgb = torch.sigmoid(self.rgb(hidden).to(x.dtype))
@@ -223,6 +222,18 @@ class MixerNeRF(nn.Module):
         if self.se is not None:
             h = self.se(h, ray_indices, num_rays, offsets)
         return h
+
+    def _head(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The feature ``(..., width)`` and the density pre-activation ``(...)`` in one GEMM whose
+        output rows are padded to a multiple of 8 values: cuBLAS's fast kernels need 16-byte aligned
+        rows, which the head's 1 + width outputs (and the feature view into them) are not. Split, not
+        sliced: the backward is then one cat, not a zero-filled copy per slice and their sum."""
+        weight, bias, width = self.head.weight, self.head.bias, self.cfg.width
+        pad = -(width + 1) % 8
+        weight = torch.cat([weight[1:], weight[:1], weight.new_zeros(pad, weight.shape[1])])
+        bias = torch.cat([bias[1:], bias[:1], bias.new_zeros(pad)])
+        feature, raw, _ = F.linear(features, weight, bias).split([width, 1, pad], dim=-1)
+        return feature, raw.squeeze(-1)
 
     def _activate_density(self, raw: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
         raw = raw.to(dtype)
