@@ -9,6 +9,7 @@ import math
 import pytest
 import torch
 import torch.nn.functional as F
+from torch.utils._python_dispatch import TorchDispatchMode
 
 from mixer_nerf import _extension
 from mixer_nerf.model import MLCA, MixerNeRF, ModelConfig, SqueezeExcitation, mean_over_ray_indices, preset_config
@@ -257,6 +258,27 @@ def test_relu_density_option():
     x, d = random_rays(8, 8)
     raw = model.head(model._trunk_features(x, None, None, None))[..., 0]
     torch.testing.assert_close(model(x, d)[0], torch.relu(raw))
+
+
+def test_under_autocast_the_encoding_is_cast_once_for_the_trunk_and_its_skip():
+    """The mixed encoding feeds the first layer and the skip: one cast to autocast's dtype, so one
+    cast back in the backward (two casts were two passes each way and a float32 sum of the two)."""
+    model = randomize_(small_model("C", backend="kernel"))
+    x, d = random_rays(4, 6)
+    width = model.trunk[0].in_features
+    casts = []
+
+    class Casts(TorchDispatchMode):
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            if func.overloadpacket is torch.ops.aten._to_copy and args[0].shape == (*x.shape[:-1], width):
+                casts.append(args[0].dtype)
+            return func(*args, **(kwargs or {}))
+
+    with Casts():
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            sigma, rgb = model(x, d)
+        (sigma.float().sum() + rgb.float().sum()).backward()
+    assert casts == [torch.float32, torch.bfloat16], casts  # forward to bf16, backward to float32
 
 
 @pytest.mark.parametrize("width", [32, 31])

@@ -214,6 +214,9 @@ class MixerNeRF(nn.Module):
                 raise ValueError("d is required when cfg.mlca_concat_direction (density depends on it)")
             encoded = torch.cat([encoded, direction.expand(*encoded.shape[:-1], -1)], dim=-1)
         encoded = self.position_mixer(encoded)
+        if torch.is_autocast_enabled(encoded.device.type):
+            # one cast for both uses (first layer, skip): each is a pass, and one more in the backward
+            encoded = encoded.to(torch.get_autocast_dtype(encoded.device.type))
         h = encoded
         for i, layer in enumerate(self.trunk):
             if i in cfg.skips:
