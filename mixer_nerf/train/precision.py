@@ -1,4 +1,5 @@
-"""The precision a run's fields compute in: bf16 autocast around the MLP, TF32 matmuls."""
+"""The precision a run's fields compute in: bf16 autocast around the MLP (float32 master weights,
+their bf16 copies made together once a pass), TF32 matmuls."""
 
 from __future__ import annotations
 
@@ -6,11 +7,36 @@ import torch
 from torch import nn
 
 
+class _CastTogether(torch.autograd.Function):
+    """``tensors`` (one dtype) in ``dtype`` by one multi-tensor copy, their gradients back by
+    another: two kernels a pass, where autocast casts each weight alone, and its gradient back."""
+
+    @staticmethod
+    def forward(ctx, dtype: torch.dtype, *tensors: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        ctx.set_materialize_grads(False)  # a weight the pass did not use keeps no gradient
+        ctx.source_dtype = tensors[0].dtype
+        cast = [torch.empty_like(t, dtype=dtype) for t in tensors]
+        torch._foreach_copy_(cast, list(tensors))
+        return tuple(cast)
+
+    @staticmethod
+    def backward(ctx, *grads: torch.Tensor | None):
+        given = [g for g in grads if g is not None]
+        back = [torch.empty_like(g, dtype=ctx.source_dtype) for g in given]
+        if back:
+            torch._foreach_copy_(back, given)
+        cast_back = iter(back)
+        return None, *(None if g is None else next(cast_back) for g in grads)
+
+
 class MixedPrecisionField(nn.Module):
     """Runs a field under bf16 autocast (``dtype``; None: as it is) and hands float32 back.
 
     Only the MLP runs in reduced precision: sampling and compositing kernels take float32, so the
-    outputs are cast back before they reach them.
+    outputs are cast back before they reach them. The parameters stay float32 (the optimiser's);
+    each pass runs on bf16 copies of the field's ``nn.Linear`` weights and biases, made together
+    (:class:`_CastTogether`), which autocast then leaves alone. Other parameters (MLCA's, which its
+    kernel takes in the encoding's float32) are the field's own.
     """
 
     packed_layout = ("ray_indices", "offsets", "ray_directions")
@@ -20,9 +46,20 @@ class MixedPrecisionField(nn.Module):
         self.field = field
         self.device_type = device_type
         self.dtype = dtype
+        self._linear_names = [f"{name}.{p}" for name, m in field.named_modules() if isinstance(m, nn.Linear)
+                              for p, value in (("weight", m.weight), ("bias", m.bias)) if value is not None]
 
     def _autocast(self):
         return torch.autocast(self.device_type, dtype=self.dtype or torch.float32, enabled=self.dtype is not None)
+
+    def _call(self, method: str, *args, **kwargs):
+        """``field.<method>(*args, **kwargs)`` on the reduced copies of its linear layers' parameters."""
+        params = [self.field.get_parameter(name) for name in self._linear_names]
+        if self.dtype is None or not params or params[0].dtype == self.dtype:
+            return getattr(self.field, method)(*args, **kwargs)
+        cast = dict(zip(self._linear_names, _CastTogether.apply(self.dtype, *params), strict=True))
+        with torch.nn.utils.stateless._reparametrize_module(self.field, cast):
+            return getattr(self.field, method)(*args, **kwargs)
 
     def forward(
         self,
@@ -36,7 +73,7 @@ class MixedPrecisionField(nn.Module):
         """The field's ``(sigma, rgb)`` in float32; packed-layout arguments as for
         :meth:`~mixer_nerf.model.MixerNeRF.forward`."""
         with self._autocast():
-            sigma, rgb = self.field(x, d, ray_indices=ray_indices, num_rays=num_rays, offsets=offsets,
+            sigma, rgb = self._call("forward", x, d, ray_indices=ray_indices, num_rays=num_rays, offsets=offsets,
                                     ray_directions=ray_directions)
         return sigma.float(), rgb.float()
 
@@ -49,8 +86,8 @@ class MixedPrecisionField(nn.Module):
         ray_directions: torch.Tensor | None = None,
     ) -> torch.Tensor:
         with self._autocast():
-            return self.field.density(x, ray_indices=ray_indices, num_rays=num_rays, offsets=offsets,
-                                      ray_directions=ray_directions).float()
+            return self._call("density", x, ray_indices=ray_indices, num_rays=num_rays, offsets=offsets,
+                              ray_directions=ray_directions).float()
 
 
 def set_matmul_precision(precision: str) -> None:
