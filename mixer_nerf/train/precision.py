@@ -14,17 +14,17 @@ class _CastTogether(torch.autograd.Function):
     @staticmethod
     def forward(ctx, dtype: torch.dtype, *tensors: torch.Tensor) -> tuple[torch.Tensor, ...]:
         ctx.set_materialize_grads(False)  # a weight the pass did not use keeps no gradient
-        ctx.source_dtype = tensors[0].dtype
+        ctx.source_dtypes = [t.dtype for t in tensors]
         cast = [torch.empty_like(t, dtype=dtype) for t in tensors]
         torch._foreach_copy_(cast, list(tensors))
         return tuple(cast)
 
     @staticmethod
     def backward(ctx, *grads: torch.Tensor | None):
-        given = [g for g in grads if g is not None]
-        back = [torch.empty_like(g, dtype=ctx.source_dtype) for g in given]
+        given = [(g, dtype) for g, dtype in zip(grads, ctx.source_dtypes, strict=True) if g is not None]
+        back = [torch.empty_like(g, dtype=dtype) for g, dtype in given]
         if back:
-            torch._foreach_copy_(back, given)
+            torch._foreach_copy_(back, [g for g, _ in given])
         cast_back = iter(back)
         return None, *(None if g is None else next(cast_back) for g in grads)
 
@@ -58,6 +58,7 @@ class MixedPrecisionField(nn.Module):
         if self.dtype is None or not params or params[0].dtype == self.dtype:
             return getattr(self.field, method)(*args, **kwargs)
         cast = dict(zip(self._linear_names, _CastTogether.apply(self.dtype, *params), strict=True))
+        # what torch.func.functional_call does around forward, here for density too
         with torch.nn.utils.stateless._reparametrize_module(self.field, cast):
             return getattr(self.field, method)(*args, **kwargs)
 
