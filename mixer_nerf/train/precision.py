@@ -52,15 +52,15 @@ class MixedPrecisionField(nn.Module):
     def _autocast(self):
         return torch.autocast(self.device_type, dtype=self.dtype or torch.float32, enabled=self.dtype is not None)
 
-    def _call(self, method: str, *args, **kwargs):
-        """``field.<method>(*args, **kwargs)`` on the reduced copies of its linear layers' parameters."""
+    def _run(self, fn, *args, **kwargs):
+        """``fn`` (the field or one of its methods) on reduced copies of the linear layers' parameters."""
         params = [self.field.get_parameter(name) for name in self._linear_names]
         if self.dtype is None or not params or params[0].dtype == self.dtype:
-            return getattr(self.field, method)(*args, **kwargs)
+            return fn(*args, **kwargs)
         cast = dict(zip(self._linear_names, _CastTogether.apply(self.dtype, *params), strict=True))
         # what torch.func.functional_call does around forward, here for density too
         with torch.nn.utils.stateless._reparametrize_module(self.field, cast):
-            return getattr(self.field, method)(*args, **kwargs)
+            return fn(*args, **kwargs)
 
     def forward(
         self,
@@ -74,8 +74,8 @@ class MixedPrecisionField(nn.Module):
         """The field's ``(sigma, rgb)`` in float32; packed-layout arguments as for
         :meth:`~mixer_nerf.model.MixerNeRF.forward`."""
         with self._autocast():
-            sigma, rgb = self._call("forward", x, d, ray_indices=ray_indices, num_rays=num_rays, offsets=offsets,
-                                    ray_directions=ray_directions)
+            sigma, rgb = self._run(self.field, x, d, ray_indices=ray_indices, num_rays=num_rays,
+                                   offsets=offsets, ray_directions=ray_directions)
         return sigma.float(), rgb.float()
 
     def density(
@@ -87,8 +87,8 @@ class MixedPrecisionField(nn.Module):
         ray_directions: torch.Tensor | None = None,
     ) -> torch.Tensor:
         with self._autocast():
-            return self._call("density", x, ray_indices=ray_indices, num_rays=num_rays, offsets=offsets,
-                              ray_directions=ray_directions).float()
+            return self._run(self.field.density, x, ray_indices=ray_indices, num_rays=num_rays,
+                             offsets=offsets, ray_directions=ray_directions).float()
 
 
 def set_matmul_precision(precision: str) -> None:
