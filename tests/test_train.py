@@ -515,6 +515,21 @@ def test_bf16_density_passes_decide_the_skipping_under_autocast(tmp_path):
     assert trainer.marched_seen >= trainer.samples_seen > 0  # early termination only drops samples
 
 
+@pytest.mark.parametrize("sampler", ["occupancy", "proposal", "hierarchical"])
+def test_a_bf16_training_pass_updates_the_float32_master_weights(tmp_path, sampler):
+    """--precision bf16: every step's MLP runs on bf16 copies, the optimiser on float32 weights that
+    all move (the linear layers' gradients come back through the one multi-tensor cast)."""
+    trainer = Trainer(tiny_config(tmp_path, sampler=sampler, precision="bf16"), log=quiet)
+    before = {n: p.detach().clone() for n, p in trainer.fields.coarse.named_parameters()}
+    for _ in range(3):
+        losses = trainer.train_step()
+    assert torch.isfinite(losses["loss"])
+    for name, p in trainer.fields.coarse.named_parameters():
+        assert p.dtype == torch.float32 and p.grad is not None and p.grad.dtype == torch.float32, name
+        if ".weight" in name and "mixer" not in name and name != "head.weight":
+            assert not torch.equal(p.detach(), before[name]), name  # (MLCA's mixing and head row 0 start at 0)
+
+
 def test_empty_space_loss_lowers_density_only_in_cells_the_grid_marks_empty(tmp_path):
     """Past the grid's warm-up each batch carries random box points; the loss is their mean density
     in empty cells (times the box diagonal and the weight), and its gradient reaches the MLP."""
