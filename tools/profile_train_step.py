@@ -1,6 +1,6 @@
 """Where a training step's time goes: wall time per step against GPU busy time, and the kernels.
 
-    python tools/profile_train_step.py [--data .data/lego_400] [--preset D] [--precision tf32]
+    python tools/profile_train_step.py [--data .data/lego_400] [--preset D] [--precision bf16|tf32|fp32]
         [--warmup 400] [--steps 30] [--[no-]bf16-density-passes] [--empty-space-weight W] [--cuda-graphs]
         [--out DIR]
 
@@ -47,7 +47,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", default=".data/lego_400")
     parser.add_argument("--preset", default="D")
-    parser.add_argument("--precision", default="tf32")
+    parser.add_argument("--precision", default=None, help="default: the trainer's (the sampler's recipe)")
     parser.add_argument("--warmup", type=int, default=400)
     parser.add_argument("--steps", type=int, default=30)
     parser.add_argument("--bf16-density-passes", action=argparse.BooleanOptionalAction, default=None,
@@ -87,7 +87,8 @@ def main() -> None:
     events = prof.key_averages()
     busy_ms = sum(e.self_device_time_total for e in events) / 1e3 / args.steps
     active_ms = active_time_us(prof.events()) / 1e3 / args.steps
-    header = (f"preset {args.preset}, {args.precision}, {args.data}, {torch.cuda.get_device_name()}: "
+    precision = trainer.cfg.precision
+    header = (f"preset {args.preset}, {precision}, {args.data}, {torch.cuda.get_device_name()}: "
               f"{wall_ms:.2f} ms per step (wall, unprofiled), GPU busy {busy_ms:.2f} ms per step "
               f"(kernel times summed; {active_ms:.2f} ms with some kernel running on any stream, idle "
               f"{100 * max(0.0, 1 - active_ms / profiled_ms):.0f}% of the profiled {profiled_ms:.2f} ms), "
@@ -98,7 +99,7 @@ def main() -> None:
     passes = "_bf16pass" * trainer.cfg.bf16_density_passes
     # named by the step profiled, before the host profile's steps
     graphs = "_graphs" * trainer.cfg.cuda_graphs
-    name = f"{device_tag('cuda')}_{scene_tag(args.data)}_{args.preset}_{args.precision}{passes}{graphs}_step{trainer.step}.txt"
+    name = f"{device_tag('cuda')}_{scene_tag(args.data)}_{args.preset}_{precision}{passes}{graphs}_step{trainer.step}.txt"
     table += "\n" + _kernels_by_op(trainer, args.steps)
     host = host_profile(trainer.train_step, args.steps, top=35)
     syncs = _sync_sites(trainer, args.steps)

@@ -29,8 +29,8 @@ class TrainConfig:
     """Everything that defines a training run.
 
     ``None`` in ``precision``, ``device`` and ``bf16_density_passes`` means "pick for the machine"
-    (see :meth:`resolved`): TF32 on CUDA (at equal time it beat bf16 autocast, docs/training.md),
-    bf16 density passes on CUDA, off on CPU. ``cuda_graphs=None`` is decided by the trainer, which
+    (see :meth:`resolved`): fp32 on CPU; on CUDA the sampler's recipe (bf16 autocast for the
+    occupancy sampler, TF32 for the others: docs/training.md), bf16 density passes on CUDA, off on CPU. ``cuda_graphs=None`` is decided by the trainer, which
     knows the sampler, the processes and where the images went: on wherever a step can be replayed.
     Learning rate: a linear warm-up over ``lr_warmup`` steps, ``lr`` held for the first ``lr_hold``
     of the run, then an exponential decay to ``lr_final`` at its end. The run's end is ``steps`` or,
@@ -81,7 +81,8 @@ class TrainConfig:
         metavar="N")
     seed: int = option(0, "random seed")
     precision: str | None = option(
-        None, "MLP precision (default: tf32 on CUDA, fp32 on CPU)", choices=PRECISIONS
+        None, "MLP precision (default on CUDA: bf16 for the occupancy sampler, tf32 for the others; fp32 on CPU)",
+        choices=PRECISIONS
     )
     device: str | None = option(None, "default: cuda when available", choices=("cpu", "cuda"))
     backend: str = option("auto", "ops: compiled kernels or the PyTorch reference", choices=BACKENDS)
@@ -267,13 +268,13 @@ class TrainConfig:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
 
     def resolved(self, cuda_available: bool) -> TrainConfig:
-        """A copy with ``device``, ``precision``, ``bf16_density_passes`` and ``val_images`` chosen
-        for this machine."""
+        """A copy with ``device``, ``bf16_density_passes`` and ``val_images`` chosen for this machine,
+        and ``precision`` on a CPU (on CUDA :meth:`with_recipe` picks it by sampler)."""
         device = self.device or ("cuda" if cuda_available else "cpu")
         if device.startswith("cuda") and not cuda_available:
             raise ValueError("device 'cuda' was asked for but torch sees no CUDA GPU")
         on_cuda = device.startswith("cuda")
-        precision = self.precision or ("tf32" if on_cuda else "fp32")
+        precision = self.precision or (None if on_cuda else "fp32")
         bf16_passes = on_cuda if self.bf16_density_passes is None else self.bf16_density_passes
         val_images = self.val_images or VAL_IMAGES["cuda" if on_cuda else "cpu"]
         return dataclasses.replace(self, device=device, precision=precision, bf16_density_passes=bf16_passes,
@@ -281,8 +282,9 @@ class TrainConfig:
 
     def with_recipe(self, sampler: str) -> TrainConfig:
         """A copy for ``sampler`` ("occupancy", "proposal" or "hierarchical") with the optimizer
-        settings left at None taken from its recipe (``SAMPLER_RECIPES``)."""
+        settings left at None taken from its recipe (``SAMPLER_RECIPES``), and on CUDA its precision."""
         recipe = SAMPLER_RECIPES[sampler]
+        on_cuda = (self.device or "").startswith("cuda")
         lr = recipe["lr"] if self.lr is None else self.lr
         return dataclasses.replace(
             self,
@@ -292,6 +294,7 @@ class TrainConfig:
             lr_warmup=recipe["lr_warmup"] if self.lr_warmup is None else self.lr_warmup,
             lr_hold=recipe["lr_hold"] if self.lr_hold is None else self.lr_hold,
             adam_eps=recipe["adam_eps"] if self.adam_eps is None else self.adam_eps,
+            precision=self.precision or (recipe["precision"] if on_cuda else None),
         )
 
     def marching(self) -> MarchingOptions:
@@ -314,15 +317,21 @@ class TrainConfig:
 # Losses on the proposal sampler's main field, each off at weight 0.
 PROPOSAL_REGULARISERS = ("distortion_weight", "occlusion_weight")
 
-SAMPLER_RECIPES: dict[str, dict[str, float]] = {
-    # Chosen by time-to-quality screens on Lego; eps 1e-15 is nerfacc's (docs/training.md).
-    "occupancy": {"lr": 4e-3, "lr_decay": 0.1, "lr_warmup": 200, "lr_hold": 0.5, "adam_eps": 1e-15},
-    # eps 1e-8: 1e-15 let a Fern run's loss spike for good during the 2e-3 hold (docs/training.md)
-    "proposal": {"lr": 2e-3, "lr_decay": 0.1, "lr_warmup": 200, "lr_hold": 0.5, "adam_eps": 1e-8},
+SAMPLER_RECIPES: dict[str, dict[str, Any]] = {
+    # Chosen by time-to-quality screens on Lego; eps 1e-15 is nerfacc's; bf16: 1.46x the steps of
+    # TF32 in 240 s on Lego and a higher held-out PSNR (docs/training.md).
+    "occupancy": {"lr": 4e-3, "lr_decay": 0.1, "lr_warmup": 200, "lr_hold": 0.5, "adam_eps": 1e-15,
+                  "precision": "bf16"},
+    # eps 1e-8: 1e-15 let a Fern run's loss spike for good during the 2e-3 hold (docs/training.md);
+    # TF32: bf16 not yet measured on Fern
+    "proposal": {"lr": 2e-3, "lr_decay": 0.1, "lr_warmup": 200, "lr_hold": 0.5, "adam_eps": 1e-8,
+                 "precision": "tf32"},
     # NeRF's recipe for dense coarse + fine batches: 5e-4 decaying 10x over the whole run.
-    "hierarchical": {"lr": 5e-4, "lr_decay": 0.1, "lr_warmup": 0, "lr_hold": 0.0, "adam_eps": 1e-15},
+    "hierarchical": {"lr": 5e-4, "lr_decay": 0.1, "lr_warmup": 0, "lr_hold": 0.0, "adam_eps": 1e-15,
+                     "precision": "tf32"},
 }
-"""Optimizer settings per sampler, for the fields a TrainConfig leaves at None."""
+"""Optimizer settings per sampler, for the fields a TrainConfig leaves at None, and the MLP's
+precision on CUDA."""
 
 DEMO_SETTINGS: dict[str, Any] = {
     "procedural_resolution": 40,

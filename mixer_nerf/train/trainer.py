@@ -220,12 +220,12 @@ class Trainer:
         self.device = torch.device(cfg.device)
         tensorboard = cfg.tensorboard and not self.rank  # rank 0 writes for all
         self.tensorboard = TensorBoardLog(self.files.root / "tensorboard") if tensorboard else None
-        set_matmul_precision(cfg.precision)
 
         self.train_scene = load_split(folder, fmt, "train", cfg.downscale, cfg.val_holdout).to(self.device)
         val_scene, self.val_split = held_out_split(folder, fmt, "val", cfg.downscale, cfg.val_holdout)
         self.val_scene = val_scene.to(self.device)
         self.cfg = cfg = resolve_sampler(cfg, self.train_scene.bbox, self.train_scene.ndc)
+        set_matmul_precision(cfg.precision)  # the sampler's recipe picks it on CUDA
         graphs, why = replays_steps(cfg, self.device, self.ranks is not None, self.train_scene.images.device)
         if self.device.type == "cuda" and cfg.cuda_graphs is None:
             self.log("  note: " + ("steps replay as CUDA graphs (--no-cuda-graphs: eager steps)" if graphs
