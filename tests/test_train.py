@@ -799,16 +799,23 @@ def test_cuda_fixed_capacity_steps_replay_without_a_sync(tmp_path, monkeypatch):
     assert late[True] < early and late[True] < 2 * late[False], (early, late)
 
 
-def test_the_step_profile_times_the_batch_preparation(tmp_path):
-    """tools/profile_train_step.py's host time in the occupancy path's batch preparation: a part of
-    the step's time, measured on real steps, the trainer's prefetch left as it was."""
+def _profile_tool():
+    """tools/profile_train_step.py as a module (tools/ is no package)."""
     import importlib.util
-    import re
 
     path = Path(__file__).resolve().parents[1] / "tools" / "profile_train_step.py"
     spec = importlib.util.spec_from_file_location("profile_train_step", path)
     tool = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(tool)
+    return tool
+
+
+def test_the_step_profile_times_the_batch_preparation(tmp_path):
+    """tools/profile_train_step.py's host time in the occupancy path's batch preparation: a part of
+    the step's time, measured on real steps, the trainer's prefetch left as it was."""
+    import re
+
+    tool = _profile_tool()
     trainer = Trainer(tiny_config(tmp_path, sampler="occupancy"), log=quiet)
     trainer.train_step()
     line = tool.preparation_time(trainer, 3)
@@ -816,6 +823,21 @@ def test_the_step_profile_times_the_batch_preparation(tmp_path):
     assert 0 < spent <= total, line
     assert trainer.step == 4 and "prefetch" not in vars(trainer.batches)
     assert tool.preparation_time(Trainer(tiny_config(tmp_path / "h"), log=quiet), 1) == ""
+
+
+def test_the_step_profile_times_the_median_window():
+    """profile_train_step's wall time per step: the median of its windows, so one window with a rare
+    slow step (a graph recaptured) does not set it; each window synchronised before and after."""
+    tool = _profile_tool()
+    calls, syncs = [], []
+
+    def step():
+        calls.append(None)
+        time.sleep(0.05 if len(calls) == 2 else 0.002)  # the first window's second step is slow
+
+    ms = tool.median_step_ms(step, lambda: syncs.append(len(calls)), steps=4)
+    assert len(calls) == 12 and syncs == [0, 4, 4, 8, 8, 12]
+    assert 2 <= ms < 10
 
 
 def test_cuda_graphs_are_refused_on_a_cpu_before_training(tmp_path):

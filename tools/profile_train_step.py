@@ -5,7 +5,8 @@
         [--out DIR]
 
 Trains ``--warmup`` steps (past the occupancy grid's dense warm-up, so the batch has its steady
-size), then profiles ``--steps`` steps with torch.profiler. Prints ms per step (wall), the GPU's
+size), times three windows of ``--steps`` steps (the median window's ms per step: one may hold a
+graph recapture), then profiles ``--steps`` steps with torch.profiler. Prints ms per step (wall), the GPU's
 busy ms per step (sum of kernel times; and the time any kernel runs, overlapping streams counted
 once, against the profiled wall time: the GPU idle), with the occupancy sampler the host time per
 step spent preparing the next batch, the kernels sorted by CUDA time and the ops by
@@ -43,6 +44,21 @@ def active_time_us(events) -> float:
     return active
 
 
+def median_step_ms(step, synchronize, steps: int, windows: int = 3) -> float:
+    """ms per step over ``windows`` windows of ``steps`` steps each, the median window's: one window
+    may hold a rare event (a batch capacity that grows, and the graph recaptured for it) that the
+    others do not."""
+    times = []
+    for _ in range(windows):
+        synchronize()
+        start = time.perf_counter()
+        for _ in range(steps):
+            step()
+        synchronize()
+        times.append((time.perf_counter() - start) * 1e3 / steps)
+    return sorted(times)[windows // 2]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", default=".data/lego_400")
@@ -71,13 +87,9 @@ def main() -> None:
         trainer.train_step()
     torch.cuda.synchronize()
     seen = trainer.rays_seen, trainer.samples_seen, trainer.marched_seen
-    start = time.perf_counter()
-    for _ in range(args.steps):
-        trainer.train_step()
-    torch.cuda.synchronize()
+    wall_ms = median_step_ms(trainer.train_step, torch.cuda.synchronize, args.steps)
     rays, shaded, marched = (now - before for now, before in
                              zip((trainer.rays_seen, trainer.samples_seen, trainer.marched_seen), seen))
-    wall_ms = (time.perf_counter() - start) * 1e3 / args.steps
     with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CUDA]) as prof:
         start = time.perf_counter()
         for _ in range(args.steps):
@@ -89,7 +101,8 @@ def main() -> None:
     active_ms = active_time_us(prof.events()) / 1e3 / args.steps
     precision = trainer.cfg.precision
     header = (f"preset {args.preset}, {precision}, {args.data}, {torch.cuda.get_device_name()}: "
-              f"{wall_ms:.2f} ms per step (wall, unprofiled), GPU busy {busy_ms:.2f} ms per step "
+              f"{wall_ms:.2f} ms per step (wall, unprofiled: the median of 3 windows of {args.steps} steps; "
+              f"idle {100 * max(0.0, 1 - active_ms / wall_ms):.0f}% of it), GPU busy {busy_ms:.2f} ms per step "
               f"(kernel times summed; {active_ms:.2f} ms with some kernel running on any stream, idle "
               f"{100 * max(0.0, 1 - active_ms / profiled_ms):.0f}% of the profiled {profiled_ms:.2f} ms), "
               f"batch {batch_rays(trainer)} rays, step {trainer.step}, per ray {marched / rays:.1f} "
