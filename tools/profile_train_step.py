@@ -99,16 +99,19 @@ def main() -> None:
     events = prof.key_averages()
     busy_ms = sum(e.self_device_time_total for e in events) / 1e3 / args.steps
     active_ms = active_time_us(prof.events()) / 1e3 / args.steps
+    # every gap between two kernels of a step (a CUDA graph's too) idles the GPU for a moment
+    launches = sum(e.device_type == DeviceType.CUDA for e in prof.events()) / args.steps
     precision = trainer.cfg.precision
     header = (f"preset {args.preset}, {precision}, {args.data}, {torch.cuda.get_device_name()}: "
               f"{wall_ms:.2f} ms per step (wall, unprofiled: the median of 3 windows of {args.steps} steps; "
               f"idle {100 * max(0.0, 1 - active_ms / wall_ms):.0f}% of it), GPU busy {busy_ms:.2f} ms per step "
               f"(kernel times summed; {active_ms:.2f} ms with some kernel running on any stream, idle "
-              f"{100 * max(0.0, 1 - active_ms / profiled_ms):.0f}% of the profiled {profiled_ms:.2f} ms), "
+              f"{100 * max(0.0, 1 - active_ms / profiled_ms):.0f}% of the profiled {profiled_ms:.2f} ms; "
+              f"{launches:.0f} kernels and copies a step), "
               f"batch {batch_rays(trainer)} rays, step {trainer.step}, per ray {marched / rays:.1f} "
               f"marched and {shaded / rays:.1f} shaded samples, bf16 density passes "
               f"{trainer.cfg.bf16_density_passes}")
-    table = events.table(sort_by="self_cuda_time_total", row_limit=30, max_name_column_width=70)
+    table = events.table(sort_by="self_cuda_time_total", row_limit=60, max_name_column_width=70)
     passes = "_bf16pass" * trainer.cfg.bf16_density_passes
     # named by the step profiled, before the host profile's steps
     graphs = "_graphs" * trainer.cfg.cuda_graphs
