@@ -30,8 +30,9 @@ class TrainConfig:
 
     ``None`` in ``precision``, ``device`` and ``bf16_density_passes`` means "pick for the machine"
     (see :meth:`resolved`): fp32 on CPU; on CUDA the sampler's recipe (bf16 autocast for the
-    occupancy sampler, TF32 for the others: docs/training.md), bf16 density passes on CUDA, off on CPU. ``cuda_graphs=None`` is decided by the trainer, which
-    knows the sampler, the processes and where the images went: on wherever a step can be replayed.
+    occupancy sampler, TF32 for the others: docs/training.md), bf16 density passes on CUDA, off on
+    CPU. ``cuda_graphs=None`` is decided by the trainer, which knows the sampler, the processes and
+    where the images went: on wherever a step can be replayed.
     Learning rate: a linear warm-up over ``lr_warmup`` steps, ``lr`` held for the first ``lr_hold``
     of the run, then an exponential decay to ``lr_final`` at its end. The run's end is ``steps`` or,
     with a ``time_budget``, whichever of the two comes first: the schedule follows the training
@@ -81,8 +82,8 @@ class TrainConfig:
         metavar="N")
     seed: int = option(0, "random seed")
     precision: str | None = option(
-        None, "MLP precision (default on CUDA: bf16 for the occupancy sampler, tf32 for the others; fp32 on CPU)",
-        choices=PRECISIONS
+        None, "MLP precision (default on CUDA: bf16 for the occupancy sampler, tf32 for the others; "
+        "fp32 on CPU)", choices=PRECISIONS
     )
     device: str | None = option(None, "default: cuda when available", choices=("cpu", "cuda"))
     backend: str = option("auto", "ops: compiled kernels or the PyTorch reference", choices=BACKENDS)
