@@ -69,8 +69,21 @@ def environment() -> list[tuple[str, str]]:
         ),
         ("GPU", ", ".join(gpus) if gpus else "none seen by torch"),
         ("kernels", kernels),
+        ("training", training_precision(torch.cuda.is_available())),
         ("optional", ", ".join(installed) or "none installed"),
     ]
+
+
+def training_precision(cuda: bool) -> str:
+    """The MLP precision ``mixer-nerf train`` picks here for each sampler (its recipe's on CUDA)."""
+    from .train.config import SAMPLER_RECIPES, TrainConfig
+
+    resolved = TrainConfig().resolved(cuda)
+    by_precision: dict[str, list[str]] = {}
+    for sampler in SAMPLER_RECIPES:
+        by_precision.setdefault(resolved.with_recipe(sampler).precision, []).append(sampler)
+    samplers = "; ".join(f"{precision} ({', '.join(names)})" for precision, names in by_precision.items())
+    return f"MLP in {samplers} on {resolved.device} (--precision overrides)"
 
 
 def accuracy_checks(devices: list[str] | None = None) -> Iterator[Check]:

@@ -21,6 +21,15 @@ def test_doctor_reports_and_checks_every_op(capsys):
     assert "all checks passed" in out
 
 
+def test_it_names_the_training_precision_of_each_sampler(capsys):
+    assert doctor.training_precision(cuda=False) == (
+        "MLP in fp32 (occupancy, proposal, hierarchical) on cpu (--precision overrides)")
+    assert doctor.training_precision(cuda=True) == (
+        "MLP in bf16 (occupancy); tf32 (proposal, hierarchical) on cuda (--precision overrides)")
+    assert cli.main(["doctor"]) == 0
+    assert f"training:   {doctor.training_precision(torch.cuda.is_available())}" in capsys.readouterr().out
+
+
 def test_without_kernels_it_names_the_fallback_and_why(monkeypatch, capsys):
     monkeypatch.setattr(_extension, "available", lambda: False)
     monkeypatch.setitem(
