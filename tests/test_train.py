@@ -440,7 +440,8 @@ def test_cuda_precision_comes_from_the_samplers_recipe_unless_given():
     on_gpu = {sampler: TrainConfig().resolved(cuda_available=True).with_recipe(sampler).precision
               for sampler in ("occupancy", "proposal", "hierarchical")}
     assert on_gpu == {"occupancy": "bf16", "proposal": "tf32", "hierarchical": "tf32"}
-    assert TrainConfig(precision="tf32").resolved(cuda_available=True).with_recipe("occupancy").precision == "tf32"
+    given = TrainConfig(precision="tf32").resolved(cuda_available=True)
+    assert given.with_recipe("occupancy").precision == "tf32"
     assert TrainConfig().resolved(cuda_available=False).with_recipe("occupancy").precision == "fp32"
 
 

@@ -42,6 +42,9 @@ step() {  # step NAME SECONDS CMD...: run with a time limit, keep the log, recor
 [ -n "$SKIP_BUILD" ] || bash tools/gpu_build.sh >>"$summary"
 mv "$OUT/build.log" "$OUT/nerfacc_build.log" "$OUT/baseline_build.log" "$LOGS/" 2>/dev/null
 stages=("$@")
+# Nsight Compute of the third composite call's forward and backward kernels (tools/profile_composite.py).
+NCU_COMPOSITE=(ncu --set full --import-source no --kernel-name regex:composite --launch-skip 4 --launch-count 2
+  python tools/profile_composite.py)
 [ ${#stages[@]} -eq 0 ] && stages=(crash pytest error_budget bench memcheck racecheck)
 for stage in "${stages[@]}"; do
   case $stage in
@@ -87,10 +90,8 @@ for stage in "${stages[@]}"; do
       --out "$OUT/results/long_run_stability" --budget "${LONG_RUN_BUDGET:-400}" ;;
     # ncu_base before ncu: the pattern ncu* would take it.
     ncu_base*) layout=${stage#ncu_base}; [ -d "$BASELINE_TREE/csrc" ] || { echo "$stage: no .baseline/csrc" >>"$summary"; continue; }
-      ( cd "$BASELINE_TREE" && export PYTHONPATH=$BASELINE_PYTHONPATH && step "$stage" 240 ncu --set full --import-source no \
-        --kernel-name regex:composite --launch-skip 4 --launch-count 2 python tools/profile_composite.py ${layout:+--packed} ) ;;
-    ncu*) layout=${stage#ncu}; step "$stage" 240 ncu --set full --import-source no --kernel-name regex:composite \
-      --launch-skip 4 --launch-count 2 python tools/profile_composite.py ${layout:+--packed}
+      ( cd "$BASELINE_TREE" && export PYTHONPATH=$BASELINE_PYTHONPATH && step "$stage" 240 "${NCU_COMPOSITE[@]}" ${layout:+--packed} ) ;;
+    ncu*) layout=${stage#ncu}; step "$stage" 240 "${NCU_COMPOSITE[@]}" ${layout:+--packed}
       tag=$(python -c "from benchmarks.harness import device_tag; print(device_tag('cuda'))")
       mkdir -p "$OUT/results/ops" && cp "$LOGS/$stage.log" "$OUT/results/ops/${tag}_composite${layout}_ncu.txt" ;;
     field) step field 400 python -m benchmarks.bench_field --out "$OUT/results/train_step" $FIELD_ARGS ;;

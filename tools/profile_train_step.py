@@ -6,15 +6,15 @@
 
 Trains ``--warmup`` steps (past the occupancy grid's dense warm-up, so the batch has its steady
 size), times three windows of ``--steps`` steps (the median window's ms per step: one may hold a
-graph recapture), then profiles ``--steps`` steps with torch.profiler. Prints ms per step (wall), the GPU's
-busy ms per step (sum of kernel times; and the time any kernel runs, overlapping streams counted
-once, against the profiled wall time: the GPU idle), with the occupancy sampler the host time per
-step spent preparing the next batch, the kernels sorted by CUDA time and the ops by
-the GPU time of the kernels they launched; a wall time well above the busy time means the step
-waits on the host (Python, launches, synchronisations). The
-file in ``--out`` also lists the Python functions by their own host time (cProfile, ``--steps``
-more steps) and the host ms per step when the GPU has nothing left to do: the step's host cost,
-then every call of ``--steps`` more steps that makes the host wait for the GPU, by its line.
+graph recapture), then profiles ``--steps`` steps with torch.profiler. Prints ms per step (wall),
+the GPU's busy ms per step (sum of kernel times; and the time any kernel runs, overlapping streams
+counted once, against the profiled wall time: the GPU idle), kernels per step, with the occupancy
+sampler the host time per step spent preparing the next batch, the kernels sorted by CUDA time and
+the ops by the GPU time of the kernels they launched; a wall time well above the busy time means
+the step waits on the host (Python, launches, synchronisations). The file in ``--out`` also lists
+the Python functions by their own host time (cProfile, ``--steps`` more steps) and the host ms per
+step when the GPU has nothing left to do: the step's host cost, then every call of ``--steps``
+more steps that makes the host wait for the GPU, by its line.
 """
 
 from __future__ import annotations
@@ -104,7 +104,8 @@ def main() -> None:
     precision = trainer.cfg.precision
     header = (f"preset {args.preset}, {precision}, {args.data}, {torch.cuda.get_device_name()}: "
               f"{wall_ms:.2f} ms per step (wall, unprofiled: the median of 3 windows of {args.steps} steps; "
-              f"idle {100 * max(0.0, 1 - active_ms / wall_ms):.0f}% of it), GPU busy {busy_ms:.2f} ms per step "
+              f"idle {100 * max(0.0, 1 - active_ms / wall_ms):.0f}% of it), "
+              f"GPU busy {busy_ms:.2f} ms per step "
               f"(kernel times summed; {active_ms:.2f} ms with some kernel running on any stream, idle "
               f"{100 * max(0.0, 1 - active_ms / profiled_ms):.0f}% of the profiled {profiled_ms:.2f} ms; "
               f"{launches:.0f} kernels and copies a step), "
@@ -115,7 +116,8 @@ def main() -> None:
     passes = "_bf16pass" * trainer.cfg.bf16_density_passes
     # named by the step profiled, before the host profile's steps
     graphs = "_graphs" * trainer.cfg.cuda_graphs
-    name = f"{device_tag('cuda')}_{scene_tag(args.data)}_{args.preset}_{precision}{passes}{graphs}_step{trainer.step}.txt"
+    name = (f"{device_tag('cuda')}_{scene_tag(args.data)}_{args.preset}_{precision}{passes}{graphs}"
+            f"_step{trainer.step}.txt")
     table += "\n" + _kernels_by_op(trainer, args.steps)
     host = host_profile(trainer.train_step, args.steps, top=35)
     syncs = _sync_sites(trainer, args.steps)
