@@ -13,9 +13,10 @@
 #   bench_base[:OPS] the same over the kernels of .baseline/csrc (see tools/gpu_build.sh), into
 #                 results/ops_baseline: an A/B of a kernel change on one card in one call
 #   long_run      python -m benchmarks.long_run_stability (--budget $LONG_RUN_BUDGET, default 400 s)
-#   ncu[_packed]  Nsight Compute (--set full) of the composite forward and backward kernels (_packed:
-#                 composite_packed's, on bench_ops' packed case)
-#   ncu_base[_packed] the same over the kernels of .baseline/csrc, its log only: the A/B of a kernel change
+#   ncu[_packed|_hierarchical] Nsight Compute (--set full) of the composite forward and backward kernels
+#                 (_packed: composite_packed's, on bench_ops' packed case; _hierarchical: hierarchical_samples'
+#                 default call), tools/profile_op.py
+#   ncu_base[...] the same over the kernels of .baseline/csrc, its log only: the A/B of a kernel change
 #   field         python -m benchmarks.bench_field $FIELD_ARGS (the MLP's cost per preset and precision)
 #   crash         tools/diagnose_exception_crash.py (in the background, alongside later stages)
 #   checks        tools/profile_checks.py (what the default value checks cost a composite step, and where)
@@ -42,9 +43,13 @@ step() {  # step NAME SECONDS CMD...: run with a time limit, keep the log, recor
 [ -n "$SKIP_BUILD" ] || bash tools/gpu_build.sh >>"$summary"
 mv "$OUT/build.log" "$OUT/nerfacc_build.log" "$OUT/baseline_build.log" "$LOGS/" 2>/dev/null
 stages=("$@")
-# Nsight Compute of the third composite call's forward and backward kernels (tools/profile_composite.py).
-NCU_COMPOSITE=(ncu --set full --import-source no --kernel-name regex:composite --launch-skip 4 --launch-count 2
-  python tools/profile_composite.py)
+# Nsight Compute of two of a case's kernel launches after four (tools/profile_op.py): ncu_stage NAME LAYOUT
+ncu_case() { case $1 in _packed) echo composite_packed ;; _hierarchical) echo hierarchical_samples ;; *) echo composite ;; esac; }
+ncu_stage() {
+  local case; case=$(ncu_case "$2")
+  step "$1" 240 ncu --set full --import-source no --kernel-name "regex:$(python tools/profile_op.py --kernel "$case")" \
+    --launch-skip 4 --launch-count 2 python tools/profile_op.py "$case"
+}
 [ ${#stages[@]} -eq 0 ] && stages=(crash pytest error_budget bench memcheck racecheck)
 for stage in "${stages[@]}"; do
   case $stage in
@@ -90,10 +95,10 @@ for stage in "${stages[@]}"; do
       --out "$OUT/results/long_run_stability" --budget "${LONG_RUN_BUDGET:-400}" ;;
     # ncu_base before ncu: the pattern ncu* would take it.
     ncu_base*) layout=${stage#ncu_base}; [ -d "$BASELINE_TREE/csrc" ] || { echo "$stage: no .baseline/csrc" >>"$summary"; continue; }
-      ( cd "$BASELINE_TREE" && export PYTHONPATH=$BASELINE_PYTHONPATH && step "$stage" 240 "${NCU_COMPOSITE[@]}" ${layout:+--packed} ) ;;
-    ncu*) layout=${stage#ncu}; step "$stage" 240 "${NCU_COMPOSITE[@]}" ${layout:+--packed}
+      ( cd "$BASELINE_TREE" && export PYTHONPATH=$BASELINE_PYTHONPATH && ncu_stage "$stage" "$layout" ) ;;
+    ncu*) layout=${stage#ncu}; ncu_stage "$stage" "$layout"
       tag=$(python -c "from benchmarks.harness import device_tag; print(device_tag('cuda'))")
-      mkdir -p "$OUT/results/ops" && cp "$LOGS/$stage.log" "$OUT/results/ops/${tag}_composite${layout}_ncu.txt" ;;
+      mkdir -p "$OUT/results/ops" && cp "$LOGS/$stage.log" "$OUT/results/ops/${tag}_$(ncu_case "$layout")_ncu.txt" ;;
     field) step field 400 python -m benchmarks.bench_field --out "$OUT/results/train_step" $FIELD_ARGS ;;
     checks) step checks 120 python tools/profile_checks.py ;;
     train_step) for preset in ${STEP_PRESETS:-A D}; do
