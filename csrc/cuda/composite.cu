@@ -99,6 +99,17 @@ struct LaneSamples {
       }
     }
   }
+  // exp(-tau) and alpha of each sample into `sample` (past the ray's end: 1 and 0); returns the
+  // product of exp(-tau) over the run.
+  __device__ ray_acc neg_exps(NegExp (&sample)[K]) const {
+    ray_acc run_decay = 1;
+#pragma unroll
+    for (int j = 0; j < K; ++j) {
+      sample[j] = j < valid ? neg_exp<scalar_t>(tau[j]) : NegExp{1, 0};
+      run_decay *= sample[j].exp;
+    }
+    return run_decay;
+  }
   __device__ ray_acc midpoint(int j) const { return ray_acc(0.5) * (ray_acc(t_start[j]) + ray_acc(t_end[j])); }
   __device__ int32_t invalid_bits() const {
     int32_t bits = 0;
@@ -140,12 +151,7 @@ __device__ int32_t composite_forward_ray(const CompositeInputs<scalar_t>& in, co
       const int64_t k = base + lane * kForwardRun;
       const LaneSamples<scalar_t, kForwardRun> s(in, offset, count, k);
       NegExp sample[kForwardRun];
-      ray_acc run_decay = 1;  // exp(-tau) over the lane's run
-#pragma unroll
-      for (int j = 0; j < kForwardRun; ++j) {
-        sample[j] = j < s.valid ? neg_exp<scalar_t>(s.tau[j]) : NegExp{1, 0};
-        run_decay *= sample[j].exp;
-      }
+      const ray_acc run_decay = s.neg_exps(sample);
       lane_optical_depth += s.total;
       ray_acc transmittance = run_transmittance(run_decay, lane, transmittance_before_chunk);
       if (c0 == 0) {
@@ -220,12 +226,7 @@ __device__ void composite_backward_ray(const CompositeInputs<scalar_t>& in, cons
   for (int64_t q = chunks - 1; q >= 0; --q) {
     const LaneSamples<scalar_t, kBackwardRun> s(in, offset, count, q * kBackwardChunk + lane * kBackwardRun);
     NegExp sample[kBackwardRun];
-    ray_acc run_decay = 1;  // exp(-tau) over the lane's run
-#pragma unroll
-    for (int j = 0; j < kBackwardRun; ++j) {
-      sample[j] = j < s.valid ? neg_exp<scalar_t>(s.tau[j]) : NegExp{1, 0};
-      run_decay *= sample[j].exp;
-    }
+    const ray_acc run_decay = s.neg_exps(sample);
     ray_acc transmittance_after_chunk = chunk_start[q];
     ray_acc transmittance = run_transmittance(run_decay, lane, transmittance_after_chunk);
     if (q == chunks - 1) {
