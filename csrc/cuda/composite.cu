@@ -162,6 +162,7 @@ template <typename scalar_t, int kC>  // kC: as composite_backward_ray's
 __device__ int32_t composite_forward_ray(const CompositeInputs<scalar_t>& in, const CompositeOutputs<scalar_t>& out,
                                          int64_t ray, int64_t offset, int64_t count, int lane,
                                          ray_acc* chunk_start) {
+  static_assert(kC <= kChannelsPerPass, "a compiled channel count takes one pass");
   const int64_t C = kC > 0 ? kC : in.channels;
   int32_t invalid = 0;
   for (int64_t c0 = 0; c0 == 0 || c0 < C; c0 += kChannelsPerPass) {
@@ -172,6 +173,17 @@ __device__ int32_t composite_forward_ray(const CompositeInputs<scalar_t>& in, co
     for (int64_t base = 0; base < count; base += kForwardChunk) {
       const int64_t k = base + lane * kForwardRun;
       const LaneSamples<scalar_t, kForwardRun> s(in, offset, count, k);
+      // The run's colours, read before the scan: below the stores of the weights and chunk_start
+      // the compiler must keep them (it cannot tell the arrays apart), and the warp waited on them.
+      acc_t<scalar_t> run_rgb[kForwardRun][kC > 0 ? kC : 1] = {};
+      if constexpr (kC > 0) {
+#pragma unroll
+        for (int j = 0; j < kForwardRun; ++j) {
+          if (j >= s.valid) continue;
+#pragma unroll
+          for (int c = 0; c < kC; ++c) run_rgb[j][c] = in.rgbs[(s.first + j) * kC + c];
+        }
+      }
       NegExp sample[kForwardRun];
       const ray_acc run_decay = s.neg_exps(sample);
       lane_optical_depth += s.total;
@@ -190,10 +202,15 @@ __device__ int32_t composite_forward_ray(const CompositeInputs<scalar_t>& in, co
           out.weights[i] = static_cast<scalar_t>(w);
           depth += w * s.midpoint(j);
         }
-        const scalar_t* rgb = in.rgbs + i * C + c0;
+        if constexpr (kC > 0) {
 #pragma unroll
-        for (int c = 0; c < kChannelsPerPass; ++c) {
-          if (c0 + c < C) color[c] += w * ray_acc(rgb[c]);
+          for (int c = 0; c < kC; ++c) color[c] += w * ray_acc(run_rgb[j][c]);
+        } else {
+          const scalar_t* rgb = in.rgbs + i * C + c0;
+#pragma unroll
+          for (int c = 0; c < kChannelsPerPass; ++c) {
+            if (c0 + c < C) color[c] += w * ray_acc(rgb[c]);
+          }
         }
       }
     }
