@@ -76,6 +76,12 @@ __device__ __forceinline__ NegExp neg_exp(ray_acc x) {
   }
 }
 
+// How many of a run of K samples from sample k of a ray of `count` lie in the ray.
+template <int K>
+__device__ __forceinline__ int valid_in_run(int64_t count, int64_t k) {
+  return static_cast<int>(k >= count ? 0 : (count - k < K ? count - k : K));
+}
+
 // A lane's run of K consecutive samples of a chunk. Samples past the ray's end hold
 // an empty interval (tau = 0, g = 0), the identity of both scans.
 template <typename scalar_t, int K>
@@ -87,17 +93,44 @@ struct LaneSamples {
   ray_acc tau[K] = {};  // exact for float inputs: a double holds the product of two floats
   ray_acc total = 0;    // sum of tau over the run
   __device__ LaneSamples(const CompositeInputs<scalar_t>& in, int64_t offset, int64_t count, int64_t k)
-      : first(offset + k), valid(static_cast<int>(k >= count ? 0 : (count - k < K ? count - k : K))) {
+      : first(offset + k), valid(valid_in_run<K>(count, k)) {
 #pragma unroll
     for (int j = 0; j < K; ++j) {
       if (j < valid) {
         sigma[j] = in.sigmas[first + j];
         t_start[j] = in.t_starts[first + j];
         t_end[j] = in.t_ends[first + j];
+      }
+    }
+    sum_optical_thickness();
+  }
+  // From values loaded earlier (zeros past the ray's end), e.g. a chunk ahead.
+  __device__ LaneSamples(int64_t offset, int64_t count, int64_t k, const acc (&sigma_)[K], const acc (&t_start_)[K],
+                         const acc (&t_end_)[K])
+      : first(offset + k), valid(valid_in_run<K>(count, k)) {
+#pragma unroll
+    for (int j = 0; j < K; ++j) sigma[j] = sigma_[j], t_start[j] = t_start_[j], t_end[j] = t_end_[j];
+    sum_optical_thickness();
+  }
+  __device__ void sum_optical_thickness() {
+#pragma unroll
+    for (int j = 0; j < K; ++j) {
+      if (j < valid) {
         tau[j] = ray_acc(sigma[j]) * (ray_acc(t_end[j]) - ray_acc(t_start[j]));
         total += tau[j];
       }
     }
+  }
+  // exp(-tau) and alpha of each sample into `sample` (past the ray's end: 1 and 0); returns the
+  // product of exp(-tau) over the run.
+  __device__ ray_acc neg_exps(NegExp (&sample)[K]) const {
+    ray_acc run_decay = 1;
+#pragma unroll
+    for (int j = 0; j < K; ++j) {
+      sample[j] = j < valid ? neg_exp<scalar_t>(tau[j]) : NegExp{1, 0};
+      run_decay *= sample[j].exp;
+    }
+    return run_decay;
   }
   __device__ ray_acc midpoint(int j) const { return ray_acc(0.5) * (ray_acc(t_start[j]) + ray_acc(t_end[j])); }
   __device__ int32_t invalid_bits() const {
@@ -129,6 +162,7 @@ template <typename scalar_t, int kC>  // kC: as composite_backward_ray's
 __device__ int32_t composite_forward_ray(const CompositeInputs<scalar_t>& in, const CompositeOutputs<scalar_t>& out,
                                          int64_t ray, int64_t offset, int64_t count, int lane,
                                          ray_acc* chunk_start) {
+  static_assert(kC <= kChannelsPerPass, "a compiled channel count takes one pass");
   const int64_t C = kC > 0 ? kC : in.channels;
   int32_t invalid = 0;
   for (int64_t c0 = 0; c0 == 0 || c0 < C; c0 += kChannelsPerPass) {
@@ -139,13 +173,19 @@ __device__ int32_t composite_forward_ray(const CompositeInputs<scalar_t>& in, co
     for (int64_t base = 0; base < count; base += kForwardChunk) {
       const int64_t k = base + lane * kForwardRun;
       const LaneSamples<scalar_t, kForwardRun> s(in, offset, count, k);
-      NegExp sample[kForwardRun];
-      ray_acc run_decay = 1;  // exp(-tau) over the lane's run
+      // The run's colours, read before the scan: below the stores of the weights and chunk_start
+      // the compiler must keep them (it cannot tell the arrays apart), and the warp waited on them.
+      acc_t<scalar_t> run_rgb[kForwardRun][kC > 0 ? kC : 1] = {};
+      if constexpr (kC > 0) {
 #pragma unroll
-      for (int j = 0; j < kForwardRun; ++j) {
-        sample[j] = j < s.valid ? neg_exp<scalar_t>(s.tau[j]) : NegExp{1, 0};
-        run_decay *= sample[j].exp;
+        for (int j = 0; j < kForwardRun; ++j) {
+          if (j >= s.valid) continue;
+#pragma unroll
+          for (int c = 0; c < kC; ++c) run_rgb[j][c] = in.rgbs[(s.first + j) * kC + c];
+        }
       }
+      NegExp sample[kForwardRun];
+      const ray_acc run_decay = s.neg_exps(sample);
       lane_optical_depth += s.total;
       ray_acc transmittance = run_transmittance(run_decay, lane, transmittance_before_chunk);
       if (c0 == 0) {
@@ -162,10 +202,15 @@ __device__ int32_t composite_forward_ray(const CompositeInputs<scalar_t>& in, co
           out.weights[i] = static_cast<scalar_t>(w);
           depth += w * s.midpoint(j);
         }
-        const scalar_t* rgb = in.rgbs + i * C + c0;
+        if constexpr (kC > 0) {
 #pragma unroll
-        for (int c = 0; c < kChannelsPerPass; ++c) {
-          if (c0 + c < C) color[c] += w * ray_acc(rgb[c]);
+          for (int c = 0; c < kC; ++c) color[c] += w * ray_acc(run_rgb[j][c]);
+        } else {
+          const scalar_t* rgb = in.rgbs + i * C + c0;
+#pragma unroll
+          for (int c = 0; c < kChannelsPerPass; ++c) {
+            if (c0 + c < C) color[c] += w * ray_acc(rgb[c]);
+          }
         }
       }
     }
@@ -190,6 +235,36 @@ __device__ int32_t composite_forward_ray(const CompositeInputs<scalar_t>& in, co
   return invalid;
 }
 
+// What the backward reads of one chunk's samples (a lane's run; zeros past the ray's end) and the
+// transmittance before the chunk. Loaded a chunk ahead of its use: the backward stalls mostly on
+// these loads (ncu: L1TEX scoreboard waits are half its cycles between instructions). Colours only
+// where the channel count is compiled in (kC > 0); other counts read them as they go.
+template <typename scalar_t, int kC, int K>
+struct ChunkLoads {
+  using acc = acc_t<scalar_t>;
+  acc sigma[K] = {}, t_start[K] = {}, t_end[K] = {}, weight_grad[K] = {};
+  acc rgb[K][kC > 0 ? kC : 1] = {};
+  ray_acc transmittance_before = 0;
+  ChunkLoads() = default;
+  __device__ ChunkLoads(const CompositeInputs<scalar_t>& in, const CompositeGrads<scalar_t>& g, int64_t offset,
+                        int64_t count, int64_t q, int lane, const ray_acc* chunk_start) {
+    const int64_t k = q * kWarpSize * K + lane * K;
+    const int valid = valid_in_run<K>(count, k);
+    transmittance_before = chunk_start[q];
+#pragma unroll
+    for (int j = 0; j < K; ++j) {
+      if (j >= valid) continue;
+      const int64_t i = offset + k + j;
+      sigma[j] = in.sigmas[i];
+      t_start[j] = in.t_starts[i];
+      t_end[j] = in.t_ends[i];
+      if (g.weights) weight_grad[j] = g.weights[i];
+#pragma unroll
+      for (int c = 0; c < kC; ++c) rgb[j][c] = in.rgbs[i * kC + c];
+    }
+  }
+};
+
 // Backward of one ray by one warp; chunk_start holds the transmittance before each chunk (the forward's).
 
 // kC: the channel count compiled in (its loops unrolled, the colour gradient held in registers), or
@@ -204,7 +279,7 @@ __device__ void composite_backward_ray(const CompositeInputs<scalar_t>& in, cons
 
   const scalar_t* grad_color = g.color ? g.color + ray * C : nullptr;
   const ray_acc grad_depth = g.depth ? ray_acc(g.depth[ray]) : ray_acc(0);
-  const bool weights_grad = g.weights != nullptr, t_grads = g.t_starts != nullptr;
+  const bool t_grads = g.t_starts != nullptr;
   ray_acc color_grad[kC > 0 ? kC : 1];
 #pragma unroll
   for (int c = 0; c < kC; ++c) color_grad[c] = grad_color ? ray_acc(grad_color[c]) : ray_acc(0);
@@ -217,16 +292,16 @@ __device__ void composite_backward_ray(const CompositeInputs<scalar_t>& in, cons
   ray_acc transmittance_end = 1;  // T_S: 1 for a ray without samples, else found with the last chunk
   ray_acc after_chunk = 0;        // S past the chunk: sum of w_k g_k over later samples, plus T_S G_end
 
+  ChunkLoads<scalar_t, kC, kBackwardRun> next;
+  if (chunks > 0) next = ChunkLoads<scalar_t, kC, kBackwardRun>(in, g, offset, count, chunks - 1, lane, chunk_start);
   for (int64_t q = chunks - 1; q >= 0; --q) {
-    const LaneSamples<scalar_t, kBackwardRun> s(in, offset, count, q * kBackwardChunk + lane * kBackwardRun);
+    const ChunkLoads<scalar_t, kC, kBackwardRun> loaded = next;
+    if (q > 0) next = ChunkLoads<scalar_t, kC, kBackwardRun>(in, g, offset, count, q - 1, lane, chunk_start);
+    const LaneSamples<scalar_t, kBackwardRun> s(offset, count, q * kBackwardChunk + lane * kBackwardRun, loaded.sigma,
+                                                loaded.t_start, loaded.t_end);
     NegExp sample[kBackwardRun];
-    ray_acc run_decay = 1;  // exp(-tau) over the lane's run
-#pragma unroll
-    for (int j = 0; j < kBackwardRun; ++j) {
-      sample[j] = j < s.valid ? neg_exp<scalar_t>(s.tau[j]) : NegExp{1, 0};
-      run_decay *= sample[j].exp;
-    }
-    ray_acc transmittance_after_chunk = chunk_start[q];
+    const ray_acc run_decay = s.neg_exps(sample);
+    ray_acc transmittance_after_chunk = loaded.transmittance_before;
     ray_acc transmittance = run_transmittance(run_decay, lane, transmittance_after_chunk);
     if (q == chunks - 1) {
       transmittance_end = transmittance_after_chunk;
@@ -242,16 +317,16 @@ __device__ void composite_backward_ray(const CompositeInputs<scalar_t>& in, cons
       w[j] = transmittance * sample[j].alpha;
       transmittance = t_after[j];
       const int64_t i = s.first + j;
-      g_in[j] = grad_depth * s.midpoint(j) + (weights_grad ? ray_acc(g.weights[i]) : ray_acc(0));
-      const scalar_t* rgb = in.rgbs + i * C;
+      g_in[j] = grad_depth * s.midpoint(j) + ray_acc(loaded.weight_grad[j]);
       scalar_t* rgb_grad = g.rgbs + i * C;
       if constexpr (kC > 0) {
 #pragma unroll
         for (int c = 0; c < kC; ++c) {
-          g_in[j] += color_grad[c] * ray_acc(rgb[c]);
+          g_in[j] += color_grad[c] * ray_acc(loaded.rgb[j][c]);
           rgb_grad[c] = static_cast<scalar_t>(color_grad[c] * w[j]);
         }
       } else {
+        const scalar_t* rgb = in.rgbs + i * C;
         for (int64_t c = 0; c < C; ++c) {
           const ray_acc gc = grad_color ? ray_acc(grad_color[c]) : ray_acc(0);
           g_in[j] += gc * ray_acc(rgb[c]);
@@ -316,7 +391,9 @@ __global__ void __launch_bounds__(kMaxWarpsPerBlock* kWarpSize, 4)
 }
 
 template <typename scalar_t, int kC, typename Rays>
-__global__ void __launch_bounds__(kMaxWarpsPerBlock* kWarpSize)
+// 4 blocks per SM, as the forward: the loads a chunk ahead took the dense float32 kernel from 64 to
+// 80 registers (3 blocks) without the bound, none spilled with it (the packed one spills 24 bytes).
+__global__ void __launch_bounds__(kMaxWarpsPerBlock* kWarpSize, 4)
     composite_bwd_kernel(CompositeInputs<scalar_t> in, CompositeGrads<scalar_t> g, int64_t R, Rays rays,
                          const ray_acc* chunk_transmittances) {
   const int64_t ray = int64_t(blockIdx.x) * (blockDim.x / kWarpSize) + threadIdx.x / kWarpSize;
