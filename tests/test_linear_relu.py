@@ -1,16 +1,20 @@
-"""Tests of linear_relu (a hidden layer with its bias and ReLU fused into the GEMM): the fused
-passes against the reference, forward and backward, on fresh random inputs and on the edge of
-the ReLU, on the CPU (the same autograd Function) and, where there is one, a CUDA GPU."""
+"""Tests of linear_relu and linear (a layer with its bias, and ReLU, fused into the GEMM; the bias
+gradient a GEMV): the fused passes against the references, forward and backward, on fresh random
+inputs and on the edge of the ReLU, on the CPU (the same autograd Function) and, where there is
+one, a CUDA GPU."""
 
 from __future__ import annotations
 
 import pytest
 import torch
 
-from mixer_nerf.ops import linear_relu
-from mixer_nerf.ops.linear_relu_reference import linear_relu_reference
+from mixer_nerf.ops import linear, linear_relu
+from mixer_nerf.ops.linear_relu_reference import linear_reference, linear_relu_reference
 
 on_cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU")
+# each op with its reference
+OPS = pytest.mark.parametrize("op, reference", [(linear_relu, linear_relu_reference), (linear, linear_reference)],
+                              ids=["linear_relu", "linear"])
 
 
 def layer(gen, shape, width_in, width_out, dtype, device="cpu"):
@@ -28,20 +32,22 @@ def outputs_and_grads(fn, x, weight, bias, upstream):
 
 @pytest.mark.parametrize("shape", [(1,), (37,), (4, 9), (2, 3, 5)])
 @pytest.mark.parametrize("dtype, tol", [(torch.float64, 1e-12), (torch.float32, 1e-5)])
-def test_fused_matches_reference_forward_and_backward(gen, shape, dtype, tol):
+@OPS
+def test_fused_matches_reference_forward_and_backward(gen, shape, dtype, tol, op, reference):
     x, weight, bias = layer(gen, shape, 24, 16, dtype)
     upstream = torch.randn(*shape, 16, generator=gen, dtype=torch.float64).to(dtype)
-    fused = outputs_and_grads(lambda *a: linear_relu(*a, backend="kernel"), x, weight, bias, upstream)
-    reference = outputs_and_grads(linear_relu_reference, x, weight, bias, upstream)
+    fused = outputs_and_grads(lambda *a: op(*a, backend="kernel"), x, weight, bias, upstream)
+    reference = outputs_and_grads(reference, x, weight, bias, upstream)
     for got, want in zip(fused, reference, strict=True):
         assert got.shape == want.shape and got.dtype == want.dtype
         torch.testing.assert_close(got, want, rtol=tol, atol=tol)
 
 
-def test_gradcheck(gen):
+@OPS
+def test_gradcheck(gen, op, reference):
     x, weight, bias = layer(gen, (6,), 5, 4, torch.float64)
     inputs = [t.requires_grad_() for t in (x, weight, bias)]
-    assert torch.autograd.gradcheck(lambda *a: linear_relu(*a, backend="kernel"), inputs)
+    assert torch.autograd.gradcheck(lambda *a: op(*a, backend="kernel"), inputs)
 
 
 def test_relu_edge_gets_no_gradient_like_torch_relu():
@@ -58,28 +64,31 @@ def test_relu_edge_gets_no_gradient_like_torch_relu():
     assert fused[3].tolist() == [0.0, 1.0, 0.0]  # bias gradient: only the unit that fired
 
 
-def test_only_the_needed_gradients_are_computed(gen):
+@OPS
+def test_only_the_needed_gradients_are_computed(gen, op, reference):
     x, weight, bias = layer(gen, (8,), 6, 5, torch.float64)
     weight.requires_grad_()
-    out = linear_relu(x, weight, bias, backend="kernel")
+    out = op(x, weight, bias, backend="kernel")
     (grad,) = torch.autograd.grad(out.sum(), [weight])
-    torch.testing.assert_close(grad, torch.autograd.grad(linear_relu_reference(x, weight, bias).sum(), [weight])[0])
+    torch.testing.assert_close(grad, torch.autograd.grad(reference(x, weight, bias).sum(), [weight])[0])
 
 
-def test_auto_on_the_cpu_is_the_reference(gen):
+@OPS
+def test_auto_on_the_cpu_is_the_reference(gen, op, reference):
     x, weight, bias = layer(gen, (10,), 8, 4, torch.float32)
-    assert torch.equal(linear_relu(x, weight, bias), linear_relu_reference(x, weight, bias))
+    assert torch.equal(op(x, weight, bias), reference(x, weight, bias))
 
 
-def test_under_autocast_the_fused_passes_run_in_its_dtype(gen):
+@OPS
+def test_under_autocast_the_fused_passes_run_in_its_dtype(gen, op, reference):
     """The fused GEMM in bf16 where autocast would run F.linear in bf16: the output in bf16, the
     float32 leaves' gradients back through the casts, both as the eager path's within bf16's
     rounding (2^-8 relative; a unit that sits at the ReLU's edge may flip, so the loose atol)."""
     x, weight, bias = layer(gen, (64,), 48, 32, torch.float32)
     upstream = torch.randn(64, 32, generator=gen)
     with torch.autocast("cpu", dtype=torch.bfloat16):
-        fused = outputs_and_grads(lambda *a: linear_relu(*a, backend="kernel"), x, weight, bias, upstream)
-        eager = outputs_and_grads(linear_relu_reference, x, weight, bias, upstream)
+        fused = outputs_and_grads(lambda *a: op(*a, backend="kernel"), x, weight, bias, upstream)
+        eager = outputs_and_grads(reference, x, weight, bias, upstream)
     assert fused[0].dtype == eager[0].dtype == torch.bfloat16
     for got, want in zip(fused, eager, strict=True):
         assert got.dtype == want.dtype
@@ -96,29 +105,32 @@ def test_under_autocast_the_fused_passes_run_in_its_dtype(gen):
     (lambda x, w, b: (x[0, 0], w, b), ValueError, "scalar"),
     (lambda x, w, b: (x.to("meta"), w, b), ValueError, "one device"),
 ])
-def test_bad_input_is_refused_naming_the_argument(gen, args, error, match):
+@OPS
+def test_bad_input_is_refused_naming_the_argument(gen, args, error, match, op, reference):
     x, weight, bias = layer(gen, (4,), 6, 5, torch.float32)
     with pytest.raises(error, match=match):
-        linear_relu(*args(x, weight, bias), backend="kernel")
+        op(*args(x, weight, bias), backend="kernel")
     with pytest.raises(ValueError, match="backend"):
-        linear_relu(x, weight, bias, backend="cuda")
+        op(x, weight, bias, backend="cuda")
 
 
 @on_cuda
 @pytest.mark.cuda
 @pytest.mark.parametrize("tf32", [False, True])
-def test_cuda_fused_matches_float64_with_its_own_mask(gen, tf32, monkeypatch):
-    """On the GPU the fused passes go through cuBLASLt's bias+ReLU epilogue and cuBLAS's gemv,
+@pytest.mark.parametrize("relu", [True, False])
+def test_cuda_fused_matches_float64_with_its_own_mask(gen, tf32, relu, monkeypatch):
+    """On the GPU the fused passes go through cuBLASLt's bias(+ReLU) epilogue and cuBLAS's gemv,
     with TF32 matmuls off and on (training's setting). Against float64 math on the ReLU mask of
     the fused output: another GEMM kernel rounds the pre-activations differently, and one that
     lands within rounding of 0 flips, moving a whole gradient row."""
     monkeypatch.setattr(torch.backends.cuda.matmul, "allow_tf32", tf32)
     x, weight, bias = layer(gen, (4096,), 256, 256, torch.float32, "cuda")
     upstream = torch.randn(4096, 256, generator=gen).cuda()
-    out, grad_x, grad_weight, grad_bias = outputs_and_grads(linear_relu, x, weight, bias, upstream)
+    out, grad_x, grad_weight, grad_bias = outputs_and_grads(linear_relu if relu else linear, x, weight, bias, upstream)
     x64, w64 = x.double(), weight.double()
-    g64 = upstream.double() * (out > 0)
-    truth = (torch.relu(x64 @ w64.t() + bias.double()), g64 @ w64, g64.t() @ x64, g64.sum(0))
+    g64 = upstream.double() * (out > 0) if relu else upstream.double()
+    pre = x64 @ w64.t() + bias.double()
+    truth = (torch.relu(pre) if relu else pre, g64 @ w64, g64.t() @ x64, g64.sum(0))
     tol = 2e-3 if tf32 else 1e-5  # of each tensor's largest magnitude
     for got, want in zip((out, grad_x, grad_weight, grad_bias), truth, strict=True):
         assert got.dtype == torch.float32 and torch.isfinite(got).all()

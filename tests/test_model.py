@@ -432,8 +432,8 @@ def test_spread_to_samples_gradcheck():
 @pytest.mark.skipif(not _extension.available(), reason="kernels not built")
 @pytest.mark.parametrize("preset", ["A", "D"])
 def test_kernel_backend_field_equals_the_reference_path(preset):
-    """backend="kernel": the trunk's fused linear_relu layers (with the PE, MLCA and SE kernels) give
-    the reference path's outputs and gradients."""
+    """backend="kernel": the fused layers (linear_relu in the trunk, linear in the head and colour
+    branch, with the PE, MLCA and SE kernels) give the reference path's outputs and gradients."""
     reference = randomize_(small_model(preset)).double()
     fused = small_model(preset, backend="kernel").double()
     fused.load_state_dict(reference.state_dict())
@@ -449,8 +449,11 @@ def test_kernel_backend_field_equals_the_reference_path(preset):
     for got, want in zip(grads_fused, grads_ref):
         torch.testing.assert_close(got, want)
     with dispatched_ops() as ops:
-        fused(x, d)
+        sigma, rgb = fused(x, d)
+        (sigma.sum() + rgb.sum()).backward()
     assert ops["aten._addmm_activation"] == fused.cfg.depth
+    # every per-sample layer's bias gradient a GEMV (trunk, head, view feature, rgb), no column sum
+    assert ops["aten.mv"] == fused.cfg.depth + 3 and ops["aten.sum.dim_IntList"] == 0
 
 
 def test_frequency_window_weights_each_octave_by_the_cosine_ramp():

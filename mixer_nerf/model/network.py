@@ -37,7 +37,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from ..ops import linear_relu, positional_encoding
+from ..ops import linear, linear_relu, positional_encoding
 from ..ops._checks import check_floating, check_offsets, check_same_device, check_tensor
 from .config import ModelConfig
 from .mlca import MLCA
@@ -126,8 +126,8 @@ class MixerNeRF(nn.Module):
         feature, raw = self._head(features)
         sigma = self._activate_density(raw, x.dtype)
         view_term = spread(self.view_direction(self.direction_mixer(direction)))  # per ray when d is
-        hidden = torch.relu(self.view_feature(feature) + view_term)
-        rgb = torch.sigmoid(self.rgb(hidden).to(x.dtype))
+        hidden = torch.relu(self._linear(self.view_feature, feature) + view_term)
+        rgb = torch.sigmoid(self._linear(self.rgb, hidden).to(x.dtype))
         return sigma, rgb
 
     def density(
@@ -235,8 +235,12 @@ class MixerNeRF(nn.Module):
         pad = -(width + 1) % 8
         weight = torch.cat([weight[1:], weight[:1], weight.new_zeros(pad, weight.shape[1])])
         bias = torch.cat([bias[1:], bias[:1], bias.new_zeros(pad)])
-        feature, raw, _ = F.linear(features, weight, bias).split([width, 1, pad], dim=-1)
+        feature, raw, _ = linear(features, weight, bias, backend=self.cfg.backend).split([width, 1, pad], dim=-1)
         return feature, raw.squeeze(-1)
+
+    def _linear(self, layer: nn.Linear, x: torch.Tensor) -> torch.Tensor:
+        """``layer(x)`` with its bias gradient as a GEMV (ops.linear), not a column reduction."""
+        return linear(x, layer.weight, layer.bias, backend=self.cfg.backend)
 
     def _activate_density(self, raw: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
         raw = raw.to(dtype)

@@ -4,14 +4,15 @@
 - ``"torch"``: the pure-PyTorch reference path (``<op>_reference.py`` beside each wrapper);
 - ``"auto"``: the kernel where one is built for the tensors' device, else the reference path.
 
-``linear_relu`` has no kernel of ours: its ``"kernel"`` is hand-written passes around cuBLAS(Lt).
+``linear_relu`` and ``linear`` have no kernel of ours: their ``"kernel"`` is hand-written passes around
+cuBLAS(Lt).
 """
 
 from ._dispatch import use_kernel
 from .composite import composite, composite_packed
 from .deferred_checks import check_pending
 from .hierarchical_samples import hierarchical_samples
-from .linear_relu import linear_relu
+from .linear_relu import linear, linear_relu
 from .mlca import mlca
 from .positional_encoding import positional_encoding
 from .ray_marching import FixedSamples, PackedSamples, filter_by_transmittance, ray_marching, ray_marching_fixed
@@ -26,6 +27,7 @@ __all__ = [
     "composite_packed",
     "filter_by_transmittance",
     "hierarchical_samples",
+    "linear",
     "linear_relu",
     "mlca",
     "positional_encoding",
