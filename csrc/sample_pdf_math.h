@@ -118,19 +118,34 @@ struct MidpointEdges {
   }
 };
 
+// The CDF is summed in groups of cdf_group_bins(B) consecutive bins: within a group a running sum
+// of its weights, the group's start the previous group's start plus that group's sum. That order
+// keeps the CDF exactly flat over zero-weight bins and monotone (start + partial, rounded, grows
+// with partial; a group ends at the next group's start), as a plain running sum does, and lets a
+// warp build it with a chain of ~sqrt(B) adds (one lane per group) where a running sum takes B;
+// the CPU and CUDA kernels sum in this same order, so their CDFs agree bit for bit.
+C10_HOST_DEVICE inline int cdf_group_bins(int num_bins) {
+  int bins = 1;
+  while (bins * bins < num_bins) ++bins;  // ceil(sqrt(B)), at most 32 groups
+  return bins > (num_bins + 31) / 32 ? bins : (num_bins + 31) / 32;
+}
+
 // cdf[0..B] = the unnormalised CDF; returns the total weight W = cdf[B].
 template <typename Weights>
 C10_HOST_DEVICE inline cdf_t build_cdf(Weights weights, int num_bins, cdf_t* cdf) {
-  cdf_t running = 0;
-  cdf[0] = running;
-#ifdef __CUDA_ARCH__
-#pragma unroll 8  // let the weight loads run ahead of the chain of adds
-#endif
-  for (int k = 0; k < num_bins; ++k) {
-    running += weights(k);
-    cdf[k + 1] = running;
+  const int group = cdf_group_bins(num_bins);
+  cdf_t start = 0;
+  cdf[0] = start;
+  for (int first = 0; first < num_bins; first += group) {
+    const int end = first + group < num_bins ? first + group : num_bins;
+    cdf_t partial = 0;
+    for (int k = first; k < end; ++k) {
+      partial += weights(k);
+      cdf[k + 1] = start + partial;
+    }
+    start = cdf[end];
   }
-  return running;
+  return start;
 }
 
 // The bin k holding v: #{j in 1..B-1 : cdf[j] < v}, by binary search.

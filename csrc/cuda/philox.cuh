@@ -26,13 +26,20 @@ __device__ __forceinline__ uint4 block_bits(uint64_t seed, uint64_t block, uint6
   return c;
 }
 
-// A uniform value in [0, 1) with the full precision of T (24 bits for float, 53 for double).
+// Uniform values in [0, 1) a block gives with the full precision of T (24 bits for float, 53 for
+// double): four floats or two doubles.
 template <typename T>
-__device__ __forceinline__ T uniform(uint4 bits) {
+constexpr int kValuesPerBlock = sizeof(T) == 8 ? 2 : 4;
+
+// Value `k` (< kValuesPerBlock<T>) of a block's bits.
+template <typename T>
+__device__ __forceinline__ T uniform(uint4 bits, int k) {
   if constexpr (sizeof(T) == 8) {
-    return T((uint64_t(bits.x) << 21) | (bits.y >> 11)) * T(1.0 / 9007199254740992.0);  // 2^-53
+    const uint32_t hi = k == 0 ? bits.x : bits.z, lo = k == 0 ? bits.y : bits.w;
+    return T((uint64_t(hi) << 21) | (lo >> 11)) * T(1.0 / 9007199254740992.0);  // 2^-53
   } else {
-    return T(bits.x >> 8) * T(1.0f / 16777216.0f);  // 2^-24
+    const uint32_t word = k == 0 ? bits.x : k == 1 ? bits.y : k == 2 ? bits.z : bits.w;
+    return T(word >> 8) * T(1.0f / 16777216.0f);  // 2^-24
   }
 }
 

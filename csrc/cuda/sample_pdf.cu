@@ -1,9 +1,8 @@
 // sample_pdf (dense or packed bins) and hierarchical_samples on CUDA: one warp per ray, its data
 // staged in shared memory by coalesced loads (packed rays size it by the longest ray, so the
 // per-ray limits on bins are the dense ones). The math is sample_pdf_math.h, shared with the CPU
-// kernels: both build the same CDF bit for bit (lane 0 sums it sequentially; a tree scan would be
-// neither exactly flat over zero-weight bins nor even monotone, and the chain is short) and pick
-// the same bins.
+// kernels: both build the same CDF bit for bit (in build_cdf's groups, one lane per group; a tree
+// scan would be neither exactly flat over zero-weight bins nor even monotone) and pick the same bins.
 //
 // Forward: each lane takes samples n = lane, lane + 32, ...: binary search of its bin, one
 // division. hierarchical_samples merges without sorting: fine sample n lands at
@@ -87,10 +86,34 @@ struct WarpShared {
   }
 };
 
+// build_cdf (sample_pdf_math.h) by a warp, in its order: lane g sums group g's weights, the groups'
+// starts are chained through the lanes in group order, then each lane writes its group's CDF.
+// Returns the total weight in every lane.
+template <typename Weights>
+__device__ cdf_t build_cdf_warp(Weights weights, int num_bins, cdf_t* cdf, int lane) {
+  const int group = cdf_group_bins(num_bins), groups = (num_bins + group - 1) / group;
+  const int first = lane * group, end = min(first + group, num_bins);  // lanes past the groups: empty
+  cdf_t sum = 0;
+  for (int k = first; k < end; ++k) sum += weights(k);
+  cdf_t start = 0, running = 0;
+  for (int g = 0; g < groups; ++g) {
+    if (lane == g) start = running;
+    running += __shfl_sync(kFullMask, sum, g);
+  }
+  if (lane == 0) cdf[0] = 0;
+  cdf_t partial = 0;
+  for (int k = first; k < end; ++k) {
+    partial += weights(k);
+    cdf[k + 1] = start + partial;
+  }
+  return running;
+}
+
 // Where a ray's positions come from: row `ray` of u (stride 0: one row for every ray), or, where
-// u is null, drawn in the kernel: u_n = (n + xi_n) / N, xi_n uniform in [0, 1) from Philox block
-// offset / 4 + n of sequence `ray` (the generator's offset counts 32-bit values, 4 a block), and
-// written to `drawn` (R, N) unless it is null (sample_pdf's backward takes them).
+// u is null, drawn in the kernel: u_n = (n + xi_n) / N, xi_n uniform in [0, 1), value n % V of
+// Philox block offset / 4 + n / V of sequence `ray` (V = philox::kValuesPerBlock of the
+// accumulation type; the generator's offset counts 32-bit values, 4 a block), and written to
+// `drawn` (R, N) unless it is null (sample_pdf's backward takes them).
 template <typename acc>
 struct Positions {
   const acc* u;
@@ -99,10 +122,23 @@ struct Positions {
   acc* drawn;
 };
 
+// A ray's N stratified positions drawn into `fine` (shared), V by each Philox block a lane draws.
 template <typename acc>
-__device__ acc stratified_position(uint64_t seed, uint64_t offset, int64_t ray, int n, int N) {
-  const acc xi = philox::uniform<acc>(philox::block_bits(seed, offset / 4 + n, uint64_t(ray)));
-  return (acc(n) + xi) / acc(N);
+__device__ void draw_positions(const Positions<acc>& positions, int64_t ray, int N, int lane, acc* fine) {
+  constexpr int V = philox::kValuesPerBlock<acc>;
+  const auto philox = at::cuda::philox::unpack(positions.philox);  // std::get: tuple assignment is host-only
+  const uint64_t seed = std::get<0>(philox), offset = std::get<1>(philox);
+  for (int block = lane; block * V < N; block += kWarpSize) {
+    const uint4 bits = philox::block_bits(seed, offset / 4 + block, uint64_t(ray));
+#pragma unroll
+    for (int k = 0; k < V; ++k) {
+      const int n = block * V + k;
+      if (n >= N) break;
+      const acc un = (acc(n) + philox::uniform<acc>(bits, k)) / acc(N);
+      fine[n] = un;
+      if (positions.drawn) positions.drawn[ray * N + n] = un;
+    }
+  }
 }
 
 // Forward. Tail: sample_pdf: u then samples (N); hierarchical_samples: the coarse depths (S), then
@@ -134,25 +170,12 @@ __global__ void sample_forward_kernel(int64_t rays, WarpLayout layout, Rows rows
   const scalar_t* weights_row = weights + ray_bins.weights;
   const scalar_t* edges_row = edges_or_z + ray_bins.edges;
   const acc* u_row = kDrawn ? nullptr : positions.u + ray * positions.u_row_stride;
-  uint64_t seed = 0, offset = 0;
-  if constexpr (kDrawn) {  // std::get, not std::tie: tuple assignment is host-only before C++20
-    const auto philox = at::cuda::philox::unpack(positions.philox);
-    seed = std::get<0>(philox);
-    offset = std::get<1>(philox);
-  }
-  const int longest = max(max(B + 2, N), 1);
+  if constexpr (kDrawn) draw_positions(positions, ray, N, lane, fine);
+  const int longest = max(max(B + 2, kDrawn ? 0 : N), 1);
   for (int i = lane; i < longest; i += kWarpSize) {
     if (i < B) sh.w[i] = PaddedWeights<acc, scalar_t>{weights_row, pad}(i);
     if (kMerge ? i < S : i <= B) (kMerge ? z : sh.edges)[i] = static_cast<acc>(edges_row[i]);
-    if (i < N) {
-      if constexpr (kDrawn) {
-        const acc un = stratified_position<acc>(seed, offset, ray, i, N);
-        fine[i] = un;
-        if (positions.drawn) positions.drawn[ray * N + i] = un;
-      } else {
-        fine[i] = u_row[i];
-      }
-    }
+    if (!kDrawn && i < N) fine[i] = u_row[i];
   }
   __syncwarp();
   if constexpr (kMerge) {
@@ -167,10 +190,9 @@ __global__ void sample_forward_kernel(int64_t rays, WarpLayout layout, Rows rows
     if (bits) atomicOr(invalid, bits);  // only for bad input: no contention otherwise
   }
   const PaddedWeights<acc, acc> padded{sh.w, acc(0)};  // already padded and flushed: unchanged
-  if (lane == 0) build_cdf(padded, B, sh.cdf);
+  const cdf_t total = build_cdf_warp(padded, B, sh.cdf, lane);
   __syncwarp();
 
-  const cdf_t total = sh.cdf[B];
   const bool nan_ray = nan_pdf(total), uniform = no_pdf<acc>(total);
   const GivenEdges<acc, acc> given{sh.edges};
   const int64_t out_row = ray * (int64_t(N) + S);
@@ -248,9 +270,8 @@ __global__ void sample_pdf_backward_kernel(int64_t rays, WarpLayout layout, Rows
   }
   __syncwarp();
   const PaddedWeights<acc, acc> padded{sh.w, acc(0)};
-  if (lane == 0) build_cdf(padded, B, sh.cdf);
+  const cdf_t total = build_cdf_warp(padded, B, sh.cdf, lane);
   __syncwarp();
-  const cdf_t total = sh.cdf[B];
 
   if (nan_pdf(total)) {  // a NaN weight: NaN gradients for every weight and edge of the ray
     for (int i = lane; i <= B; i += kWarpSize) {
@@ -361,12 +382,15 @@ int max_bins_of(const at::Tensor& weights, const std::optional<at::Tensor>& offs
   return static_cast<int>(std::clamp<int64_t>(most, 0, total));
 }
 
-// The generator's Philox state for positions drawn in the kernel, `samples` per ray (one block of
-// 4 values a sample), advancing it past them; the default CUDA generator if none is given.
-at::PhiloxCudaState philox_for(std::optional<at::Generator> generator, int64_t samples) {
+// The generator's Philox state for positions of `dtype` drawn in the kernel, `samples` per ray
+// (Positions: a block of 4 values gives kValuesPerBlock of them), advancing it past them; the
+// default CUDA generator if none is given.
+at::PhiloxCudaState philox_for(std::optional<at::Generator> generator, int64_t samples, at::ScalarType dtype) {
+  const int64_t per_block = at::toOpMathType(dtype) == at::kDouble ? philox::kValuesPerBlock<double>
+                                                                    : philox::kValuesPerBlock<float>;
   auto* gen = at::get_generator_or_default<at::CUDAGeneratorImpl>(generator, at::cuda::detail::getDefaultCUDAGenerator());
   const std::lock_guard<std::mutex> lock(gen->mutex_);
-  return gen->philox_cuda_state(4 * uint64_t(samples));
+  return gen->philox_cuda_state(4 * uint64_t((samples + per_block - 1) / per_block));
 }
 
 // The sample_pdf ops' CUDA kernels, for SamplePdfOps (sample_pdf.h).
@@ -396,7 +420,7 @@ struct Cuda {
                              bins.options().dtype(at::toOpMathType(bins.scalar_type())));
     at::Tensor invalid = at::zeros({1}, bins.options().dtype(at::kInt));
     if (batch.rays > 0) {  // even without samples: the values are still checked
-      sample(bins, weights, nullptr, philox_for(generator, batch.samples), keep_positions ? &u : nullptr,
+      sample(bins, weights, nullptr, philox_for(generator, batch.samples, bins.scalar_type()), keep_positions ? &u : nullptr,
              weight_padding, batch, rows, offsets, samples, invalid.data_ptr<int32_t>());
     }
     return {samples, u, invalid};
@@ -456,7 +480,8 @@ struct Cuda {
                                                                     std::optional<at::Generator> generator,
                                                                     double weight_padding, const RayBatch& batch) {
     const c10::cuda::CUDAGuard guard(z_coarse.device());
-    return merge(z_coarse, weights, nullptr, batch.samples, 0, philox_for(generator, batch.samples), weight_padding);
+    return merge(z_coarse, weights, nullptr, batch.samples, 0, philox_for(generator, batch.samples, z_coarse.scalar_type()),
+                 weight_padding);
   }
 
   // hierarchical_samples with positions from `u` (R, N) or (N), or drawn by `philox` (u null).
