@@ -38,7 +38,7 @@ def tolerance(dtype: torch.dtype, num_bins: int, scale: float = 1.0) -> float:
     few ulps. Comparing with a reference in the input dtype instead would be wrong near flat
     stretches of the CDF (zero-weight bins), where the quantile jumps: a float32 v = u W can round
     onto the other side of such a jump (seen 3 times in 8.4M samples). In float64 the kernel's
-    sequential CDF and torch.cumsum differ by ~B ulp(W), which moves a sample by
+    grouped CDF and torch.cumsum differ by ~B ulp(W), which moves a sample by
     ~B eps W / w_k <= 11 B^2 eps (test weights are 0 or in [0.1, 1.1]).
     """
     rounding = 4 * torch.finfo(dtype).eps if dtype != torch.float64 else 0.0
@@ -313,6 +313,30 @@ def test_all_zero_weights_sample_uniformly(dtype):
     torch.testing.assert_close(
         _both(bins[:1], tiny, U_WITH_ENDS.to(accumulation_dtype(dtype)), False)[0], samples[0]
     )
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("num_bins", [62, 255, 2000])
+def test_grouped_cdf_never_samples_inside_an_empty_bin(dtype, num_bins):
+    """The kernels sum the CDF in groups of ~sqrt(B) bins (csrc/sample_pdf_math.h): weights over
+    60 orders of magnitude with runs of zeros across the groups' ends must still give a CDF flat
+    over every empty bin and monotone, so no sample lands strictly inside an empty bin and the
+    samples of sorted positions are sorted."""
+    gen = torch.Generator().manual_seed(torch.seed() % 2**32)
+    rays = 8
+    weights = 10.0 ** (torch.rand(rays, num_bins, generator=gen, dtype=torch.float64) * 60 - 30)
+    weights[:, ::3] = 0.0
+    weights[:, 5:9] = 0.0  # a run around the first group's end for B = 62 (groups of 8)
+    if dtype == torch.float32:
+        weights = weights.clamp(1e-30, 1e30) * (weights > 0)
+    bins = torch.cumsum(torch.rand(rays, num_bins + 1, generator=gen, dtype=torch.float64) + 0.01, dim=-1)
+    bins, weights = bins.to(dtype), weights.to(dtype)
+    u = torch.linspace(0, 1, 4097, dtype=accumulation_dtype(dtype))
+    samples = sample_pdf(bins, weights, u.numel(), u=u, backend="kernel")
+    assert (samples.diff(dim=-1) >= 0).all()
+    k = (torch.searchsorted(bins, samples, right=True) - 1).clamp(0, num_bins - 1)
+    inside = (samples > bins.gather(-1, k)) & (samples < bins.gather(-1, k + 1))
+    assert not (inside & (weights.gather(-1, k) == 0)).any()
 
 
 @pytest.mark.parametrize("hot", [0, 2, 4])
