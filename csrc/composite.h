@@ -183,20 +183,21 @@ CompositeOutputs<scalar_t> outputs_of(CompositeForward& outputs) {
 }
 
 // The gradients a backward writes, and the per-ray background gradient in the accumulation type
-// (summed over rays afterwards for a shared background; undefined without a background).
+// (summed over rays afterwards for a shared background; undefined without a background or where
+// its gradient is not wanted, e.g. a constant colour: no (R, C) writes and no sum then).
 struct CompositeGradTensors {
   at::Tensor sigmas, rgbs;
   std::optional<at::Tensor> t_starts, t_ends;
   at::Tensor background_rows;
 
   CompositeGradTensors(const at::Tensor& sigmas_, const at::Tensor& rgbs_, const std::optional<at::Tensor>& background,
-                       int64_t rays, bool interval_grads)
+                       int64_t rays, bool interval_grads, bool background_grad)
       : sigmas(at::empty_like(sigmas_)), rgbs(at::empty_like(rgbs_)) {
     if (interval_grads) {
       t_starts = at::empty_like(sigmas_);
       t_ends = at::empty_like(sigmas_);
     }
-    if (background) {
+    if (background && background_grad) {
       background_rows = at::empty({rays, rgbs_.size(-1)}, sigmas_.options().dtype(at::toOpMathType(sigmas_.scalar_type())));
     }
   }
@@ -216,7 +217,7 @@ struct CompositeGradTensors {
 
   CompositeBackward finish(const std::optional<at::Tensor>& background) const {
     std::optional<at::Tensor> grad_background;
-    if (background) {
+    if (background_rows.defined()) {
       grad_background = (background->dim() == 1 ? background_rows.sum(0) : background_rows).to(sigmas.scalar_type());
     }
     return {sigmas, rgbs, t_starts, t_ends, grad_background};
@@ -236,15 +237,15 @@ struct CompositeOps {
 
   template <typename Rays>
   static CompositeBackward backward(const Upstream& up, const CompositeTensors& in,
-                                    const at::Tensor& chunk_transmittances, bool interval_grads, int64_t R,
-                                    Rays rays) {
+                                    const at::Tensor& chunk_transmittances, bool interval_grads,
+                                    bool background_grad, int64_t R, Rays rays) {
     check_composite_inputs(in.sigmas, in.rgbs, in.t_starts, in.t_ends, in.background, R, Device::kind);
     check_upstream(up, in.sigmas, in.rgbs, R, Device::kind);
     MIXER_NERF_CHECK_INPUT(chunk_transmittances, Device::kind);
     MIXER_NERF_CHECK(chunk_transmittances.scalar_type() == at::kDouble && chunk_transmittances.dim() == 1 &&
                          chunk_transmittances.size(0) == Device::chunk_transmittance_entries(in.sigmas.numel(), R),
                      "composite_bwd: chunk_transmittances must be the forward's output for these inputs");
-    CompositeGradTensors grads(in.sigmas, in.rgbs, in.background, R, interval_grads);
+    CompositeGradTensors grads(in.sigmas, in.rgbs, in.background, R, interval_grads, background_grad);
     Device::backward(up, in, chunk_transmittances, grads, R, rays);
     return grads.finish(in.background);
   }
@@ -262,10 +263,12 @@ struct CompositeOps {
                                      const std::optional<at::Tensor>& grad_weights, const at::Tensor& sigmas,
                                      const at::Tensor& rgbs, const at::Tensor& t_starts, const at::Tensor& t_ends,
                                      const std::optional<at::Tensor>& background,
-                                     const at::Tensor& chunk_transmittances, bool interval_grads) {
+                                     const at::Tensor& chunk_transmittances, bool interval_grads,
+                                     bool background_grad) {
     check_dense(sigmas);
     return backward({grad_color, grad_depth, grad_opacity, grad_weights}, {sigmas, rgbs, t_starts, t_ends, background},
-                    chunk_transmittances, interval_grads, sigmas.size(0), composite_layout::DenseRays{sigmas.size(1)});
+                    chunk_transmittances, interval_grads, background_grad, sigmas.size(0),
+                    composite_layout::DenseRays{sigmas.size(1)});
   }
 
   static CompositeForward packed_fwd(const at::Tensor& sigmas, const at::Tensor& rgbs, const at::Tensor& t_starts,
@@ -282,10 +285,12 @@ struct CompositeOps {
                                       const std::optional<at::Tensor>& grad_weights, const at::Tensor& sigmas,
                                       const at::Tensor& rgbs, const at::Tensor& t_starts, const at::Tensor& t_ends,
                                       const std::optional<at::Tensor>& background, const at::Tensor& offsets,
-                                      const at::Tensor& chunk_transmittances, bool interval_grads) {
+                                      const at::Tensor& chunk_transmittances, bool interval_grads,
+                                      bool background_grad) {
     const int64_t R = check_packed(sigmas, offsets, Device::kind);
     return backward({grad_color, grad_depth, grad_opacity, grad_weights}, {sigmas, rgbs, t_starts, t_ends, background},
-                    chunk_transmittances, interval_grads, R, composite_layout::PackedRays{offsets.const_data_ptr<int64_t>(), sigmas.size(0), R});
+                    chunk_transmittances, interval_grads, background_grad, R,
+                    composite_layout::PackedRays{offsets.const_data_ptr<int64_t>(), sigmas.size(0), R});
   }
 
   static void register_ops(torch::Library& m) {

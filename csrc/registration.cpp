@@ -28,12 +28,12 @@ TORCH_LIBRARY(mixer_nerf, m) {
   //   starts from; none on the CPU), invalid (1) int32 (composite.h InvalidInput bits)
   m.def("composite_fwd(Tensor sigmas, Tensor rgbs, Tensor t_starts, Tensor t_ends, Tensor? background) -> (Tensor, Tensor, Tensor, Tensor, Tensor, Tensor)");
   //   backward: absent upstream gradients are zeros; interval_grads=False skips grad_t_starts/t_ends
-  m.def("composite_bwd(Tensor? grad_color, Tensor? grad_depth, Tensor? grad_opacity, Tensor? grad_weights, Tensor sigmas, Tensor rgbs, Tensor t_starts, Tensor t_ends, Tensor? background, Tensor chunk_transmittances, bool interval_grads) -> (Tensor, Tensor, Tensor?, Tensor?, Tensor?)");
+  m.def("composite_bwd(Tensor? grad_color, Tensor? grad_depth, Tensor? grad_opacity, Tensor? grad_weights, Tensor sigmas, Tensor rgbs, Tensor t_starts, Tensor t_ends, Tensor? background, Tensor chunk_transmittances, bool interval_grads, bool background_grad) -> (Tensor, Tensor, Tensor?, Tensor?, Tensor?)");
   // composite_packed: the same on packed samples: sigmas/t_starts/t_ends (N), rgbs (N, C), offsets (R+1) int64
   //   (ray r owns rows offsets[r]:offsets[r+1]) -> color (R, C), depth (R), opacity (R), weights (N),
   //   chunk_transmittances, invalid (1)
   m.def("composite_packed_fwd(Tensor sigmas, Tensor rgbs, Tensor t_starts, Tensor t_ends, Tensor? background, Tensor offsets) -> (Tensor, Tensor, Tensor, Tensor, Tensor, Tensor)");
-  m.def("composite_packed_bwd(Tensor? grad_color, Tensor? grad_depth, Tensor? grad_opacity, Tensor? grad_weights, Tensor sigmas, Tensor rgbs, Tensor t_starts, Tensor t_ends, Tensor? background, Tensor offsets, Tensor chunk_transmittances, bool interval_grads) -> (Tensor, Tensor, Tensor?, Tensor?, Tensor?)");
+  m.def("composite_packed_bwd(Tensor? grad_color, Tensor? grad_depth, Tensor? grad_opacity, Tensor? grad_weights, Tensor sigmas, Tensor rgbs, Tensor t_starts, Tensor t_ends, Tensor? background, Tensor offsets, Tensor chunk_transmittances, bool interval_grads, bool background_grad) -> (Tensor, Tensor, Tensor?, Tensor?, Tensor?)");
   // ray_marching: rays_o/rays_d (R, 3), near/far (R), jitter (R) or None, occupancy bitfield uint8 (one bit
   //   per cell), aabb (2, 3) -> t_starts (N), t_ends (N), ray_indices (N) int64, offsets (R+1) int64, total (1)
   //   int64 (the samples marched). With a capacity the outputs have that many rows (no host sync): the

@@ -163,7 +163,10 @@ def describe() -> str:
 
 
 def has_cuda_kernels() -> bool:
-    """Whether the loaded extension holds CUDA kernels."""
-    return available() and torch._C._dispatch_has_kernel_for_dispatch_key(
-        "mixer_nerf::composite_fwd", "CUDA"
-    )
+    """Whether the loaded extension holds CUDA kernels (the dispatcher is asked once: every op call
+    on a GPU comes here, and its lookup takes ~4 us of host time)."""
+    if not available():
+        return False
+    if "cuda_kernels" not in _state:
+        _state["cuda_kernels"] = torch._C._dispatch_has_kernel_for_dispatch_key("mixer_nerf::composite_fwd", "CUDA")
+    return _state["cuda_kernels"]

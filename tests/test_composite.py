@@ -164,6 +164,23 @@ def test_cpu_interval_grads_skipped_when_not_needed(gen):
 
 
 @needs_kernels
+@pytest.mark.parametrize("background", ["shared", "per_ray"])
+def test_cpu_background_grad_skipped_when_not_needed(gen, background):
+    """A constant background (no grad) gets no gradient from the kernel, and the others are as with one."""
+    inputs = make_inputs(4, 9, 3, gen, background)
+    upstream = random_upstream(inputs, gen)
+    sigmas, rgbs, t_starts, t_ends, _ = with_grad(inputs)
+    out = composite(sigmas, rgbs, t_starts, t_ends, inputs[4], backend="kernel")
+    loss = sum((o * u).sum() for o, u in zip(out, upstream, strict=True))
+    grads = torch.autograd.grad(loss, [sigmas, rgbs, t_starts, t_ends])
+    want = truth(inputs, upstream)[1]
+    assert_close(list(grads), want[:4], F64_REL, "grads")
+    chunk_transmittances = torch.ops.mixer_nerf.composite_fwd(*inputs)[4]
+    raw = torch.ops.mixer_nerf.composite_bwd(*upstream, *inputs, chunk_transmittances, False, False)
+    assert raw[4] is None
+
+
+@needs_kernels
 @pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
 def test_cpu_half_precision(gen, dtype):
     inputs = [None if t is None else t.to(dtype) for t in make_inputs(7, 20, 3, gen, "shared")]
@@ -388,15 +405,16 @@ def op_samples(gen, device="cpu"):
     """(fwd args, bwd args) for opcheck: every optional present and absent at least once (the
     kernels must be loaded: the backward's arguments include a forward output)."""
     samples = []
-    for background, which, interval in [
-        ("none", (True,) * 4, True),
-        ("shared", (True, False, True, False), False),
-        ("per_ray", (False, True, False, True), True),
+    for background, which, interval, background_grad in [
+        ("none", (True,) * 4, True, False),
+        ("shared", (True, False, True, False), False, True),
+        ("per_ray", (False, True, False, True), True, False),
+        ("per_ray", (True,) * 4, False, True),
     ]:
         inputs = make_inputs(3, 6, 3, gen, background, dtype=torch.float32, device=device)
         upstream = random_upstream(inputs, gen, which)
         chunk_transmittances = torch.ops.mixer_nerf.composite_fwd(*inputs)[4]
-        samples.append((inputs, [*upstream, *inputs, chunk_transmittances, interval]))
+        samples.append((inputs, [*upstream, *inputs, chunk_transmittances, interval, background_grad]))
     return samples
 
 
@@ -420,9 +438,9 @@ def test_backward_rejects_transmittances_of_other_inputs(gen, device):
     """The backward reads the forward's chunk_transmittances: another size or dtype is an error."""
     composite(*[t.to(device) for t in valid_inputs()], backend="kernel")
     _, bwd_args = op_samples(gen, device)[0]
-    saved = bwd_args[-2]
+    saved = bwd_args[-3]  # then the two flags
     for wrong in (torch.zeros(saved.numel() + 1, dtype=saved.dtype, device=device), saved.float()):
-        bwd_args[-2] = wrong
+        bwd_args[-3] = wrong
         with pytest.raises(RuntimeError, match="chunk_transmittances"):
             torch.ops.mixer_nerf.composite_bwd(*bwd_args)
 
@@ -779,15 +797,17 @@ def test_packed_bad_inputs_raise(index, bad, error, name, backend):
 def packed_op_samples(gen, device="cpu"):
     """(fwd args, bwd args) of the packed ops: every optional present and absent at least once."""
     samples = []
-    for background, which, interval in [
-        ("none", (True,) * 4, True),
-        ("shared", (True, False, True, False), False),
-        ("per_ray", (False, True, False, True), True),
+    for background, which, interval, background_grad in [
+        ("none", (True,) * 4, True, False),
+        ("shared", (True, False, True, False), False, True),
+        ("per_ray", (False, True, False, True), True, False),
+        ("shared", (True,) * 4, False, False),
     ]:
         inputs, offsets = make_packed([3, 0, 5, 1], 3, gen, background, dtype=torch.float32, device=device)
         upstream = random_upstream(inputs, gen, which, num_rays=4)
         chunk_transmittances = torch.ops.mixer_nerf.composite_packed_fwd(*inputs, offsets)[4]
-        samples.append(([*inputs, offsets], [*upstream, *inputs, offsets, chunk_transmittances, interval]))
+        samples.append(([*inputs, offsets],
+                        [*upstream, *inputs, offsets, chunk_transmittances, interval, background_grad]))
     return samples
 
 

@@ -213,18 +213,18 @@ def _composite_bwd_fake(
     t_starts,
     t_ends,
     background,
-    *layout_transmittances_and_flag,
+    *layout_transmittances_and_flags,
 ):
-    interval_grads = layout_transmittances_and_flag[-1]
+    interval_grads, background_grad = layout_transmittances_and_flags[-2:]
     grad_t_starts = torch.empty_like(t_starts) if interval_grads else None
     grad_t_ends = torch.empty_like(t_ends) if interval_grads else None
-    grad_background = None if background is None else torch.empty_like(background)
+    grad_background = torch.empty_like(background) if background is not None and background_grad else None
     return torch.empty_like(sigmas), torch.empty_like(rgbs), grad_t_starts, grad_t_ends, grad_background
 
 
-def _interval_grads(needs_input_grad: tuple[bool, ...]) -> tuple[bool]:
-    """The backward kernels' flag: whether t_starts or t_ends want gradients."""
-    return (needs_input_grad[2] or needs_input_grad[3],)
+def _grad_flags(needs_input_grad: tuple[bool, ...]) -> tuple[bool, bool]:
+    """The backward kernels' flags: whether t_starts or t_ends want gradients, and the background."""
+    return needs_input_grad[2] or needs_input_grad[3], needs_input_grad[4]
 
 
 class _Composite(KernelOp):
@@ -238,9 +238,9 @@ class _Composite(KernelOp):
 
 
 _COMPOSITE = _Composite(
-    "composite_fwd", _composite_fwd_fake, "composite_bwd", _composite_bwd_fake, _interval_grads, aux_outputs=2
+    "composite_fwd", _composite_fwd_fake, "composite_bwd", _composite_bwd_fake, _grad_flags, aux_outputs=2
 )
 _COMPOSITE_PACKED = _Composite(
-    "composite_packed_fwd", _composite_fwd_fake, "composite_packed_bwd", _composite_bwd_fake, _interval_grads,
+    "composite_packed_fwd", _composite_fwd_fake, "composite_packed_bwd", _composite_bwd_fake, _grad_flags,
     aux_outputs=2,
 )
