@@ -20,7 +20,8 @@ from mixer_nerf.ops.linear_relu import linear, linear_relu
 from mixer_nerf.ops.linear_relu_reference import linear_reference, linear_relu_reference
 
 WIDTH = 256
-LAYERS = {"linear_relu": (linear_relu, linear_relu_reference, True), "linear": (linear, linear_reference, False)}
+LAYERS = {"linear_relu": (linear_relu, linear_relu_reference, True),
+          "linear": (linear, linear_reference, False)}
 """op name: (fused op, reference, whether it applies a ReLU)"""
 
 
@@ -63,7 +64,8 @@ def layer_cases(name: str, samples: int, device: torch.device, dtype: torch.dtyp
     size = f"N={samples} {WIDTH}->{WIDTH} {str(dtype).removeprefix('torch.')}"
     return [
         Case(name, "fwd", size, [Variant(n, no_grad(f)) for n, f in impls.items()], truth_forward, fwd_bytes),
-        Case(name, "fwd+bwd", size, [Variant(n, lambda f=f: both(f, x, weight, bias)) for n, f in impls.items()],
+        Case(name, "fwd+bwd", size,
+             [Variant(n, lambda f=f: both(f, x, weight, bias)) for n, f in impls.items()],
              truth_both, fwd_bytes + (4 if relu else 3) * samples * WIDTH * item),
     ]
 

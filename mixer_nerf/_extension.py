@@ -168,5 +168,6 @@ def has_cuda_kernels() -> bool:
     if not available():
         return False
     if "cuda_kernels" not in _state:
-        _state["cuda_kernels"] = torch._C._dispatch_has_kernel_for_dispatch_key("mixer_nerf::composite_fwd", "CUDA")
+        has = torch._C._dispatch_has_kernel_for_dispatch_key
+        _state["cuda_kernels"] = has("mixer_nerf::composite_fwd", "CUDA")
     return _state["cuda_kernels"]

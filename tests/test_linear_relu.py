@@ -13,7 +13,8 @@ from mixer_nerf.ops.linear_relu_reference import linear_reference, linear_relu_r
 
 on_cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU")
 # each op with its reference
-OPS = pytest.mark.parametrize("op, reference", [(linear_relu, linear_relu_reference), (linear, linear_reference)],
+OPS = pytest.mark.parametrize("op, reference",
+                              [(linear_relu, linear_relu_reference), (linear, linear_reference)],
                               ids=["linear_relu", "linear"])
 
 
@@ -126,7 +127,8 @@ def test_cuda_fused_matches_float64_with_its_own_mask(gen, tf32, relu, monkeypat
     monkeypatch.setattr(torch.backends.cuda.matmul, "allow_tf32", tf32)
     x, weight, bias = layer(gen, (4096,), 256, 256, torch.float32, "cuda")
     upstream = torch.randn(4096, 256, generator=gen).cuda()
-    out, grad_x, grad_weight, grad_bias = outputs_and_grads(linear_relu if relu else linear, x, weight, bias, upstream)
+    op = linear_relu if relu else linear
+    out, grad_x, grad_weight, grad_bias = outputs_and_grads(op, x, weight, bias, upstream)
     x64, w64 = x.double(), weight.double()
     g64 = upstream.double() * (out > 0) if relu else upstream.double()
     pre = x64 @ w64.t() + bias.double()

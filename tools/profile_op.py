@@ -18,7 +18,8 @@ from benchmarks import cases_composite, cases_sample_pdf
 from mixer_nerf.ops.composite import composite, composite_packed
 from mixer_nerf.ops.hierarchical_samples import hierarchical_samples
 
-KERNELS = {"composite": "composite", "composite_packed": "composite", "hierarchical_samples": "sample_forward"}
+KERNELS = {"composite": "composite", "composite_packed": "composite",
+           "hierarchical_samples": "sample_forward"}
 """Each case's kernel-name pattern for ncu's ``--kernel-name regex:``."""
 
 
@@ -43,7 +44,8 @@ def run_hierarchical(device: torch.device) -> None:
 
 parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
 parser.add_argument("case", nargs="?", choices=sorted(KERNELS), default="composite")
-parser.add_argument("--kernel", choices=sorted(KERNELS), help="print this case's kernel-name pattern and exit")
+parser.add_argument("--kernel", choices=sorted(KERNELS),
+                    help="print this case's kernel-name pattern and exit")
 args = parser.parse_args()
 if args.kernel:
     print(KERNELS[args.kernel])

@@ -10,8 +10,10 @@ graph recapture), then profiles ``--steps`` steps with torch.profiler. Prints ms
 the GPU's busy ms per step (sum of kernel times; and the time any kernel runs, overlapping streams
 counted once, against the profiled wall time: the GPU idle), kernels per step, with the occupancy
 sampler the host time per step spent preparing the next batch, the kernels sorted by CUDA time and
-the ops by the GPU time of the kernels they launched; a wall time well above the busy time means
-the step waits on the host (Python, launches, synchronisations). The file in ``--out`` also lists
+the ops by the GPU time of the kernels they launched and the kernels a step by the line that
+launched them (a replayed graph's step run eagerly for these two); a wall time well above the busy
+time means the step waits on the host (Python, launches, synchronisations) or, in a graph, on the
+gaps between its many kernels. The file in ``--out`` also lists
 the Python functions by their own host time (cProfile, ``--steps`` more steps) and the host ms per
 step when the GPU has nothing left to do: the step's host cost, then every call of ``--steps``
 more steps that makes the host wait for the GPU, by its line.
@@ -171,14 +173,28 @@ def preparation_time(trainer: Trainer, steps: int) -> str:
             f"per step ({100 * spent / total:.0f}%)")
 
 
+def _eager_step(trainer: Trainer):
+    """A step whose kernels come from ops the profiler sees: a step replayed as a CUDA graph launches
+    its kernels from no op, so its graph's body runs eagerly instead (the same kernels: the kind most
+    steps replay, the occupancy path's plain step or the proposal path's without the networks' update)."""
+    graphs = trainer.graphs
+    if graphs is None or not graphs.captured:
+        return trainer.train_step
+    kind = next((k for k in ("fixed", False) if k in graphs.captured), graphs.captured[0])
+    return lambda: graphs.body(kind)
+
+
 def _kernels_by_op(trainer: Trainer, steps: int, top: int = 30) -> str:
-    """The GPU time of `steps` more steps by the op that launched each kernel (its self GPU time),
-    which names what the kernel table cannot (an unvectorised elementwise kernel: which op's?).
+    """The GPU time of `steps` more steps (run eagerly, :func:`_eager_step`) by the op that launched
+    each kernel (its self GPU time), which names what the kernel table cannot (an unvectorised
+    elementwise kernel: which op's?), then the kernels and copies a step by the line of mixer_nerf
+    that launched them (each a gap in a replayed graph; backward kernels by their autograd node).
     Profiling the host's ops slows the steps, so this runs apart from the timed ones."""
     activities = [torch.profiler.ProfilerActivity.CPU, torch.profiler.ProfilerActivity.CUDA]
-    with torch.profiler.profile(activities=activities) as prof:
+    step = _eager_step(trainer)
+    with torch.profiler.profile(activities=activities, with_stack=True) as prof:
         for _ in range(steps):
-            trainer.train_step()
+            step()
         torch.cuda.synchronize()
     ops = [e for e in prof.key_averages() if e.device_type == DeviceType.CPU and e.self_device_time_total > 0]
     ops.sort(key=lambda e: e.self_device_time_total, reverse=True)
@@ -186,7 +202,26 @@ def _kernels_by_op(trainer: Trainer, steps: int, top: int = 30) -> str:
     rows = [f"{title:<60} {'calls/step':>10} {'GPU ms/step':>12}"]
     rows += [f"{e.key[:60]:<60} {e.count / steps:>10.1f} {e.self_device_time_total / 1e3 / steps:>12.3f}"
              for e in ops[:top]]
+    rows += ["", f"{'launched from (kernels and copies a step)':<100} {'per step':>8}"]
+    sites = launches_by_site(prof.events()).most_common(top)
+    rows += [f"{site[:100]:<100} {count / steps:>8.1f}" for site, count in sites]
     return "\n".join(rows) + "\n"
+
+
+def launches_by_site(events):
+    """How many device kernels and copies each host op launched, keyed by the innermost frame of
+    mixer_nerf in its Python stack (``file:line``), or by the op's name where it has none (the
+    autograd engine's thread runs backward nodes without Python)."""
+    import collections
+
+    sites: collections.Counter[str] = collections.Counter()
+    for e in events:
+        if e.device_type != DeviceType.CPU or not e.kernels:
+            continue
+        ours = [frame for frame in e.stack if "mixer_nerf/" in frame and "/tools/" not in frame]
+        site = ours[0].split("mixer_nerf/")[-1] if ours else e.name
+        sites[site] += len(e.kernels)
+    return sites
 
 
 def _sync_sites(trainer: Trainer, steps: int) -> str:

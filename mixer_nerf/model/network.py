@@ -235,7 +235,8 @@ class MixerNeRF(nn.Module):
         pad = -(width + 1) % 8
         weight = torch.cat([weight[1:], weight[:1], weight.new_zeros(pad, weight.shape[1])])
         bias = torch.cat([bias[1:], bias[:1], bias.new_zeros(pad)])
-        feature, raw, _ = linear(features, weight, bias, backend=self.cfg.backend).split([width, 1, pad], dim=-1)
+        out = linear(features, weight, bias, backend=self.cfg.backend)
+        feature, raw, _ = out.split([width, 1, pad], dim=-1)
         return feature, raw.squeeze(-1)
 
     def _linear(self, layer: nn.Linear, x: torch.Tensor) -> torch.Tensor:

@@ -19,7 +19,8 @@ from ._checks import check_backend, check_floating, check_same_device, check_sam
 from .linear_relu_reference import linear_reference, linear_relu_reference
 
 
-def linear_relu(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, backend: str = "auto") -> torch.Tensor:
+def linear_relu(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor,
+                backend: str = "auto") -> torch.Tensor:
     """``relu(x W^T + b)``: x ``(..., in)``, weight ``(out, in)``, bias ``(out,)`` -> ``(..., out)``.
 
     ``backend``: ``"auto"`` the fused passes on CUDA (the reference on a CPU), ``"kernel"`` the
@@ -36,7 +37,8 @@ def linear(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, backend: s
     return _layer(x, weight, bias, backend, relu=False)
 
 
-def _layer(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, backend: str, relu: bool) -> torch.Tensor:
+def _layer(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, backend: str,
+           relu: bool) -> torch.Tensor:
     check_backend(backend)
     for name, t in (("x", x), ("weight", weight), ("bias", bias)):
         check_floating(name, t)
