@@ -22,6 +22,7 @@ more steps that makes the host wait for the GPU, by its line.
 from __future__ import annotations
 
 import argparse
+import collections
 import tempfile
 import time
 from pathlib import Path
@@ -211,15 +212,13 @@ def _kernels_by_op(trainer: Trainer, steps: int, top: int = 30) -> str:
 def launches_by_site(events):
     """How many device kernels and copies each host op launched, keyed by the innermost frame of
     mixer_nerf in its Python stack (``file:line``), or by the op's name where it has none (the
-    autograd engine's thread runs backward nodes without Python)."""
-    import collections
-
+    autograd engine's thread runs backward nodes without Python), as :func:`_sync_sites` names them."""
     sites: collections.Counter[str] = collections.Counter()
     for e in events:
         if e.device_type != DeviceType.CPU or not e.kernels:
             continue
-        ours = [frame for frame in e.stack if "mixer_nerf/" in frame and "/tools/" not in frame]
-        site = ours[0].split("mixer_nerf/")[-1] if ours else e.name
+        ours = [frame for frame in e.stack if "/mixer_nerf/" in frame]
+        site = ours[0].split("/mixer_nerf/")[-1] if ours else e.name
         sites[site] += len(e.kernels)
     return sites
 
@@ -227,7 +226,6 @@ def launches_by_site(events):
 def _sync_sites(trainer: Trainer, steps: int) -> str:
     """Every call of ``steps`` steps that makes the host wait for the GPU (torch's sync debug
     mode), by the line of mixer_nerf that made it and its count per step."""
-    import collections
     import traceback
     import warnings
 
