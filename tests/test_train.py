@@ -32,6 +32,7 @@ from mixer_nerf.render.skipping import march_samples, march_samples_fixed, rende
 from mixer_nerf.ops.ray_marching import padding_rays
 from mixer_nerf.render.skipping.marching import with_padding_rays
 from mixer_nerf.train.checkpoint import capture_rng_state, restore_rng_state
+from mixer_nerf.train.config import FORWARD_FACING_OCCLUSION
 from mixer_nerf.train.fields import model_config
 from mixer_nerf.train.sampling import resolve_sampler
 from mixer_nerf.train import trainer as trainer_module
@@ -468,6 +469,18 @@ def test_auto_sampler_marches_bounded_scenes_and_proposes_for_forward_facing_and
     assert resolve_sampler(TrainConfig(sampler="occupancy"), box, ndc=True).sampler == "occupancy"
     with pytest.raises(ValueError, match="needs a scene box"):
         resolve_sampler(TrainConfig(sampler="occupancy"), None, ndc=False)
+
+
+def test_forward_facing_proposal_runs_get_the_occlusion_loss_unless_told_otherwise():
+    box = torch.tensor([[-1.0] * 3, [1.0] * 3])
+    weight = {(sampler, ndc): resolve_sampler(TrainConfig(sampler=sampler), box, ndc).occlusion_weight
+              for sampler in ("auto", "proposal", "hierarchical") for ndc in (False, True)}
+    assert weight == {("auto", False): 0.0, ("auto", True): FORWARD_FACING_OCCLUSION,
+                      ("proposal", False): 0.0, ("proposal", True): FORWARD_FACING_OCCLUSION,
+                      ("hierarchical", False): 0.0, ("hierarchical", True): 0.0}
+    assert resolve_sampler(TrainConfig(sampler="auto"), None, ndc=False).occlusion_weight == 0.0  # unbounded
+    for typed in (0.0, 0.05):
+        assert resolve_sampler(TrainConfig(occlusion_weight=typed), box, ndc=True).occlusion_weight == typed
 
 
 def test_forward_facing_scenes_get_no_direction_mlca_unless_asked():

@@ -18,6 +18,10 @@ SAMPLERS = ("auto", "occupancy", "proposal", "hierarchical")
 VAL_IMAGES = {"cuda": 3, "cpu": 1}  # views per validation, by device type
 
 
+FORWARD_FACING_OCCLUSION = 0.01
+"""``occlusion_weight`` where the config leaves it open and the scene is forward-facing (NDC)."""
+
+
 def option(default: Any, help: str, **argparse_options: Any) -> Any:
     """A TrainConfig field that is also a ``train`` flag ``--name-with-dashes``: its help text and
     argparse options (choices, metavar) live in the field's metadata, so flags and fields cannot drift."""
@@ -163,10 +167,12 @@ class TrainConfig:
         0.0, "proposal sampler: weight of mip-NeRF 360's distortion loss on the main field's weights, "
         "which gathers each ray's weight into few short intervals (default 0: off; nerfacto uses 0.002)",
         metavar="W")
-    # Off until screened: against floaters in front of the cameras (docs/training.md).
-    occlusion_weight: float = option(
-        0.0, "proposal sampler: weight of FreeNeRF's occlusion regularisation, the main field's weight "
-        "in the first --occlusion-fraction of each ray (default 0: off)", metavar="W")
+    # None: the scene decides (sampling.resolve_sampler); 0.01 on forward-facing scenes from Fern's
+    # val split (docs/training.md)
+    occlusion_weight: float | None = option(
+        None, "proposal sampler: weight of FreeNeRF's occlusion regularisation, the main field's weight "
+        f"in the first --occlusion-fraction of each ray (default {FORWARD_FACING_OCCLUSION} on forward-facing "
+        "(NDC) scenes, 0 (off) elsewhere)", metavar="W")
     occlusion_fraction: float = option(
         0.1, "proposal sampler: the stretch of each ray, in the sampler's spacing coordinate s in [0, 1], "
         "that --occlusion-weight penalises", metavar="FRACTION")
@@ -250,6 +256,8 @@ class TrainConfig:
             raise ValueError(f"proposal_weight_padding must be >= 0, got {self.proposal_weight_padding}")
         for name in PROPOSAL_REGULARISERS:
             weight = getattr(self, name)
+            if weight is None:  # decided with the sampler
+                continue
             if not (math.isfinite(weight) and weight >= 0):
                 raise ValueError(f"{name} must be finite and >= 0, got {weight}")
             if weight > 0 and self.sampler not in ("auto", "proposal"):

@@ -25,7 +25,7 @@ from ..render.skipping import (
     render_rays_marched,
     render_rays_proposal,
 )
-from .config import PROPOSAL_REGULARISERS, TrainConfig
+from .config import FORWARD_FACING_OCCLUSION, PROPOSAL_REGULARISERS, TrainConfig
 from .fields import RadianceFields
 
 
@@ -37,7 +37,8 @@ def resolve_sampler(cfg: TrainConfig, bbox: torch.Tensor | None, ndc: bool) -> T
     "auto" marches an occupancy grid in bounded scenes (a box, world space); forward-facing NDC
     scenes fill their box, so a grid skips little there, and unbounded scenes have no box: both get
     the proposal sampler (docs/skipping.md), as does a model whose density depends on the view
-    direction (the paper's Eq. 7), which a grid cannot store."""
+    direction (the paper's Eq. 7), which a grid cannot store. An ``occlusion_weight`` left open is
+    :data:`FORWARD_FACING_OCCLUSION` for the proposal sampler in a forward-facing scene, 0 elsewhere."""
     view_dependent = bool(cfg.model_overrides.get("mlca_concat_direction", False))
     if cfg.sampler != "auto":
         sampler = cfg.sampler
@@ -50,11 +51,15 @@ def resolve_sampler(cfg: TrainConfig, bbox: torch.Tensor | None, ndc: bool) -> T
                          "mlca_concat_direction (Eq. 7) makes it view-dependent: use 'proposal' or 'hierarchical'")
     # only "auto" gets here: TrainConfig refuses the other samplers when named
     for name in PROPOSAL_REGULARISERS:
-        if getattr(cfg, name) > 0 and sampler != "proposal":
+        if (getattr(cfg, name) or 0) > 0 and sampler != "proposal":
             raise ValueError(f"{name} applies to the proposal sampler only, and sampler 'auto' chose "
                              f"{sampler!r} for this scene: pass sampler 'proposal' or {name} 0")
     cfg = cfg.with_recipe(sampler)
-    return dataclasses.replace(cfg, fine_network=cfg.fine_network and sampler == "hierarchical")
+    occlusion = cfg.occlusion_weight
+    if occlusion is None:
+        occlusion = FORWARD_FACING_OCCLUSION if sampler == "proposal" and ndc else 0.0
+    return dataclasses.replace(cfg, fine_network=cfg.fine_network and sampler == "hierarchical",
+                               occlusion_weight=occlusion)
 
 
 def make_grid(cfg: TrainConfig, bbox: torch.Tensor | None) -> OccupancyGrid | None:
