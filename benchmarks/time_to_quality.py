@@ -329,7 +329,8 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--device", default="cuda", help="cuda, or cpu for a smoke run")
     parser.add_argument("--preset", default="D", help="ours: model preset")
-    parser.add_argument("--sampler", default="occupancy", help="ours: occupancy | proposal | hierarchical")
+    parser.add_argument("--sampler", default="auto",
+                        help="ours: auto (as `mixer-nerf train` picks per scene) | occupancy | proposal | hierarchical")
     parser.add_argument("--target-samples", type=int, help="ours: MLP samples per step (default: the trainer's)")
     parser.add_argument("--batch-rays", type=int, default=None,
                         help="ours, hierarchical sampler: rays per step (default: the trainer's)")
@@ -385,8 +386,8 @@ def main() -> None:
     parser.add_argument("--stop-after", type=float, default=math.inf,
                         help="with --run-dir: end this call after this many seconds of training, saved")
     args = parser.parse_args()
-    if args.skip_report and (args.method != "ours" or args.sampler != "occupancy"):
-        parser.error("--skip-report needs --method ours --sampler occupancy")
+    if args.skip_report and (args.method != "ours" or args.sampler not in ("auto", "occupancy")):
+        parser.error("--skip-report needs --method ours and the occupancy sampler")
     if args.run_dir is not None and args.method == "nerfacc":
         parser.error("--run-dir needs --method ours or nerfacc-proposal")
     if args.grad_clip is not None and args.method != "ours":
@@ -407,6 +408,8 @@ def main() -> None:
 
     method = METHODS[args.method](args, train, val, device)
     trainer = method.trainer
+    if args.skip_report and trainer.cfg.sampler != "occupancy":
+        parser.error(f"--skip-report needs the occupancy sampler; 'auto' picked {trainer.cfg.sampler!r} for this scene")
 
     scene = args.scene or scene_tag(args.data)
     path = Path(args.out) / f"{scene}_{device_tag(device)}.json"
