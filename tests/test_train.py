@@ -824,6 +824,29 @@ def _profile_tool():
     return tool
 
 
+def test_the_step_profile_names_where_each_kernel_was_launched():
+    """profile_train_step's launch table: a forward op by its innermost mixer_nerf frame, a backward
+    op by its autograd node, counted in kernels; host-only ops and device events left out."""
+    from types import SimpleNamespace
+
+    from torch.autograd import DeviceType
+
+    def event(name, parent=None, kernels=0, device=DeviceType.CPU):
+        return SimpleNamespace(name=name, cpu_parent=parent, kernels=[object()] * kernels, device_type=device)
+
+    step = event("tools/profile_train_step.py(180): step")
+    learn = event("mixer_nerf/train/trainer.py(383): _learn", step)
+    shade = event("mixer_nerf/render/volume.py(58): shade_samples", learn)
+    inner = event("torch/nn/functional.py(12): pad", shade)
+    node = event("autograd::engine::evaluate_function: MmBackward0", event("run_backward", learn))
+    events = [event("aten::fill_", inner, kernels=2), event("aten::fill_", inner, kernels=1),
+              event("aten::mm", node, kernels=2), event("aten::empty", shade), event("aten::add", step, kernels=1),
+              event("void kernel<float>", kernels=1, device=DeviceType.CUDA)]
+    assert _profile_tool().launches_by_site(events) == {
+        "render/volume.py(58): shade_samples  aten::fill_": 3, "backward: MmBackward0  aten::mm": 2,
+        "(no mixer_nerf frame)  aten::add": 1}
+
+
 def test_the_step_profile_times_the_batch_preparation(tmp_path):
     """tools/profile_train_step.py's host time in the occupancy path's batch preparation: a part of
     the step's time, measured on real steps, the trainer's prefetch left as it was."""

@@ -210,17 +210,30 @@ def _kernels_by_op(trainer: Trainer, steps: int, top: int = 30) -> str:
 
 
 def launches_by_site(events):
-    """How many device kernels and copies each host op launched, keyed by the innermost frame of
-    mixer_nerf in its Python stack (``file:line``), or by the op's name where it has none (the
-    autograd engine's thread runs backward nodes without Python), as :func:`_sync_sites` names them."""
+    """How many device kernels and copies each host op launched, keyed by the op's name after the
+    innermost frame of mixer_nerf among its parents (``file(line): function``, as the profiler names
+    Python frames); a backward op, which the autograd engine runs without its forward's frames, by
+    its autograd node instead."""
     sites: collections.Counter[str] = collections.Counter()
     for e in events:
         if e.device_type != DeviceType.CPU or not e.kernels:
             continue
-        ours = [frame for frame in e.stack if "/mixer_nerf/" in frame]
-        site = ours[0].split("/mixer_nerf/")[-1] if ours else e.name
-        sites[site] += len(e.kernels)
+        sites[f"{_launch_site(e)}  {e.name}"] += len(e.kernels)
     return sites
+
+
+def _launch_site(event) -> str:
+    parent = event.cpu_parent
+    while parent is not None:
+        if parent.name.startswith(_BACKWARD_NODE):
+            return "backward: " + parent.name[len(_BACKWARD_NODE):]
+        if "mixer_nerf/" in parent.name:
+            return parent.name.split("mixer_nerf/")[-1]
+        parent = parent.cpu_parent
+    return "(no mixer_nerf frame)"
+
+
+_BACKWARD_NODE = "autograd::engine::evaluate_function: "
 
 
 def _sync_sites(trainer: Trainer, steps: int) -> str:
