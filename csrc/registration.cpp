@@ -47,6 +47,10 @@ TORCH_LIBRARY(mixer_nerf, m) {
   m.def("ray_scale_fwd(Tensor features, Tensor scale, Tensor offsets) -> Tensor");
   //   backward -> (grad_features (N, C), grad_scale (R, C))
   m.def("ray_scale_bwd(Tensor grad_out, Tensor features, Tensor scale, Tensor offsets) -> (Tensor, Tensor)");
+  // bias_grad: grad (N, C) -> its column sums (C), a linear layer's bias gradient; relu_bias_bwd: grad and the
+  //   layer's ReLU output y (N, C) -> (grad where y > 0 (N, C), the column sums of that (C))
+  m.def("bias_grad(Tensor grad) -> Tensor");
+  m.def("relu_bias_bwd(Tensor grad, Tensor out) -> (Tensor, Tensor)");
   // mlca: encoded (N, T*D) token-major, lift (C, D), token_weight (T, T), token_bias (T), channel_weight (C, C),
   //   channel_bias (C) -> (N, T*C); all one dtype. Backward: grads of (encoded, lift, token_weight, token_bias,
   //   channel_weight, channel_bias); input_grad=False skips grad_encoded (returned as None).

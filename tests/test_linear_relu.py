@@ -1,15 +1,19 @@
-"""Tests of linear_relu and linear (a layer with its bias, and ReLU, fused into the GEMM; the bias
-gradient a GEMV): the fused passes against the references, forward and backward, on fresh random
-inputs and on the edge of the ReLU, on the CPU (the same autograd Function) and, where there is
-one, a CUDA GPU."""
+"""Tests of linear_relu and linear (a layer with its bias, and ReLU, fused into the GEMM; the ReLU
+mask and the bias gradient in one pass, the ops bias_grad and relu_bias_bwd): the fused passes
+against the references, forward and backward, on fresh random inputs and on the edge of the ReLU,
+on the CPU (the same autograd Function) and, where there is one, a CUDA GPU."""
 
 from __future__ import annotations
+
+import importlib
 
 import pytest
 import torch
 
 from mixer_nerf.ops import linear, linear_relu
 from mixer_nerf.ops.linear_relu_reference import linear_reference, linear_relu_reference
+
+LAYER_MODULE = importlib.import_module("mixer_nerf.ops.linear_relu")
 
 on_cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU")
 # each op with its reference
@@ -98,6 +102,61 @@ def test_under_autocast_the_fused_passes_run_in_its_dtype(gen, op, reference):
     assert [g.dtype for g in fused[1:]] == [torch.float32] * 3
 
 
+def bias_grad_truth(grad, out=None):
+    """(masked grad, its column sums) in float64, the mask as torch's threshold_backward (a NaN output passes)."""
+    g = grad.double() if out is None else torch.ops.aten.threshold_backward(grad.double(), out.double(), 0)
+    return g, g.sum(0)
+
+
+@pytest.mark.parametrize("rows", [0, 1, 255, 1000])
+@pytest.mark.parametrize("cols", [1, 3, 16, 300])
+@pytest.mark.parametrize("dtype, tol", [(torch.float64, 1e-12), (torch.float32, 1e-5), (torch.bfloat16, 2**-7),
+                                        (torch.float16, 2**-9)])
+def test_bias_kernels_match_float64_sums(gen, rows, cols, dtype, tol):
+    grad = torch.randn(rows, cols, generator=gen, dtype=torch.float64).to(dtype)
+    out = torch.randn(rows, cols, generator=gen, dtype=torch.float64).relu().to(dtype)
+    if rows and cols > 1:
+        out[0, 0], out[-1, 1] = 0, float("nan")  # the ReLU's edge: no gradient; NaN: passes, as torch's mask
+    masked, sums = torch.ops.mixer_nerf.relu_bias_bwd(grad, out)
+    plain = torch.ops.mixer_nerf.bias_grad(grad)
+    want_masked, want_sums = bias_grad_truth(grad, out)
+    assert masked.dtype == sums.dtype == plain.dtype == dtype and sums.shape == plain.shape == (cols,)
+    assert torch.equal(masked, want_masked.to(dtype))  # a mask rounds nothing
+    scale = grad.double().abs().sum(0).clamp_min(1)  # a sum's rounding grows with what it adds up
+    assert ((sums.double() - want_sums).abs() <= tol * scale).all()
+    assert ((plain.double() - bias_grad_truth(grad)[1]).abs() <= tol * scale).all()
+    assert torch.equal(torch.ops.mixer_nerf.relu_bias_bwd(grad, out)[1], sums)  # deterministic
+
+
+@OPS
+def test_without_the_extension_the_layer_backward_takes_a_gemv(gen, op, reference, monkeypatch):
+    """Where the extension has no kernels for a device the backward masks with ATen and sums with
+    a GEMV: the same gradients."""
+    monkeypatch.setattr(LAYER_MODULE, "use_kernel", lambda backend, device: False)
+    x, weight, bias = layer(gen, (40,), 12, 8, torch.float64)
+    upstream = torch.randn(40, 8, generator=gen, dtype=torch.float64)
+    fused = outputs_and_grads(lambda *a: op(*a, backend="kernel"), x, weight, bias, upstream)
+    for got, want in zip(fused, outputs_and_grads(reference, x, weight, bias, upstream), strict=True):
+        torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-12)
+
+
+def test_bias_kernels_opcheck(gen):
+    grad = torch.randn(37, 5, generator=gen)
+    out = torch.randn(37, 5, generator=gen).relu()
+    torch.library.opcheck(torch.ops.mixer_nerf.bias_grad.default, (grad,))
+    torch.library.opcheck(torch.ops.mixer_nerf.relu_bias_bwd.default, (grad, out))
+
+
+def test_bias_kernels_refuse_what_they_cannot_read(gen):
+    grad = torch.randn(6, 4, generator=gen)
+    with pytest.raises(RuntimeError, match="contiguous"):
+        torch.ops.mixer_nerf.bias_grad(grad.t())
+    with pytest.raises(RuntimeError, match="floating"):
+        torch.ops.mixer_nerf.bias_grad(grad.long())
+    with pytest.raises(RuntimeError, match="like grad"):
+        torch.ops.mixer_nerf.relu_bias_bwd(grad, grad[:3])
+
+
 @pytest.mark.parametrize("args, error, match", [
     (lambda x, w, b: (x[..., :3], w, b), ValueError, "weight must have shape"),
     (lambda x, w, b: (x, w, b[:2]), ValueError, "bias must have shape"),
@@ -137,3 +196,24 @@ def test_cuda_fused_matches_float64_with_its_own_mask(gen, tf32, relu, monkeypat
     for got, want in zip((out, grad_x, grad_weight, grad_bias), truth, strict=True):
         assert got.dtype == torch.float32 and torch.isfinite(got).all()
         assert (got.double() - want).abs().max() <= tol * want.abs().max()
+
+
+@on_cuda
+@pytest.mark.cuda
+@pytest.mark.parametrize("rows, cols, offset", [(150_000, 256, 0), (4097, 301, 0), (3000, 64, 1), (1, 8, 0)])
+@pytest.mark.parametrize("dtype, tol", [(torch.float32, 1e-5), (torch.bfloat16, 2**-7), (torch.float64, 1e-12)])
+def test_cuda_bias_kernels_match_float64_sums(gen, rows, cols, offset, dtype, tol):
+    """Many bands (150,000 rows), channels that do not fill 16-byte columns (301) and tensors that
+    start off 16-byte alignment (offset 1: the one-channel columns) against float64 sums, the mask
+    bit for bit, and the same sums twice."""
+    grad = torch.randn(rows * cols + offset, generator=gen, dtype=torch.float64).to(dtype).cuda()[offset:]
+    out = torch.randn(rows * cols + offset, generator=gen, dtype=torch.float64).relu().to(dtype).cuda()[offset:]
+    grad, out = grad.view(rows, cols), out.view(rows, cols)
+    masked, sums = torch.ops.mixer_nerf.relu_bias_bwd(grad, out)
+    want_masked, want_sums = bias_grad_truth(grad, out)
+    assert torch.equal(masked, want_masked.to(dtype))
+    scale = grad.double().abs().sum(0).clamp_min(1)
+    assert ((sums.double() - want_sums).abs() <= tol * scale).all()
+    plain = torch.ops.mixer_nerf.bias_grad(grad)
+    assert ((plain.double() - bias_grad_truth(grad)[1]).abs() <= tol * scale).all()
+    assert torch.equal(torch.ops.mixer_nerf.relu_bias_bwd(grad, out)[1], sums)

@@ -452,8 +452,10 @@ def test_kernel_backend_field_equals_the_reference_path(preset):
         sigma, rgb = fused(x, d)
         (sigma.sum() + rgb.sum()).backward()
     assert ops["aten._addmm_activation"] == fused.cfg.depth
-    # every per-sample layer's bias gradient a GEMV (trunk, head, view feature, rgb), no column sum
-    assert ops["aten.mv"] == fused.cfg.depth + 3 and ops["aten.sum.dim_IntList"] == 0
+    # every per-sample layer's bias gradient from our one-pass kernels (the trunk's with its ReLU mask;
+    # head, view feature, rgb), no GEMV, no column sum
+    assert ops["mixer_nerf.relu_bias_bwd"] == fused.cfg.depth and ops["mixer_nerf.bias_grad"] == 3
+    assert ops["aten.mv"] == ops["aten.sum.dim_IntList"] == 0
 
 
 def test_frequency_window_weights_each_octave_by_the_cosine_ramp():

@@ -21,10 +21,9 @@
 #include <c10/cuda/CUDAGuard.h>
 
 #include <cstdint>
-#include <initializer_list>
 #include <tuple>
-#include <type_traits>
 
+#include "columns.cuh"
 #include "common.h"
 #include "ray_layout.h"
 #include "segment_ops.h"
@@ -34,37 +33,11 @@ namespace {
 
 using composite_layout::PackedRays;
 using composite_layout::RaySpan;
-
-constexpr int kThreads = 256;
-constexpr int kVectorBytes = 16;
-
-// V channels moved as one load or store (alignas makes it one 16-byte access when V fills 16 bytes).
-template <typename scalar_t, int V>
-struct alignas(sizeof(scalar_t) * V) Column {
-  scalar_t v[V];
-};
-
-// Sums each thread's V accumulators over threadIdx.y (a power of two), in a fixed order; the
-// totals end in the threads of threadIdx.y == 0. Every thread of the block must call it.
-// Laid out channel-major ([V][kThreads]) so that a warp's stores hit distinct banks.
-template <typename acc, int V>
-__device__ void sum_over_rows(acc (&sum)[V], acc* scratch) {
-  if (blockDim.y == 1) return;
-  const int slot = threadIdx.y * blockDim.x + threadIdx.x;
-#pragma unroll
-  for (int j = 0; j < V; ++j) scratch[j * kThreads + slot] = sum[j];
-  __syncthreads();
-  for (int half = blockDim.y / 2; half > 0; half /= 2) {
-    if (threadIdx.y < half) {
-#pragma unroll
-      for (int j = 0; j < V; ++j) scratch[j * kThreads + slot] += scratch[j * kThreads + slot + half * blockDim.x];
-    }
-    __syncthreads();
-  }
-#pragma unroll
-  for (int j = 0; j < V; ++j) sum[j] = scratch[j * kThreads + threadIdx.x];
-  __syncthreads();  // the scratch is reused by the next pass over columns
-}
+using columns::block_for;
+using columns::Column;
+using columns::kThreads;
+using columns::sum_over_rows;
+using columns::with_column_width;
 
 template <typename scalar_t, int V>
 __global__ void __launch_bounds__(kThreads)
@@ -176,27 +149,6 @@ __global__ void __launch_bounds__(kThreads)
       reinterpret_cast<column*>(grad_scale)[ray * cols + c] = ds;
     }
   }
-}
-
-// Calls launch(std::integral_constant<int, V>) with V = 16 bytes of channels when C and every
-// pointer allow 16-byte accesses, else V = 1.
-template <typename scalar_t, typename Launch>
-void with_column_width(int64_t C, std::initializer_list<const void*> pointers, Launch&& launch) {
-  constexpr int V = kVectorBytes / sizeof(scalar_t);
-  bool aligned = C % V == 0;
-  for (const void* p : pointers) aligned = aligned && reinterpret_cast<uintptr_t>(p) % kVectorBytes == 0;
-  if (aligned) {
-    launch(std::integral_constant<int, V>{});
-  } else {
-    launch(std::integral_constant<int, 1>{});
-  }
-}
-
-// One block per ray: x over columns (a power of two, at most the block), y over rows.
-dim3 block_for(int64_t cols) {
-  int x = 1;
-  while (x < cols && x < kThreads) x *= 2;
-  return dim3(x, kThreads / x);
 }
 
 unsigned grid_for(int64_t rays) {

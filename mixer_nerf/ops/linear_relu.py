@@ -2,8 +2,10 @@
 
 Forward: one GEMM whose epilogue adds the bias (and applies the ReLU: ``torch._addmm_activation``,
 cuBLASLt on CUDA), instead of a GEMM, a bias pass and a ReLU pass. Backward: the ReLU mask applied
-once to the upstream gradient ``g`` (ATen's ReLU backward), then ``dx = g W``, ``dW = g^T x`` and
-the bias gradient as the matrix-vector product ``g^T 1`` (cuBLAS), instead of autograd's column
+once to the upstream gradient ``g`` and the bias gradient (its column sums) taken in the same pass
+(``mixer_nerf::relu_bias_bwd``, or ``bias_grad`` without the ReLU: csrc/bias_grad.cpp), then
+``dx = g W`` and ``dW = g^T x``. Where the extension has no kernels for the device, the mask is
+ATen's ReLU backward and the bias gradient the GEMV ``g^T 1`` (cuBLAS), not autograd's column
 reduction (a slow kernel for an (N, out) gradient in bf16). Saves what the eager path saves (``x``,
 and for the ReLU the output, whose sign is the mask). The references are in
 :mod:`mixer_nerf.ops.linear_relu_reference`.
@@ -16,7 +18,12 @@ import contextlib
 import torch
 
 from ._checks import check_backend, check_floating, check_same_device, check_same_dtype, check_shape
+from ._dispatch import use_kernel
+from ._kernel_op import declare_fake
 from .linear_relu_reference import linear_reference, linear_relu_reference
+
+declare_fake("bias_grad", lambda grad: grad.new_empty(grad.shape[1]))
+declare_fake("relu_bias_bwd", lambda grad, out: (torch.empty_like(grad), grad.new_empty(grad.shape[1])))
 
 
 def linear_relu(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor,
@@ -56,25 +63,35 @@ def _layer(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, backend: s
         dtype = torch.get_autocast_dtype(x.device.type)
         x, weight, bias = x.to(dtype), weight.to(dtype), bias.to(dtype)
     with torch.autocast(x.device.type, enabled=False) if autocast else contextlib.nullcontext():
-        out = _Layer.apply(x.reshape(-1, x.shape[-1]), weight, bias, relu)
+        out = _Layer.apply(x.reshape(-1, x.shape[-1]), weight, bias, relu, use_kernel("auto", x.device))
     return out.reshape(*x.shape[:-1], weight.shape[0])
 
 
 class _Layer(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, relu: bool) -> torch.Tensor:
+    def forward(ctx, x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, relu: bool,
+                bias_kernels: bool) -> torch.Tensor:
         out = torch._addmm_activation(bias, x, weight.t()) if relu else torch.addmm(bias, x, weight.t())
-        ctx.relu = relu
+        ctx.relu, ctx.bias_kernels = relu, bias_kernels
         ctx.save_for_backward(x, weight, out if relu else None)
         return out
 
     @staticmethod
     def backward(ctx, grad: torch.Tensor):
         x, weight, out = ctx.saved_tensors
-        # relu's own backward, one vectorised pass (a comparison and a where with a scalar were two,
-        # the second unvectorised): no gradient where the output is 0, as for torch.relu
-        g = torch.ops.aten.threshold_backward(grad, out, 0) if ctx.relu else grad
+        g, grad_bias = _masked_and_bias_grad(ctx, grad.contiguous(), out)
         grad_x = g @ weight if ctx.needs_input_grad[0] else None
         grad_weight = g.t() @ x if ctx.needs_input_grad[1] else None
-        grad_bias = torch.mv(g.t(), g.new_ones(g.shape[0])) if ctx.needs_input_grad[2] else None
-        return grad_x, grad_weight, grad_bias, None
+        return grad_x, grad_weight, grad_bias, None, None
+
+
+def _masked_and_bias_grad(ctx, grad: torch.Tensor, out: torch.Tensor | None):
+    """The upstream gradient with the ReLU's mask applied (no gradient where the output is 0, as for
+    torch.relu) and the bias gradient (None where none is wanted)."""
+    wants_bias = ctx.needs_input_grad[2]
+    if wants_bias and ctx.bias_kernels:  # one pass: mask and column sums together
+        if ctx.relu:
+            return torch.ops.mixer_nerf.relu_bias_bwd(grad, out)
+        return grad, torch.ops.mixer_nerf.bias_grad(grad)
+    g = torch.ops.aten.threshold_backward(grad, out, 0) if ctx.relu else grad
+    return g, (torch.mv(g.t(), g.new_ones(g.shape[0])) if wants_bias else None)
