@@ -1,7 +1,7 @@
 // bias_grad and relu_bias_bwd on CUDA; the math is that of csrc/bias_grad.cpp (read its file
 // comment first). Two launches, no atomics: band_sums_kernel gives each block a band of rows,
 // which it masks (relu_bias_bwd) and sums per column into one row of `partials` (acc_t); then
-// sum_bands_kernel adds those rows in band order into the bias gradient. Deterministic. Threads
+// columns::sum_rows_kernel adds those rows in band order into the bias gradient. Deterministic. Threads
 // walk the rows as the segment ops do (columns.cuh): x over 16-byte columns, y over rows, the
 // band's sums reduced across y in a fixed order. Memory-bound: g read once (and the mask written
 // once), where the eager backward read it again in a GEMV.
@@ -71,22 +71,6 @@ __global__ void __launch_bounds__(kThreads)
   }
 }
 
-// db_c = the sum over bands of partials[band][c], in band order (x over channels, y over bands).
-template <typename scalar_t>
-__global__ void __launch_bounds__(kThreads)
-    sum_bands_kernel(const acc_t<scalar_t>* partials, int64_t bands, int64_t C, scalar_t* grad_bias) {
-  using acc = acc_t<scalar_t>;
-  __shared__ acc scratch[kThreads];
-  const int64_t c = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
-  acc sum[1] = {acc(0)};
-  if (c < C) {
-#pragma unroll 4
-    for (int64_t b = threadIdx.y; b < bands; b += blockDim.y) sum[0] += partials[b * C + c];
-  }
-  sum_over_rows<acc, 1>(sum, scratch);
-  if (c < C && threadIdx.y == 0) grad_bias[c] = static_cast<scalar_t>(sum[0]);
-}
-
 template <bool kRelu>
 at::Tensor column_sums(const at::Tensor& grad, const at::Tensor* out, at::Tensor* masked) {
   const c10::cuda::CUDAGuard device_guard(grad.device());
@@ -110,9 +94,9 @@ at::Tensor column_sums(const at::Tensor& grad, const at::Tensor* out, at::Tensor
           g, y, m, N, C / V, rows, partials.data_ptr<acc>());
       C10_CUDA_KERNEL_LAUNCH_CHECK();
     });
-    const dim3 block(32, kThreads / 32);
-    sum_bands_kernel<scalar_t><<<static_cast<unsigned>((C + 31) / 32), block, 0, stream>>>(
-        partials.const_data_ptr<acc>(), bands, C, sums.data_ptr<scalar_t>());
+    const columns::Destinations<scalar_t, 1> db{{sums.data_ptr<scalar_t>()}, {0, C}};
+    columns::sum_rows_kernel<<<columns::sum_rows_grid(C), columns::sum_rows_block(), 0, stream>>>(
+        partials.const_data_ptr<acc>(), bands, C, db);
     C10_CUDA_KERNEL_LAUNCH_CHECK();
   });
   return sums;

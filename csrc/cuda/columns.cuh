@@ -1,6 +1,7 @@
-// Row-major (N, C) tensors walked by columns, shared by the segment ops and the bias gradient:
-// threads form a (x, y) grid, x over columns of V channels moved as one 16-byte access where C and
-// every pointer allow it, y over rows, and sums over rows reduced across y in a fixed order.
+// Row-major (N, C) tensors walked by columns, shared by the segment ops, the bias gradient and
+// mlca's weight gradients: threads form a (x, y) grid, x over columns of V channels moved as one
+// 16-byte access where C and every pointer allow it, y over rows, and sums over rows reduced
+// across y in a fixed order.
 #pragma once
 
 #include <cstdint>
@@ -54,6 +55,38 @@ void with_column_width(int64_t C, std::initializer_list<const void*> pointers, L
     launch(std::integral_constant<int, 1>{});
   }
 }
+
+// Where sum_rows_kernel writes column c: K tensors, tensor k taking columns [begin[k], begin[k+1]).
+template <typename T, int K>
+struct Destinations {
+  T* ptr[K];
+  int64_t begin[K + 1];
+  __device__ T& operator[](int64_t c) const {
+    int k = 0;
+    while (c >= begin[k + 1]) ++k;
+    return ptr[k][c - begin[k]];
+  }
+};
+
+// out[c] = the sum over r of partials[r][c] (rows of C acc values), in row order within each thread
+// and across threads in sum_over_rows's fixed order: deterministic. Launch with blocks of (32,
+// kThreads / 32) threads, (C + 31) / 32 of them: x over columns, y over rows.
+template <typename acc, typename T, int K>
+__global__ void __launch_bounds__(kThreads)
+    sum_rows_kernel(const acc* partials, int64_t rows, int64_t C, Destinations<T, K> out) {
+  __shared__ acc scratch[kThreads];
+  const int64_t c = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
+  acc sum[1] = {acc(0)};
+  if (c < C) {
+#pragma unroll 4
+    for (int64_t r = threadIdx.y; r < rows; r += blockDim.y) sum[0] += partials[r * C + c];
+  }
+  sum_over_rows<acc, 1>(sum, scratch);
+  if (c < C && threadIdx.y == 0) out[c] = static_cast<T>(sum[0]);
+}
+
+inline dim3 sum_rows_grid(int64_t C) { return dim3(static_cast<unsigned>((C + 31) / 32)); }
+inline dim3 sum_rows_block() { return dim3(32, kThreads / 32); }
 
 // x over columns (a power of two, at most the block), y over rows.
 inline dim3 block_for(int64_t cols) {

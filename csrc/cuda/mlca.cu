@@ -30,6 +30,7 @@
 #include <type_traits>
 #include <utility>
 
+#include "columns.cuh"
 #include "common.h"
 #include "mlca.h"
 
@@ -579,6 +580,25 @@ at::Tensor mlca_fwd_cuda(const at::Tensor& encoded, const at::Tensor& lift, cons
   return out;
 }
 
+// The weight gradients in the weights' dtype: the blocks' partial rows (blocks, params) summed in block
+// order straight into the five tensors (one launch, where a sum, a cast and five copies were seven).
+template <typename scalar_t>
+mm::Grads weight_grads(std::optional<at::Tensor> grad_encoded, const at::Tensor& partials, const Sizes& s,
+                       const at::TensorOptions& options, cudaStream_t stream) {
+  at::Tensor lift = at::empty({s.C, s.D}, options), token_weight = at::empty({s.T, s.T}, options),
+             token_bias = at::empty({s.T}, options), channel_weight = at::empty({s.C, s.C}, options),
+             channel_bias = at::empty({s.C}, options);
+  // in the order of a partial row (mlca.h's Sizes)
+  const columns::Destinations<scalar_t, 5> out{
+      {token_weight.data_ptr<scalar_t>(), token_bias.data_ptr<scalar_t>(), channel_weight.data_ptr<scalar_t>(),
+       channel_bias.data_ptr<scalar_t>(), lift.data_ptr<scalar_t>()},
+      {0, s.token_bias(), s.channel_weight(), s.channel_bias(), s.lift(), s.params()}};
+  columns::sum_rows_kernel<<<columns::sum_rows_grid(s.params()), columns::sum_rows_block(), 0, stream>>>(
+      partials.const_data_ptr<acc_t<scalar_t>>(), partials.size(0), s.params(), out);
+  C10_CUDA_KERNEL_LAUNCH_CHECK();
+  return {std::move(grad_encoded), lift, token_weight, token_bias, channel_weight, channel_bias};
+}
+
 mm::Grads mlca_bwd_cuda(const at::Tensor& grad_out, const at::Tensor& encoded, const at::Tensor& lift,
                         const at::Tensor& token_weight, const at::Tensor& token_bias,
                         const at::Tensor& channel_weight, const at::Tensor& channel_bias, bool input_grad) {
@@ -595,7 +615,7 @@ mm::Grads mlca_bwd_cuda(const at::Tensor& grad_out, const at::Tensor& encoded, c
   }
   const cudaStream_t stream = c10::cuda::getCurrentCUDAStream();
   const int device = encoded.device().index();
-  at::Tensor partials;
+  mm::Grads grads;
   MIXER_NERF_DISPATCH_FLOATING(encoded.scalar_type(), "mlca_bwd_cuda", [&] {
     using acc = acc_t<scalar_t>;
     const auto w = weights_of<scalar_t>(lift, token_weight, token_bias, channel_weight, channel_bias);
@@ -611,14 +631,16 @@ mm::Grads mlca_bwd_cuda(const at::Tensor& grad_out, const at::Tensor& encoded, c
       const int64_t resident = static_cast<int64_t>(std::max(per_sm, 1)) *
                                device_attribute(cudaDevAttrMultiProcessorCount, device);
       const auto blocks = static_cast<unsigned>(std::min(tiles, resident));
-      partials = at::empty({static_cast<int64_t>(blocks), s.params()}, encoded.options().dtype(acc_type));
+      const at::Tensor partials =
+          at::empty({static_cast<int64_t>(blocks), s.params()}, encoded.options().dtype(acc_type));
       kernel<<<blocks, kBackwardThreads, bytes, stream>>>(
           grad_out.const_data_ptr<scalar_t>(), encoded.const_data_ptr<scalar_t>(), w,
           input_grad ? grad_encoded.mutable_data_ptr<scalar_t>() : nullptr, partials.mutable_data_ptr<acc>(), pr);
       C10_CUDA_KERNEL_LAUNCH_CHECK();
+      grads = weight_grads<scalar_t>(maybe_grad_encoded, partials, s, encoded.options(), stream);
     });
   });
-  return mm::split_grads(partials.sum(0), maybe_grad_encoded, s, encoded.scalar_type());
+  return grads;
 }
 
 }  // namespace
