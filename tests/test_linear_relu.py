@@ -55,6 +55,14 @@ def test_gradcheck(gen, op, reference):
     assert torch.autograd.gradcheck(lambda *a: op(*a, backend="kernel"), inputs)
 
 
+@OPS
+def test_gradgradcheck(gen, op, reference):
+    """A second derivative through the layer (create_graph) takes the differentiable ATen path."""
+    x, weight, bias = layer(gen, (6,), 5, 4, torch.float64)
+    inputs = [t.requires_grad_() for t in (x, weight, bias)]
+    assert torch.autograd.gradgradcheck(lambda *a: op(*a, backend="kernel"), inputs)
+
+
 def test_relu_edge_gets_no_gradient_like_torch_relu():
     """Pre-activations exactly 0 (a dead unit, zero inputs) pass no gradient, as torch.relu's
     backward; negative ones none either; only x's rows with positive outputs reach the weights."""

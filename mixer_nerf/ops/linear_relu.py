@@ -89,7 +89,8 @@ def _masked_and_bias_grad(ctx, grad: torch.Tensor, out: torch.Tensor | None):
     """The upstream gradient with the ReLU's mask applied (no gradient where the output is 0, as for
     torch.relu) and the bias gradient (None where none is wanted)."""
     wants_bias = ctx.needs_input_grad[2]
-    if wants_bias and ctx.bias_kernels:  # one pass: mask and column sums together
+    # one pass, mask and column sums together; not under create_graph (our kernels have no backward)
+    if wants_bias and ctx.bias_kernels and not torch.is_grad_enabled():
         if ctx.relu:
             return torch.ops.mixer_nerf.relu_bias_bwd(grad, out)
         return grad, torch.ops.mixer_nerf.bias_grad(grad)
