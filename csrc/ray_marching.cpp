@@ -61,8 +61,23 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> ray_march
   return {t_starts, t_ends, ray_indices, offsets, total};
 }
 
+std::tuple<at::Tensor, at::Tensor> padding_rays_fwd_cpu(const at::Tensor& offsets, const at::Tensor& ray_indices,
+                                                        int64_t rows_per_ray) {
+  at::Tensor out_ray_indices, out_offsets;
+  const PaddingLayout layout =
+      padding_layout(offsets, ray_indices, rows_per_ray, out_ray_indices, out_offsets, at::kCPU);
+  const int64_t end = layout.end();
+  at::parallel_for(0, layout.items(), 4096, [&](int64_t first, int64_t last) {
+    for (int64_t j = first; j < last; ++j) layout.write(j, end);
+  });
+  return {out_ray_indices, out_offsets};
+}
+
 }  // namespace
 
-TORCH_LIBRARY_IMPL(mixer_nerf, CPU, m) { m.impl("ray_marching_fwd", &ray_marching_fwd_cpu); }
+TORCH_LIBRARY_IMPL(mixer_nerf, CPU, m) {
+  m.impl("ray_marching_fwd", &ray_marching_fwd_cpu);
+  m.impl("padding_rays_fwd", &padding_rays_fwd_cpu);
+}
 
 }  // namespace mixer_nerf

@@ -55,6 +55,50 @@ inline void check_ray_marching_inputs(const at::Tensor& rays_o, const at::Tensor
   MIXER_NERF_CHECK(!capacity || *capacity >= 0, "capacity must be >= 0");
 }
 
+// padding_rays_fwd: FixedSamples.with_padding_rays's layout (mixer_nerf/ops/ray_marching.py), made
+// where the rows are, without reading their count back. With `end` = offsets[R] (clamped into [0, N]),
+// row i >= end belongs to padding ray R + (i - end) / rows_per_ray, and padding ray k = 1..P ends at
+// min(end + k * rows_per_ray, N). Item j of max(N, R + 1 + P) writes row j's ray and offset j.
+struct PaddingLayout {
+  const int64_t* offsets;      // (R + 1)
+  const int64_t* ray_indices;  // (N)
+  int64_t* out_ray_indices;    // (N)
+  int64_t* out_offsets;        // (R + 1 + P)
+  int64_t R, N, P, rows_per_ray;
+
+  C10_HOST_DEVICE int64_t items() const { return N > R + 1 + P ? N : R + 1 + P; }
+  C10_HOST_DEVICE int64_t end() const {
+    const int64_t e = offsets[R];
+    return e < 0 ? 0 : (e > N ? N : e);
+  }
+  C10_HOST_DEVICE void write(int64_t j, int64_t end) const {
+    if (j < N) out_ray_indices[j] = j < end ? ray_indices[j] : R + (j - end) / rows_per_ray;
+    if (j <= R) {
+      out_offsets[j] = offsets[j];
+    } else if (j < R + 1 + P) {
+      const int64_t e = end + (j - R) * rows_per_ray;
+      out_offsets[j] = e < N ? e : N;
+    }
+  }
+};
+
+// offsets (R + 1) and ray_indices (N) int64 on `dev`; the layout with ceil(N / rows_per_ray) padding rays.
+inline PaddingLayout padding_layout(const at::Tensor& offsets, const at::Tensor& ray_indices, int64_t rows_per_ray,
+                                    at::Tensor& out_ray_indices, at::Tensor& out_offsets, at::DeviceType dev) {
+  MIXER_NERF_CHECK_INPUT(offsets, dev);
+  MIXER_NERF_CHECK_INPUT(ray_indices, dev);
+  MIXER_NERF_CHECK(offsets.scalar_type() == at::kLong && offsets.dim() == 1 && offsets.size(0) >= 1 &&
+                       ray_indices.scalar_type() == at::kLong && ray_indices.dim() == 1 &&
+                       offsets.device() == ray_indices.device(),
+                   "padding_rays_fwd: offsets (R+1) and ray_indices (N) must be int64 on one device");
+  MIXER_NERF_CHECK(rows_per_ray >= 1, "padding_rays_fwd: rows_per_ray must be >= 1");
+  const int64_t R = offsets.size(0) - 1, N = ray_indices.size(0), P = (N + rows_per_ray - 1) / rows_per_ray;
+  out_ray_indices = at::empty({N}, ray_indices.options());
+  out_offsets = at::empty({R + 1 + P}, offsets.options());
+  return {offsets.const_data_ptr<int64_t>(), ray_indices.const_data_ptr<int64_t>(),
+          out_ray_indices.data_ptr<int64_t>(), out_offsets.data_ptr<int64_t>(), R, N, P, rows_per_ray};
+}
+
 // An output of `rows` samples; with a capacity its rows past the samples stay zero (zero-length
 // intervals at t = 0 of ray 0).
 inline at::Tensor padded_rows(int64_t rows, std::optional<int64_t> capacity, const at::TensorOptions& options) {

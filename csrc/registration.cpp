@@ -39,6 +39,9 @@ TORCH_LIBRARY(mixer_nerf, m) {
   //   int64 (the samples marched). With a capacity the outputs have that many rows (no host sync): the
   //   samples past it are cut, offsets clamped to it, the rows after the samples zero. No backward.
   m.def("ray_marching_fwd(Tensor rays_o, Tensor rays_d, Tensor near, Tensor far, Tensor? jitter, Tensor bitfield, Tensor aabb, int[] resolution, float step_size, float cone_angle, int? max_samples_per_ray, int? capacity=None) -> (Tensor, Tensor, Tensor, Tensor, Tensor)");
+  // padding_rays_fwd: packed samples' offsets (R+1) and ray_indices (N), the samples in rows [0, offsets[R])
+  //   -> (ray_indices (N), offsets (R+1+P)) with P = ceil(N / rows_per_ray) rays owning the rows past the samples
+  m.def("padding_rays_fwd(Tensor offsets, Tensor ray_indices, int rows_per_ray) -> (Tensor, Tensor)");
   // segment_mean / ray_scale (squeeze-and-excitation on packed samples), offsets (R+1) int64 (ray r
   //   owns rows offsets[r]:offsets[r+1]): segment_mean: values (N, C) -> per-ray mean (R, C), 0 for
   //   an empty ray; ray_scale: features (N, C), scale (R, C) -> features[i] * scale[ray(i)] (N, C)

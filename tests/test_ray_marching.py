@@ -26,7 +26,12 @@ from mixer_nerf.ops.ray_marching import (
 )
 from mixer_nerf.ops import composite_packed
 from mixer_nerf.ops.bitfield import pack_bits
-from mixer_nerf.ops.ray_marching_reference import clip_to_box, march_dtype, ray_marching_reference
+from mixer_nerf.ops.ray_marching_reference import (
+    clip_to_box,
+    march_dtype,
+    padding_rays_reference,
+    ray_marching_reference,
+)
 from cuda_poison import poison_allocator
 
 needs_kernels = pytest.mark.skipif(not _extension.available(), reason="mixer_nerf kernels not built")
@@ -518,6 +523,49 @@ def test_fixed_samples_name_the_intact_rays_and_pad_to_short_rays(gen, room):
     intact = fixed.intact()
     torch.testing.assert_close(color[:R][intact], full[intact])
     assert not color[R:].any()
+
+
+def padding_cases(gen, device="cpu"):
+    """(offsets, ray_indices, rows_per_ray): random ragged rays in a buffer with spare rows, the
+    buffer exactly full, no spare row of a ray, no ray, no row, and an unchecked end past N."""
+    counts = torch.randint(0, 9, (50,), generator=gen)
+    offsets = torch.nn.functional.pad(counts.cumsum(0), (1, 0))
+    end = int(offsets[-1])
+    spare = int(torch.randint(1, 200, (1,), generator=gen))
+    rays = torch.repeat_interleave(torch.arange(50), counts)
+    for rows, per_ray in ((end + spare, 32), (end + spare, 1), (end + spare, 7), (end, 32)):
+        yield offsets, torch.cat([rays, torch.zeros(rows - end, dtype=torch.int64)]), per_ray
+    yield torch.zeros(1, dtype=torch.int64), torch.zeros(70, dtype=torch.int64), 32  # no ray
+    yield torch.zeros(4, dtype=torch.int64), torch.zeros(0, dtype=torch.int64), 32  # no row
+    yield torch.tensor([0, 3, 90]), torch.zeros(40, dtype=torch.int64), 8  # end past N: clamped
+
+
+@pytest.mark.skipif(not _extension.available(), reason="kernels not built")
+def test_padding_rays_kernel_matches_the_reference(gen):
+    for offsets, ray_indices, per_ray in padding_cases(gen):
+        got = torch.ops.mixer_nerf.padding_rays_fwd(offsets, ray_indices, per_ray)
+        want = padding_rays_reference(offsets, ray_indices, per_ray)
+        assert all(torch.equal(g, w) for g, w in zip(got, want, strict=True)), (offsets, per_ray)
+        R, N = offsets.shape[0] - 1, ray_indices.shape[0]
+        padded_offsets = got[1]
+        assert padded_offsets.shape == (R + 1 + -(-N // per_ray),) and int(padded_offsets[-1]) == N
+    offsets, ray_indices, per_ray = next(padding_cases(gen))
+    FixedSamples(PackedSamples(ray_indices.float(), ray_indices.float(), ray_indices, offsets),
+                 offsets[-1:]).with_padding_rays()  # registers the fake
+    torch.library.opcheck(torch.ops.mixer_nerf.padding_rays_fwd.default, (offsets, ray_indices, per_ray))
+    with pytest.raises(RuntimeError, match="int64"):
+        torch.ops.mixer_nerf.padding_rays_fwd(offsets.int(), ray_indices, 32)
+    with pytest.raises(RuntimeError, match="rows_per_ray"):
+        torch.ops.mixer_nerf.padding_rays_fwd(offsets, ray_indices, 0)
+
+
+@on_cuda
+@pytest.mark.cuda
+def test_cuda_padding_rays_match_the_cpu(gen):
+    for offsets, ray_indices, per_ray in padding_cases(gen):
+        cpu = torch.ops.mixer_nerf.padding_rays_fwd(offsets, ray_indices, per_ray)
+        cuda = torch.ops.mixer_nerf.padding_rays_fwd(offsets.cuda(), ray_indices.cuda(), per_ray)
+        assert all(torch.equal(c, g.cpu()) for c, g in zip(cpu, cuda, strict=True))
 
 
 def test_select_fixed_rejects_a_mask_of_another_length(gen):

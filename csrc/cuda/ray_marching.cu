@@ -158,8 +158,30 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> ray_march
   return {t_starts, t_ends, ray_indices, offsets, total};
 }
 
+__global__ void padding_rays_kernel(PaddingLayout layout) {
+  const int64_t j = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (j < layout.items()) layout.write(j, layout.end());
+}
+
+std::tuple<at::Tensor, at::Tensor> padding_rays_fwd_cuda(const at::Tensor& offsets, const at::Tensor& ray_indices,
+                                                         int64_t rows_per_ray) {
+  const c10::cuda::CUDAGuard device_guard(offsets.device());
+  at::Tensor out_ray_indices, out_offsets;
+  const PaddingLayout layout =
+      padding_layout(offsets, ray_indices, rows_per_ray, out_ray_indices, out_offsets, at::kCUDA);
+  constexpr int kThreads = 256;
+  const int64_t blocks = (layout.items() + kThreads - 1) / kThreads;
+  MIXER_NERF_CHECK(blocks <= int64_t(INT32_MAX), "padding_rays_fwd: too many rows for one launch");
+  padding_rays_kernel<<<static_cast<unsigned>(blocks), kThreads, 0, c10::cuda::getCurrentCUDAStream()>>>(layout);
+  C10_CUDA_KERNEL_LAUNCH_CHECK();
+  return {out_ray_indices, out_offsets};
+}
+
 }  // namespace
 
-TORCH_LIBRARY_IMPL(mixer_nerf, CUDA, m) { m.impl("ray_marching_fwd", &ray_marching_fwd_cuda); }
+TORCH_LIBRARY_IMPL(mixer_nerf, CUDA, m) {
+  m.impl("ray_marching_fwd", &ray_marching_fwd_cuda);
+  m.impl("padding_rays_fwd", &padding_rays_fwd_cuda);
+}
 
 }  // namespace mixer_nerf

@@ -150,3 +150,17 @@ def _lattice_length(t0, t_hi, hit, step, cone, k0, geo_t0) -> int:
             torch.isfinite(geo_t0) & hit, torch.ceil(beyond / torch.log1p(cone)), torch.zeros_like(n)
         )
     return int(n.max().item()) + 2
+
+
+def padding_rays_reference(offsets: torch.Tensor, ray_indices: torch.Tensor,
+                           rows_per_ray: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """``FixedSamples.with_padding_rays``'s layout: (ray_indices (N,), offsets (R + 1 + P,)) with P =
+    ceil(N / rows_per_ray) rays after the R, row i past the samples' end (``offsets[R]``) owned by
+    ray R + (i - end) // rows_per_ray, padding ray k ending at min(end + k * rows_per_ray, N)."""
+    rows, num_rays = ray_indices.shape[0], offsets.shape[0] - 1
+    end = offsets[-1:].clamp(0, rows)
+    index = torch.arange(rows, device=offsets.device)
+    padding_ray = num_rays + (index - end).div(rows_per_ray, rounding_mode="floor")
+    steps = torch.arange(1, -(-rows // rows_per_ray) + 1, device=offsets.device)
+    ends = (end + rows_per_ray * steps).clamp_max(rows)
+    return torch.where(index < end, ray_indices, padding_ray), torch.cat([offsets, ends])
