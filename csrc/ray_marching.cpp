@@ -61,6 +61,18 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> ray_march
   return {t_starts, t_ends, ray_indices, offsets, total};
 }
 
+at::Tensor transmittance_filter_fwd_cpu(const at::Tensor& sigmas, const at::Tensor& t_starts, const at::Tensor& t_ends,
+                                        const at::Tensor& offsets, double threshold, double alpha_threshold) {
+  at::Tensor keep = check_transmittance_filter(sigmas, t_starts, t_ends, offsets, threshold, alpha_threshold, at::kCPU);
+  MIXER_NERF_DISPATCH_FLOATING(sigmas.scalar_type(), "transmittance_filter_fwd_cpu", [&] {
+    const auto filter = transmittance_filter<scalar_t>(sigmas, t_starts, t_ends, offsets, threshold, alpha_threshold, keep);
+    at::parallel_for(0, filter.R, kRayGrain, [&](int64_t first, int64_t last) {
+      for (int64_t r = first; r < last; ++r) filter.ray(r);
+    });
+  });
+  return keep;
+}
+
 std::tuple<at::Tensor, at::Tensor> padding_rays_fwd_cpu(const at::Tensor& offsets, const at::Tensor& ray_indices,
                                                         int64_t rows_per_ray) {
   at::Tensor out_ray_indices, out_offsets;
@@ -78,6 +90,7 @@ std::tuple<at::Tensor, at::Tensor> padding_rays_fwd_cpu(const at::Tensor& offset
 TORCH_LIBRARY_IMPL(mixer_nerf, CPU, m) {
   m.impl("ray_marching_fwd", &ray_marching_fwd_cpu);
   m.impl("padding_rays_fwd", &padding_rays_fwd_cpu);
+  m.impl("transmittance_filter_fwd", &transmittance_filter_fwd_cpu);
 }
 
 }  // namespace mixer_nerf

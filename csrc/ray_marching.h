@@ -55,6 +55,72 @@ inline void check_ray_marching_inputs(const at::Tensor& rays_o, const at::Tensor
   MIXER_NERF_CHECK(!capacity || *capacity >= 0, "capacity must be >= 0");
 }
 
+// transmittance_filter_fwd: filter_by_transmittance's mask (mixer_nerf/ops/ray_marching.py), one ray at a time:
+// with tau_i = sigma_i (t_end_i - t_start_i) in double (NaN as 0, +inf as the largest double, at least 0),
+// sample i is kept while the ray's optical depth before it is <= limit = -log(threshold) (threshold > 0),
+// and, with alpha_threshold > 0, where 1 - exp(-tau_i) >= alpha_threshold. Each term of the depth is capped
+// at limit + 1 (no decision changes: one such term already ends the ray). Rows past offsets[R] belong to
+// no ray and are dropped.
+template <typename scalar_t>
+struct TransmittanceFilter {
+  const scalar_t* sigmas;
+  const scalar_t* t_starts;
+  const scalar_t* t_ends;
+  const int64_t* offsets;  // (R + 1), clamped into [0, N] here
+  bool* keep;
+  int64_t R, N;
+  double limit;            // -log(threshold); +inf without early termination
+  double alpha_threshold;  // 0: no alpha test
+
+  C10_HOST_DEVICE int64_t offset(int64_t r) const {
+    const int64_t o = offsets[r];
+    return o < 0 ? 0 : (o > N ? N : o);
+  }
+  C10_HOST_DEVICE double tau(int64_t i) const {
+    const double t = double(sigmas[i]) * double(scalar_t(t_ends[i] - t_starts[i]));  // the gap in scalar_t, as the reference
+    if (t != t) return 0.0;
+    return t > 1.7976931348623157e308 ? 1.7976931348623157e308 : (t < 0 ? 0.0 : t);
+  }
+  // Ray r's rows; `keep` starts all false, so rows no ray covers stay dropped.
+  C10_HOST_DEVICE void ray(int64_t r) const {
+    double depth = 0;
+    for (int64_t i = offset(r), end = offset(r + 1); i < end; ++i) {
+      const double t = tau(i);
+      keep[i] = depth <= limit && (alpha_threshold <= 0 || -::expm1(-t) >= alpha_threshold);
+      depth += t < limit + 1 ? t : limit + 1;
+    }
+  }
+};
+
+// The filter's inputs checked (sigmas, t_starts, t_ends (N) of one floating dtype, offsets (R + 1) int64, all
+// on `dev`) and its output, all false.
+template <typename scalar_t>
+TransmittanceFilter<scalar_t> transmittance_filter(const at::Tensor& sigmas, const at::Tensor& t_starts,
+                                                   const at::Tensor& t_ends, const at::Tensor& offsets,
+                                                   double threshold, double alpha_threshold, const at::Tensor& keep) {
+  return {sigmas.const_data_ptr<scalar_t>(), t_starts.const_data_ptr<scalar_t>(), t_ends.const_data_ptr<scalar_t>(),
+          offsets.const_data_ptr<int64_t>(), keep.data_ptr<bool>(), offsets.size(0) - 1, sigmas.size(0),
+          threshold > 0 ? -std::log(threshold) : std::numeric_limits<double>::infinity(), alpha_threshold};
+}
+
+inline at::Tensor check_transmittance_filter(const at::Tensor& sigmas, const at::Tensor& t_starts,
+                                             const at::Tensor& t_ends, const at::Tensor& offsets, double threshold,
+                                             double alpha_threshold, at::DeviceType dev) {
+  MIXER_NERF_CHECK_INPUT(sigmas, dev);
+  MIXER_NERF_CHECK_INPUT(t_starts, dev);
+  MIXER_NERF_CHECK_INPUT(t_ends, dev);
+  MIXER_NERF_CHECK_INPUT(offsets, dev);
+  MIXER_NERF_CHECK(sigmas.dim() == 1 && t_starts.sizes() == sigmas.sizes() && t_ends.sizes() == sigmas.sizes() &&
+                       t_starts.scalar_type() == sigmas.scalar_type() && t_ends.scalar_type() == sigmas.scalar_type(),
+                   "transmittance_filter_fwd: sigmas, t_starts, t_ends must be (N) of one dtype");
+  MIXER_NERF_CHECK(offsets.scalar_type() == at::kLong && offsets.dim() == 1 && offsets.size(0) >= 1 &&
+                       offsets.device() == sigmas.device(),
+                   "transmittance_filter_fwd: offsets must be (R+1) int64 on the device of sigmas");
+  MIXER_NERF_CHECK(threshold >= 0 && threshold <= 1 && alpha_threshold >= 0 && alpha_threshold <= 1,
+                   "transmittance_filter_fwd: thresholds must lie in [0, 1]");
+  return at::zeros({sigmas.size(0)}, sigmas.options().dtype(at::kBool));
+}
+
 // padding_rays_fwd: FixedSamples.with_padding_rays's layout (mixer_nerf/ops/ray_marching.py), made
 // where the rows are, without reading their count back. With `end` = offsets[R] (clamped into [0, N]),
 // row i >= end belongs to padding ray R + (i - end) / rows_per_ray, and padding ray k = 1..P ends at

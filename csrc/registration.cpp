@@ -39,6 +39,9 @@ TORCH_LIBRARY(mixer_nerf, m) {
   //   int64 (the samples marched). With a capacity the outputs have that many rows (no host sync): the
   //   samples past it are cut, offsets clamped to it, the rows after the samples zero. No backward.
   m.def("ray_marching_fwd(Tensor rays_o, Tensor rays_d, Tensor near, Tensor far, Tensor? jitter, Tensor bitfield, Tensor aabb, int[] resolution, float step_size, float cone_angle, int? max_samples_per_ray, int? capacity=None) -> (Tensor, Tensor, Tensor, Tensor, Tensor)");
+  // transmittance_filter_fwd: sigmas, t_starts, t_ends (N) and offsets (R+1) -> keep (N) bool, the samples
+  //   early termination (threshold, 0: off) and the alpha threshold (0: off) keep; rows past offsets[R] dropped
+  m.def("transmittance_filter_fwd(Tensor sigmas, Tensor t_starts, Tensor t_ends, Tensor offsets, float threshold, float alpha_threshold) -> Tensor");
   // padding_rays_fwd: packed samples' offsets (R+1) and ray_indices (N), the samples in rows [0, offsets[R])
   //   -> (ray_indices (N), offsets (R+1+P)) with P = ceil(N / rows_per_ray) rays owning the rows past the samples
   m.def("padding_rays_fwd(Tensor offsets, Tensor ray_indices, int rows_per_ray) -> (Tensor, Tensor)");

@@ -313,13 +313,18 @@ def naive_keep(sigmas, s: PackedSamples, threshold, alpha_threshold):
     return keep
 
 
-@pytest.mark.parametrize("threshold,alpha_threshold", [(1e-4, 0.0), (1e-2, 1e-3), (0.0, 0.0), (0.0, 0.5)])
-def test_filter_by_transmittance_matches_naive(gen, threshold, alpha_threshold):
+FILTER_BACKENDS = pytest.mark.parametrize("backend", ["torch", pytest.param("kernel", marks=pytest.mark.skipif(
+    not _extension.available(), reason="kernels not built"))])
+
+
+@FILTER_BACKENDS
+@pytest.mark.parametrize("threshold,alpha_threshold", [(1e-4, 0.0), (1e-2, 1e-3), (0.0, 0.0), (0.0, 0.5), (1.0, 0.0)])
+def test_filter_by_transmittance_matches_naive(gen, threshold, alpha_threshold, backend):
     rays = random_rays(40, gen, torch.float64)
     s = march(rays, full_grid(), step=0.1, backend="torch")
     sigmas = torch.rand(s.t_starts.shape, generator=gen, dtype=torch.float64) * 20
     sigmas[torch.rand(sigmas.shape, generator=gen) < 0.3] = 0
-    keep = filter_by_transmittance(sigmas, s, threshold, alpha_threshold)
+    keep = filter_by_transmittance(sigmas, s, threshold, alpha_threshold, backend=backend)
     assert torch.equal(keep, naive_keep(sigmas, s, threshold, alpha_threshold))
     kept = s.select(keep)
     check_layout(kept, 40)
@@ -328,7 +333,8 @@ def test_filter_by_transmittance_matches_naive(gen, threshold, alpha_threshold):
     )
 
 
-def test_filter_by_transmittance_adversarial(gen):
+@FILTER_BACKENDS
+def test_filter_by_transmittance_adversarial(gen, backend):
     """inf, 1e30 and NaN densities end (or, NaN, don't touch) their own ray only."""
     R = 20
     rays_o = torch.rand(R, 3, generator=gen) * 0.4 + torch.tensor([-0.2, -0.2, -5.0])  # all cross the box
@@ -339,12 +345,53 @@ def test_filter_by_transmittance_adversarial(gen):
     adversarial = {3: math.inf, 7: 1e30, 11: math.nan}
     for r, value in adversarial.items():
         sigmas[s.offsets[r]] = value
-    keep = filter_by_transmittance(sigmas, s)
+    keep = filter_by_transmittance(sigmas, s, backend=backend)
     for r, value in adversarial.items():
         ray_keep = keep[s.offsets[r] : s.offsets[r + 1]]
         assert ray_keep[0] and (ray_keep[1:].all() if math.isnan(value) else not ray_keep[1:].any())
     others = ~torch.isin(s.ray_indices, torch.tensor(list(adversarial)))
     assert keep[others].all()
+
+
+@pytest.mark.skipif(not _extension.available(), reason="kernels not built")
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64, torch.bfloat16])
+def test_filter_kernel_matches_the_reference_and_drops_rows_of_no_ray(gen, dtype):
+    """The kernel (per-ray sums) against the reference (one cumsum) on a fixed layout with spare rows,
+    densities from 0 to 1e3, NaN and inf among them; equal except where a depth sits within 1e-9 of
+    the limit (the two sums round differently); the spare rows dropped by both."""
+    rays = random_rays(60, gen)
+    fixed = ray_marching_fixed(*rays, full_grid(), 0.05, 4000, backend="torch").samples
+    t_starts, t_ends = fixed.t_starts.to(dtype), fixed.t_ends.to(dtype)
+    sigmas = (10 ** (torch.rand(4000, generator=gen) * 6 - 3)).to(dtype)
+    sigmas[::97], sigmas[::89] = math.nan, math.inf
+    s = PackedSamples(t_starts, t_ends, fixed.ray_indices, fixed.offsets)
+    end = int(fixed.offsets[-1])
+    assert end < 4000
+    for threshold, alpha in ((1e-4, 0.0), (1e-2, 1e-3), (0.0, 0.2)):
+        got = filter_by_transmittance(sigmas, s, threshold, alpha, backend="kernel")
+        want = filter_by_transmittance(sigmas, s, threshold, alpha, backend="torch")
+        assert not got[end:].any() and not want[end:].any()
+        tau = torch.nan_to_num(sigmas.double() * (t_ends - t_starts).double(), nan=0.0).clamp_min(0)
+        depth = torch.cat([tau.new_zeros(1), tau.cumsum(0)])
+        before = depth[:-1] - depth[fixed.offsets[fixed.ray_indices]]
+        near_limit = (before - (-math.log(threshold) if threshold else math.inf)).abs() < 1e-9
+        assert torch.equal(got[~near_limit], want[~near_limit])
+    torch.library.opcheck(torch.ops.mixer_nerf.transmittance_filter_fwd.default,
+                          (sigmas, t_starts, t_ends, fixed.offsets, 1e-4, 0.0))
+
+
+@on_cuda
+@pytest.mark.cuda
+def test_cuda_filter_matches_the_cpu_kernel(gen):
+    rays = random_rays(500, gen)
+    fixed = ray_marching_fixed(*rays, full_grid(), 0.02, 40000, backend="torch").samples
+    sigmas = 10 ** (torch.rand(40000, generator=gen) * 6 - 3)
+    sigmas[::97] = math.nan
+    for threshold, alpha in ((1e-4, 0.0), (1e-2, 1e-3), (0.0, 0.2)):
+        cpu = filter_by_transmittance(sigmas, fixed, threshold, alpha, backend="kernel")
+        cuda = filter_by_transmittance(sigmas.cuda(), PackedSamples(*(t.cuda() for t in fixed)), threshold, alpha,
+                                       backend="kernel")
+        assert torch.equal(cpu, cuda.cpu())
 
 
 # --- input validation and op registration ------------------------------------------------------

@@ -158,6 +158,32 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> ray_march
   return {t_starts, t_ends, ray_indices, offsets, total};
 }
 
+// One thread per ray: a ray holds a few dozen marched samples, read in order.
+template <typename scalar_t>
+__global__ void transmittance_filter_kernel(TransmittanceFilter<scalar_t> filter) {
+  const int64_t r = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (r < filter.R) filter.ray(r);
+}
+
+at::Tensor transmittance_filter_fwd_cuda(const at::Tensor& sigmas, const at::Tensor& t_starts, const at::Tensor& t_ends,
+                                         const at::Tensor& offsets, double threshold, double alpha_threshold) {
+  const c10::cuda::CUDAGuard device_guard(sigmas.device());
+  at::Tensor keep =
+      check_transmittance_filter(sigmas, t_starts, t_ends, offsets, threshold, alpha_threshold, at::kCUDA);
+  const int64_t R = offsets.size(0) - 1;
+  if (R == 0 || sigmas.size(0) == 0) return keep;
+  constexpr int kThreads = 128;
+  const int64_t blocks = (R + kThreads - 1) / kThreads;
+  MIXER_NERF_CHECK(blocks <= int64_t(INT32_MAX), "transmittance_filter_fwd: too many rays for one launch");
+  MIXER_NERF_DISPATCH_FLOATING(sigmas.scalar_type(), "transmittance_filter_fwd_cuda", [&] {
+    transmittance_filter_kernel<scalar_t><<<static_cast<unsigned>(blocks), kThreads, 0,
+                                            c10::cuda::getCurrentCUDAStream()>>>(
+        transmittance_filter<scalar_t>(sigmas, t_starts, t_ends, offsets, threshold, alpha_threshold, keep));
+    C10_CUDA_KERNEL_LAUNCH_CHECK();
+  });
+  return keep;
+}
+
 __global__ void padding_rays_kernel(PaddingLayout layout) {
   const int64_t j = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
   if (j < layout.items()) layout.write(j, layout.end());
@@ -182,6 +208,7 @@ std::tuple<at::Tensor, at::Tensor> padding_rays_fwd_cuda(const at::Tensor& offse
 TORCH_LIBRARY_IMPL(mixer_nerf, CUDA, m) {
   m.impl("ray_marching_fwd", &ray_marching_fwd_cuda);
   m.impl("padding_rays_fwd", &padding_rays_fwd_cuda);
+  m.impl("transmittance_filter_fwd", &transmittance_filter_fwd_cuda);
 }
 
 }  // namespace mixer_nerf

@@ -29,7 +29,12 @@ from ._checks import (
     check_tensor,
 )
 from ._dispatch import use_kernel
-from .ray_marching_reference import march_dtype, padding_rays_reference, ray_marching_reference
+from .ray_marching_reference import (
+    filter_by_transmittance_reference,
+    march_dtype,
+    padding_rays_reference,
+    ray_marching_reference,
+)
 
 
 class PackedSamples(NamedTuple):
@@ -215,21 +220,24 @@ def _march(rays_o, rays_d, near, far, grid, step_size, stratified, generator, co
 
 @torch.no_grad()
 def filter_by_transmittance(
-    sigmas: torch.Tensor, samples: PackedSamples, threshold: float = 1e-4, alpha_threshold: float = 0.0
+    sigmas: torch.Tensor, samples: PackedSamples, threshold: float = 1e-4, alpha_threshold: float = 0.0,
+    backend: str = "auto",
 ) -> torch.Tensor:
     """Which samples can still change the image, given their densities (e.g. evaluated without grad).
 
     Drops sample i of a ray once the transmittance before it, T_i = exp(-sum_{j<i} sigma_j dt_j),
     is below ``threshold`` (what lies behind is hidden), and, if ``alpha_threshold > 0``, samples
-    with alpha = 1 - exp(-sigma dt) below it. Apply with ``samples.select(mask)``.
+    with alpha = 1 - exp(-sigma dt) below it. Rows past ``samples.offsets[-1]`` (a fixed layout's
+    spare rows) belong to no ray and are dropped. Apply with ``samples.select(mask)``.
 
-    The per-ray exclusive sums come from one float64 cumsum over all samples minus its value at
-    each ray's first sample. Each term is capped at -log(threshold) + 1: that changes no decision
-    (one such term already ends its ray) and keeps the running sum, hence the cancellation error,
-    below N * 11 * 2^-53 whatever the densities. NaN densities count as empty.
+    The sums run in float64, each term capped at -log(threshold) + 1: that changes no decision (one
+    such term already ends its ray). NaN densities count as empty. The kernel sums each ray in
+    order; the reference (:func:`~mixer_nerf.ops.ray_marching_reference.filter_by_transmittance_reference`)
+    takes one cumsum over all samples minus its value at each ray's first sample.
 
     Args:
         sigmas: (N,) densities. samples: the :class:`PackedSamples` they belong to.
+        backend: ``"auto"``, ``"kernel"`` or ``"torch"`` (see :mod:`mixer_nerf.ops`).
 
     Returns:
         (N,) bool mask.
@@ -240,18 +248,14 @@ def filter_by_transmittance(
         raise ValueError(f"threshold must be in [0, 1], got {threshold}")
     if not 0.0 <= alpha_threshold <= 1.0:
         raise ValueError(f"alpha_threshold must be in [0, 1], got {alpha_threshold}")
-    tau = torch.nan_to_num(sigmas.double() * (samples.t_ends - samples.t_starts).double(), nan=0.0).clamp_min(
-        0
-    )
-    keep = torch.ones_like(tau, dtype=torch.bool)
-    if threshold > 0:
-        limit = -math.log(threshold)
-        running = torch.nn.functional.pad(tau.clamp(max=limit + 1).cumsum(0), (1, 0))
-        optical_depth_before = running[:-1] - running[samples.offsets[samples.ray_indices]]
-        keep &= optical_depth_before <= limit
-    if alpha_threshold > 0:
-        keep &= -torch.expm1(-tau) >= alpha_threshold
-    return keep
+    kernel = use_kernel(backend, sigmas.device)
+    if kernel and sigmas.dtype == samples.t_starts.dtype:
+        _register_fakes()  # one launch (and a fill) where the reference takes fifteen
+        return torch.ops.mixer_nerf.transmittance_filter_fwd(
+            sigmas.contiguous(), samples.t_starts.contiguous(), samples.t_ends.contiguous(),
+            samples.offsets.contiguous(), float(threshold), float(alpha_threshold))
+    return filter_by_transmittance_reference(sigmas, samples.t_starts, samples.t_ends, samples.offsets,
+                                             samples.ray_indices, threshold, alpha_threshold)
 
 
 def _grid_parts(grid) -> tuple[torch.Tensor, torch.Tensor, tuple[int, int, int]]:
@@ -312,6 +316,8 @@ def _register_fakes() -> None:
     """Shape function for torch.compile and opcheck; the op exists only once the extension loaded."""
     torch.library.register_fake("mixer_nerf::ray_marching_fwd", _ray_marching_fwd_fake)
     torch.library.register_fake("mixer_nerf::padding_rays_fwd", _padding_rays_fwd_fake)
+    torch.library.register_fake("mixer_nerf::transmittance_filter_fwd",
+                                lambda sigmas, *rest: torch.empty_like(sigmas, dtype=torch.bool))
 
 
 def _padding_rays_fwd_fake(offsets, ray_indices, rows_per_ray):
