@@ -73,6 +73,15 @@ at::Tensor transmittance_filter_fwd_cpu(const at::Tensor& sigmas, const at::Tens
   return keep;
 }
 
+SelectFixedOutputs select_fixed_fwd_cpu(const at::Tensor& keep, const at::Tensor& t_starts, const at::Tensor& t_ends,
+                                        const at::Tensor& ray_indices, const at::Tensor& offsets, int64_t capacity) {
+  return select_fixed(keep, t_starts, t_ends, ray_indices, offsets, capacity, at::kCPU, [](const auto& select) {
+    at::parallel_for(0, select.items(), 4096, [&](int64_t first, int64_t last) {
+      for (int64_t j = first; j < last; ++j) select.write(j);
+    });
+  });
+}
+
 std::tuple<at::Tensor, at::Tensor> padding_rays_fwd_cpu(const at::Tensor& offsets, const at::Tensor& ray_indices,
                                                         int64_t rows_per_ray) {
   at::Tensor out_ray_indices, out_offsets;
@@ -91,6 +100,7 @@ TORCH_LIBRARY_IMPL(mixer_nerf, CPU, m) {
   m.impl("ray_marching_fwd", &ray_marching_fwd_cpu);
   m.impl("padding_rays_fwd", &padding_rays_fwd_cpu);
   m.impl("transmittance_filter_fwd", &transmittance_filter_fwd_cpu);
+  m.impl("select_fixed_fwd", &select_fixed_fwd_cpu);
 }
 
 }  // namespace mixer_nerf

@@ -7,6 +7,7 @@
 #include <cmath>
 #include <limits>
 #include <optional>
+#include <tuple>
 
 #include "common.h"
 #include "ray_marching_math.h"
@@ -119,6 +120,91 @@ inline at::Tensor check_transmittance_filter(const at::Tensor& sigmas, const at:
   MIXER_NERF_CHECK(threshold >= 0 && threshold <= 1 && alpha_threshold >= 0 && alpha_threshold <= 1,
                    "transmittance_filter_fwd: thresholds must lie in [0, 1]");
   return at::zeros({sigmas.size(0)}, sigmas.options().dtype(at::kBool));
+}
+
+// select_fixed_fwd: PackedSamples.select_fixed (mixer_nerf/ops/ray_marching.py) without a host sync. With
+// `end` = offsets[R] (clamped into [0, N]) and `before[i]` the kept rows among rows < i (i <= end), kept row
+// i < end goes to row before[i] of `capacity` rows if it fits; rows from total = before[end] on are zero;
+// offsets become min(before[offsets[r]], capacity). `inclusive` is the running count of `keep` over all N rows
+// (rows past end do not change it below end). Item j of max(N, capacity, R + 1) does row j's share of each.
+template <typename scalar_t>
+struct SelectFixed {
+  const bool* keep;
+  const int64_t* inclusive;  // (N)
+  const scalar_t* t_starts;
+  const scalar_t* t_ends;
+  const int64_t* ray_indices;
+  const int64_t* offsets;  // (R + 1)
+  scalar_t* out_t_starts;  // (capacity)
+  scalar_t* out_t_ends;
+  int64_t* out_ray_indices;
+  int64_t* out_offsets;  // (R + 1)
+  int64_t* total;        // (1)
+  int64_t R, N, capacity;
+
+  C10_HOST_DEVICE int64_t items() const {
+    const int64_t a = N > capacity ? N : capacity;
+    return a > R + 1 ? a : R + 1;
+  }
+  C10_HOST_DEVICE int64_t clamp_row(int64_t o) const { return o < 0 ? 0 : (o > N ? N : o); }
+  C10_HOST_DEVICE int64_t before(int64_t i) const { return i == 0 ? 0 : inclusive[i - 1]; }
+  C10_HOST_DEVICE void write(int64_t j) const {
+    const int64_t end = clamp_row(offsets[R]), kept = before(end);
+    if (j < N && j < end && keep[j]) {
+      const int64_t place = before(j);
+      if (place < capacity) {
+        out_t_starts[place] = t_starts[j];
+        out_t_ends[place] = t_ends[j];
+        out_ray_indices[place] = ray_indices[j];
+      }
+    }
+    if (j < capacity && j >= kept) {
+      out_t_starts[j] = scalar_t(0);
+      out_t_ends[j] = scalar_t(0);
+      out_ray_indices[j] = 0;
+    }
+    if (j <= R) {
+      const int64_t row = clamp_row(offsets[j]), o = before(row < end ? row : end);
+      out_offsets[j] = o < capacity ? o : capacity;
+    }
+    if (j == 0) *total = kept;
+  }
+};
+
+using SelectFixedOutputs = std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor>;
+
+// select_fixed_fwd's checks, outputs (t_starts, t_ends, ray_indices, offsets, total) and the running count of
+// `keep`, then `launch(SelectFixed<scalar_t>)` in the samples' dtype.
+template <typename Launch>
+SelectFixedOutputs select_fixed(const at::Tensor& keep, const at::Tensor& t_starts, const at::Tensor& t_ends,
+                                const at::Tensor& ray_indices, const at::Tensor& offsets, int64_t capacity,
+                                at::DeviceType dev, Launch&& launch) {
+  MIXER_NERF_CHECK_INPUT(keep, dev);
+  MIXER_NERF_CHECK_INPUT(t_starts, dev);
+  MIXER_NERF_CHECK_INPUT(t_ends, dev);
+  MIXER_NERF_CHECK_INPUT(ray_indices, dev);
+  MIXER_NERF_CHECK_INPUT(offsets, dev);
+  const int64_t N = keep.size(0);
+  MIXER_NERF_CHECK(keep.scalar_type() == at::kBool && keep.dim() == 1 && t_starts.sizes() == keep.sizes() &&
+                       t_ends.sizes() == keep.sizes() && ray_indices.sizes() == keep.sizes() &&
+                       t_ends.scalar_type() == t_starts.scalar_type() && ray_indices.scalar_type() == at::kLong,
+                   "select_fixed_fwd: keep (N) bool, t_starts and t_ends (N) of one dtype, ray_indices (N) int64");
+  MIXER_NERF_CHECK(offsets.scalar_type() == at::kLong && offsets.dim() == 1 && offsets.size(0) >= 1,
+                   "select_fixed_fwd: offsets must be (R+1) int64");
+  MIXER_NERF_CHECK(capacity >= 0, "select_fixed_fwd: capacity must be >= 0");
+  const at::Tensor inclusive = at::cumsum(keep, 0, at::kLong);
+  const at::Tensor starts = at::empty({capacity}, t_starts.options()), ends = at::empty({capacity}, t_ends.options()),
+                   rays = at::empty({capacity}, ray_indices.options()), new_offsets = at::empty_like(offsets),
+                   total = at::empty({1}, offsets.options());
+  MIXER_NERF_DISPATCH_FLOATING(t_starts.scalar_type(), "select_fixed_fwd", [&] {
+    launch(SelectFixed<scalar_t>{keep.const_data_ptr<bool>(), inclusive.const_data_ptr<int64_t>(),
+                                 t_starts.const_data_ptr<scalar_t>(), t_ends.const_data_ptr<scalar_t>(),
+                                 ray_indices.const_data_ptr<int64_t>(), offsets.const_data_ptr<int64_t>(),
+                                 starts.data_ptr<scalar_t>(), ends.data_ptr<scalar_t>(), rays.data_ptr<int64_t>(),
+                                 new_offsets.data_ptr<int64_t>(), total.data_ptr<int64_t>(), offsets.size(0) - 1, N,
+                                 capacity});
+  });
+  return {starts, ends, rays, new_offsets, total};
 }
 
 // padding_rays_fwd: FixedSamples.with_padding_rays's layout (mixer_nerf/ops/ray_marching.py), made

@@ -42,6 +42,10 @@ TORCH_LIBRARY(mixer_nerf, m) {
   // transmittance_filter_fwd: sigmas, t_starts, t_ends (N) and offsets (R+1) -> keep (N) bool, the samples
   //   early termination (threshold, 0: off) and the alpha threshold (0: off) keep; rows past offsets[R] dropped
   m.def("transmittance_filter_fwd(Tensor sigmas, Tensor t_starts, Tensor t_ends, Tensor offsets, float threshold, float alpha_threshold) -> Tensor");
+  // select_fixed_fwd: PackedSamples.select_fixed: keep (N) bool, t_starts, t_ends, ray_indices (N), offsets (R+1)
+  //   -> the kept rows (of those before offsets[R]) in order in `capacity` rows, then zero rows: t_starts, t_ends,
+  //   ray_indices (capacity), offsets (R+1) clamped to capacity, total (1) int64 kept before the cut
+  m.def("select_fixed_fwd(Tensor keep, Tensor t_starts, Tensor t_ends, Tensor ray_indices, Tensor offsets, int capacity) -> (Tensor, Tensor, Tensor, Tensor, Tensor)");
   // padding_rays_fwd: packed samples' offsets (R+1) and ray_indices (N), the samples in rows [0, offsets[R])
   //   -> (ray_indices (N), offsets (R+1+P)) with P = ceil(N / rows_per_ray) rays owning the rows past the samples
   m.def("padding_rays_fwd(Tensor offsets, Tensor ray_indices, int rows_per_ray) -> (Tensor, Tensor)");

@@ -31,6 +31,7 @@ from mixer_nerf.ops.ray_marching_reference import (
     march_dtype,
     padding_rays_reference,
     ray_marching_reference,
+    select_fixed_reference,
 )
 from cuda_poison import poison_allocator
 
@@ -570,6 +571,39 @@ def test_fixed_samples_name_the_intact_rays_and_pad_to_short_rays(gen, room):
     intact = fixed.intact()
     torch.testing.assert_close(color[:R][intact], full[intact])
     assert not color[R:].any()
+
+
+def select_cases(gen):
+    """(keep, t_starts, t_ends, ray_indices, offsets): a fixed layout's samples with spare rows (keep
+    True on some of them: never kept), then no row."""
+    rays = random_rays(80, gen)
+    fixed = ray_marching_fixed(*rays, full_grid(), 0.05, 5000, backend="torch").samples
+    keep = torch.rand(5000, generator=gen) < 0.6
+    yield keep, *fixed
+    yield torch.zeros(0, dtype=torch.bool), *(t[:0] for t in fixed[:3]), torch.zeros(5, dtype=torch.int64)
+
+
+@pytest.mark.skipif(not _extension.available(), reason="kernels not built")
+def test_select_fixed_kernel_matches_the_reference(gen):
+    for keep, *samples in select_cases(gen):
+        N, end = keep.shape[0], int(samples[3][-1])
+        for capacity in {0, 1, N // 3, end, N + 7}:
+            got = torch.ops.mixer_nerf.select_fixed_fwd(keep, *samples, capacity)
+            want, want_total = select_fixed_reference(keep, *samples, capacity)
+            assert all(torch.equal(g, w) for g, w in zip(got, (*want, want_total), strict=True)), capacity
+    keep, *samples = next(select_cases(gen))
+    PackedSamples(*samples).select_fixed(keep, 100)  # registers the fake
+    torch.library.opcheck(torch.ops.mixer_nerf.select_fixed_fwd.default, (keep, *samples, 100))
+
+
+@on_cuda
+@pytest.mark.cuda
+def test_cuda_select_fixed_matches_the_cpu(gen):
+    for keep, *samples in select_cases(gen):
+        for capacity in (0, 17, 3000, 6000):
+            cpu = torch.ops.mixer_nerf.select_fixed_fwd(keep, *samples, capacity)
+            cuda = torch.ops.mixer_nerf.select_fixed_fwd(keep.cuda(), *(t.cuda() for t in samples), capacity)
+            assert all(torch.equal(c, g.cpu()) for c, g in zip(cpu, cuda, strict=True))
 
 
 def padding_cases(gen, device="cpu"):

@@ -184,6 +184,24 @@ at::Tensor transmittance_filter_fwd_cuda(const at::Tensor& sigmas, const at::Ten
   return keep;
 }
 
+template <typename scalar_t>
+__global__ void select_fixed_kernel(SelectFixed<scalar_t> select) {
+  const int64_t j = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (j < select.items()) select.write(j);
+}
+
+SelectFixedOutputs select_fixed_fwd_cuda(const at::Tensor& keep, const at::Tensor& t_starts, const at::Tensor& t_ends,
+                                         const at::Tensor& ray_indices, const at::Tensor& offsets, int64_t capacity) {
+  const c10::cuda::CUDAGuard device_guard(keep.device());
+  return select_fixed(keep, t_starts, t_ends, ray_indices, offsets, capacity, at::kCUDA, [](const auto& select) {
+    constexpr int kThreads = 256;
+    const int64_t blocks = (select.items() + kThreads - 1) / kThreads;
+    MIXER_NERF_CHECK(blocks <= int64_t(INT32_MAX), "select_fixed_fwd: too many rows for one launch");
+    select_fixed_kernel<<<static_cast<unsigned>(blocks), kThreads, 0, c10::cuda::getCurrentCUDAStream()>>>(select);
+    C10_CUDA_KERNEL_LAUNCH_CHECK();
+  });
+}
+
 __global__ void padding_rays_kernel(PaddingLayout layout) {
   const int64_t j = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
   if (j < layout.items()) layout.write(j, layout.end());
@@ -209,6 +227,7 @@ TORCH_LIBRARY_IMPL(mixer_nerf, CUDA, m) {
   m.impl("ray_marching_fwd", &ray_marching_fwd_cuda);
   m.impl("padding_rays_fwd", &padding_rays_fwd_cuda);
   m.impl("transmittance_filter_fwd", &transmittance_filter_fwd_cuda);
+  m.impl("select_fixed_fwd", &select_fixed_fwd_cuda);
 }
 
 }  // namespace mixer_nerf

@@ -34,6 +34,7 @@ from .ray_marching_reference import (
     march_dtype,
     padding_rays_reference,
     ray_marching_reference,
+    select_fixed_reference,
 )
 
 
@@ -61,18 +62,14 @@ class PackedSamples(NamedTuple):
         are never kept."""
         _check_capacity(capacity)
         check_shape("keep", keep, (self.t_starts.shape[0],), " (one flag per sample)")
-        rows = torch.arange(keep.shape[0], device=keep.device)
-        keep = keep & (rows < self.offsets[-1])
-        kept_before = torch.nn.functional.pad(keep.cumsum(0), (1, 0))
-        # Each kept row to its place; dropped rows and those past the capacity to a spare last row.
-        place = torch.where(keep, kept_before[:-1], capacity).clamp_max(capacity)
-
-        def placed(values: torch.Tensor) -> torch.Tensor:
-            return values.new_zeros(capacity + 1).scatter_(0, place, values)[:capacity]
-
-        samples = PackedSamples(placed(self.t_starts), placed(self.t_ends), placed(self.ray_indices),
-                                kept_before[self.offsets].clamp_max(capacity))
-        return FixedSamples(samples, kept_before[-1:])
+        if keep.dtype == torch.bool and use_kernel("auto", keep.device):  # a cumsum and one launch, not 17
+            _register_fakes()
+            *samples, total = torch.ops.mixer_nerf.select_fixed_fwd(
+                keep.contiguous(), self.t_starts.contiguous(), self.t_ends.contiguous(),
+                self.ray_indices.contiguous(), self.offsets.contiguous(), capacity)
+            return FixedSamples(PackedSamples(*samples), total)
+        samples, total = select_fixed_reference(keep, *self, capacity)
+        return FixedSamples(PackedSamples(*samples), total)
 
 
 def ray_marching(
@@ -316,8 +313,14 @@ def _register_fakes() -> None:
     """Shape function for torch.compile and opcheck; the op exists only once the extension loaded."""
     torch.library.register_fake("mixer_nerf::ray_marching_fwd", _ray_marching_fwd_fake)
     torch.library.register_fake("mixer_nerf::padding_rays_fwd", _padding_rays_fwd_fake)
+    torch.library.register_fake("mixer_nerf::select_fixed_fwd", _select_fixed_fwd_fake)
     torch.library.register_fake("mixer_nerf::transmittance_filter_fwd",
                                 lambda sigmas, *rest: torch.empty_like(sigmas, dtype=torch.bool))
+
+
+def _select_fixed_fwd_fake(keep, t_starts, t_ends, ray_indices, offsets, capacity):
+    return (t_starts.new_empty(capacity), t_ends.new_empty(capacity), ray_indices.new_empty(capacity),
+            torch.empty_like(offsets), offsets.new_empty(1))
 
 
 def _padding_rays_fwd_fake(offsets, ray_indices, rows_per_ray):

@@ -182,3 +182,20 @@ def filter_by_transmittance_reference(sigmas, t_starts, t_ends, offsets, ray_ind
     if alpha_threshold > 0:
         keep &= -torch.expm1(-tau) >= alpha_threshold
     return keep
+
+
+def select_fixed_reference(keep, t_starts, t_ends, ray_indices, offsets, capacity: int):
+    """``PackedSamples.select_fixed``'s layout: ((t_starts, t_ends, ray_indices, offsets), total (1,)): the
+    kept rows before ``offsets[-1]`` in order in ``capacity`` rows, then zero rows; offsets clamped to
+    ``capacity``; total the kept rows before the cut."""
+    rows = torch.arange(keep.shape[0], device=keep.device)
+    keep = keep & (rows < offsets[-1])
+    kept_before = torch.nn.functional.pad(keep.cumsum(0), (1, 0))
+    # Each kept row to its place; dropped rows and those past the capacity to a spare last row.
+    place = torch.where(keep, kept_before[:-1], capacity).clamp_max(capacity)
+
+    def placed(values: torch.Tensor) -> torch.Tensor:
+        return values.new_zeros(capacity + 1).scatter_(0, place, values)[:capacity]
+
+    samples = (placed(t_starts), placed(t_ends), placed(ray_indices), kept_before[offsets].clamp_max(capacity))
+    return samples, kept_before[-1:]
