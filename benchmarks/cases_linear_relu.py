@@ -4,8 +4,8 @@ backward).
 Size: 131072 samples (the occupancy recipe's samples per step) through a 256 -> 256 layer on
 CUDA, 16384 on CPU; float32 with the trainer's TF32 matmuls, and on CUDA bf16 too (what the
 occupancy sampler trains in). Variants: the fused passes (bias and ReLU in cuBLASLt's epilogue,
-the mask and the bias gradient in one pass of ours), the eager reference (what ``nn.Linear`` (+ ``torch.relu``) runs,
-its bias gradient a column sum) and, on CUDA, the reference under torch.compile. Modes: fwd, and
+the mask and the bias gradient in one pass of ours), the eager reference (what ``nn.Linear``
+(+ ``torch.relu``) runs, its bias gradient a column sum) and, on CUDA, the reference under torch.compile. Modes: fwd, and
 fwd+bwd with the gradients of x, the weight and the bias. The byte floor is x read and the output
 written; fwd+bwd adds the upstream gradient and x read and dx written, and for the ReLU the output
 (the mask) read.

@@ -65,7 +65,8 @@ at::Tensor transmittance_filter_fwd_cpu(const at::Tensor& sigmas, const at::Tens
                                         const at::Tensor& offsets, double threshold, double alpha_threshold) {
   at::Tensor keep = check_transmittance_filter(sigmas, t_starts, t_ends, offsets, threshold, alpha_threshold, at::kCPU);
   MIXER_NERF_DISPATCH_FLOATING(sigmas.scalar_type(), "transmittance_filter_fwd_cpu", [&] {
-    const auto filter = transmittance_filter<scalar_t>(sigmas, t_starts, t_ends, offsets, threshold, alpha_threshold, keep);
+    const auto filter =
+        transmittance_filter<scalar_t>(sigmas, t_starts, t_ends, offsets, threshold, alpha_threshold, keep);
     at::parallel_for(0, filter.R, kRayGrain, [&](int64_t first, int64_t last) {
       for (int64_t r = first; r < last; ++r) filter.ray(r);
     });

@@ -78,7 +78,8 @@ struct TransmittanceFilter {
     return o < 0 ? 0 : (o > N ? N : o);
   }
   C10_HOST_DEVICE double tau(int64_t i) const {
-    const double t = double(sigmas[i]) * double(scalar_t(t_ends[i] - t_starts[i]));  // the gap in scalar_t, as the reference
+    // the gap rounded to scalar_t, as the reference's
+    const double t = double(sigmas[i]) * double(scalar_t(t_ends[i] - t_starts[i]));
     if (t != t) return 0.0;
     return t > 1.7976931348623157e308 ? 1.7976931348623157e308 : (t < 0 ? 0.0 : t);
   }

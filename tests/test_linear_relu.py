@@ -111,15 +111,16 @@ def test_under_autocast_the_fused_passes_run_in_its_dtype(gen, op, reference):
 
 
 def bias_grad_truth(grad, out=None):
-    """(masked grad, its column sums) in float64, the mask as torch's threshold_backward (a NaN output passes)."""
+    """(masked grad, its column sums) in float64, the mask as torch's threshold_backward (a NaN output
+    passes)."""
     g = grad.double() if out is None else torch.ops.aten.threshold_backward(grad.double(), out.double(), 0)
     return g, g.sum(0)
 
 
 @pytest.mark.parametrize("rows", [0, 1, 255, 1000])
 @pytest.mark.parametrize("cols", [1, 3, 16, 300])
-@pytest.mark.parametrize("dtype, tol", [(torch.float64, 1e-12), (torch.float32, 1e-5), (torch.bfloat16, 2**-7),
-                                        (torch.float16, 2**-9)])
+@pytest.mark.parametrize("dtype, tol", [(torch.float64, 1e-12), (torch.float32, 1e-5),
+                                        (torch.bfloat16, 2**-7), (torch.float16, 2**-9)])
 def test_bias_kernels_match_float64_sums(gen, rows, cols, dtype, tol):
     grad = torch.randn(rows, cols, generator=gen, dtype=torch.float64).to(dtype)
     out = torch.randn(rows, cols, generator=gen, dtype=torch.float64).relu().to(dtype)
@@ -209,13 +210,15 @@ def test_cuda_fused_matches_float64_with_its_own_mask(gen, tf32, relu, monkeypat
 @on_cuda
 @pytest.mark.cuda
 @pytest.mark.parametrize("rows, cols, offset", [(150_000, 256, 0), (4097, 301, 0), (3000, 64, 1), (1, 8, 0)])
-@pytest.mark.parametrize("dtype, tol", [(torch.float32, 1e-5), (torch.bfloat16, 2**-7), (torch.float64, 1e-12)])
+@pytest.mark.parametrize("dtype, tol",
+                         [(torch.float32, 1e-5), (torch.bfloat16, 2**-7), (torch.float64, 1e-12)])
 def test_cuda_bias_kernels_match_float64_sums(gen, rows, cols, offset, dtype, tol):
     """Many bands (150,000 rows), channels that do not fill 16-byte columns (301) and tensors that
     start off 16-byte alignment (offset 1: the one-channel columns) against float64 sums, the mask
     bit for bit, and the same sums twice."""
     grad = torch.randn(rows * cols + offset, generator=gen, dtype=torch.float64).to(dtype).cuda()[offset:]
-    out = torch.randn(rows * cols + offset, generator=gen, dtype=torch.float64).relu().to(dtype).cuda()[offset:]
+    out = torch.randn(rows * cols + offset, generator=gen, dtype=torch.float64).relu()
+    out = out.to(dtype).cuda()[offset:]
     grad, out = grad.view(rows, cols), out.view(rows, cols)
     masked, sums = torch.ops.mixer_nerf.relu_bias_bwd(grad, out)
     want_masked, want_sums = bias_grad_truth(grad, out)

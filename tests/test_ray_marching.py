@@ -314,12 +314,13 @@ def naive_keep(sigmas, s: PackedSamples, threshold, alpha_threshold):
     return keep
 
 
-FILTER_BACKENDS = pytest.mark.parametrize("backend", ["torch", pytest.param("kernel", marks=pytest.mark.skipif(
-    not _extension.available(), reason="kernels not built"))])
+FILTER_BACKENDS = pytest.mark.parametrize("backend", [
+    "torch", pytest.param("kernel", marks=pytest.mark.skipif(not _extension.available(), reason="kernels not built"))])
 
 
 @FILTER_BACKENDS
-@pytest.mark.parametrize("threshold,alpha_threshold", [(1e-4, 0.0), (1e-2, 1e-3), (0.0, 0.0), (0.0, 0.5), (1.0, 0.0)])
+@pytest.mark.parametrize("threshold,alpha_threshold",
+                         [(1e-4, 0.0), (1e-2, 1e-3), (0.0, 0.0), (0.0, 0.5), (1.0, 0.0)])
 def test_filter_by_transmittance_matches_naive(gen, threshold, alpha_threshold, backend):
     rays = random_rays(40, gen, torch.float64)
     s = march(rays, full_grid(), step=0.1, backend="torch")
@@ -390,8 +391,8 @@ def test_cuda_filter_matches_the_cpu_kernel(gen):
     sigmas[::97] = math.nan
     for threshold, alpha in ((1e-4, 0.0), (1e-2, 1e-3), (0.0, 0.2)):
         cpu = filter_by_transmittance(sigmas, fixed, threshold, alpha, backend="kernel")
-        cuda = filter_by_transmittance(sigmas.cuda(), PackedSamples(*(t.cuda() for t in fixed)), threshold, alpha,
-                                       backend="kernel")
+        on_gpu = PackedSamples(*(t.cuda() for t in fixed))
+        cuda = filter_by_transmittance(sigmas.cuda(), on_gpu, threshold, alpha, backend="kernel")
         assert torch.equal(cpu, cuda.cpu())
 
 

@@ -134,7 +134,8 @@ class FixedSamples(NamedTuple):
         s = self.samples
         if use_kernel("auto", s.offsets.device):  # one launch where the reference takes eleven
             _register_fakes()
-            ray_indices, offsets = torch.ops.mixer_nerf.padding_rays_fwd(s.offsets, s.ray_indices, PADDING_ROWS)
+            ray_indices, offsets = torch.ops.mixer_nerf.padding_rays_fwd(
+                s.offsets, s.ray_indices, PADDING_ROWS)
         else:
             ray_indices, offsets = padding_rays_reference(s.offsets, s.ray_indices, PADDING_ROWS)
         return PackedSamples(s.t_starts, s.t_ends, ray_indices, offsets)

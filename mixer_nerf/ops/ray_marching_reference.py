@@ -197,5 +197,6 @@ def select_fixed_reference(keep, t_starts, t_ends, ray_indices, offsets, capacit
     def placed(values: torch.Tensor) -> torch.Tensor:
         return values.new_zeros(capacity + 1).scatter_(0, place, values)[:capacity]
 
-    samples = (placed(t_starts), placed(t_ends), placed(ray_indices), kept_before[offsets].clamp_max(capacity))
+    offsets = kept_before[offsets].clamp_max(capacity)
+    samples = (placed(t_starts), placed(t_ends), placed(ray_indices), offsets)
     return samples, kept_before[-1:]
