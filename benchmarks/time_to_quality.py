@@ -330,7 +330,8 @@ def main() -> None:
     parser.add_argument("--device", default="cuda", help="cuda, or cpu for a smoke run")
     parser.add_argument("--preset", default="D", help="ours: model preset")
     parser.add_argument("--sampler", default="auto",
-                        help="ours: auto (as `mixer-nerf train` picks per scene) | occupancy | proposal | hierarchical")
+                        help="ours: auto (as `mixer-nerf train` picks per scene) | occupancy | proposal | "
+                             "hierarchical")
     parser.add_argument("--target-samples", type=int, help="ours: MLP samples per step (default: the trainer's)")
     parser.add_argument("--batch-rays", type=int, default=None,
                         help="ours, hierarchical sampler: rays per step (default: the trainer's)")
@@ -409,7 +410,8 @@ def main() -> None:
     method = METHODS[args.method](args, train, val, device)
     trainer = method.trainer
     if args.skip_report and trainer.cfg.sampler != "occupancy":
-        parser.error(f"--skip-report needs the occupancy sampler; 'auto' picked {trainer.cfg.sampler!r} for this scene")
+        parser.error(f"--skip-report needs the occupancy sampler; 'auto' picked {trainer.cfg.sampler!r} "
+                     "for this scene")
 
     scene = args.scene or scene_tag(args.data)
     path = Path(args.out) / f"{scene}_{device_tag(device)}.json"

@@ -840,7 +840,8 @@ def test_the_step_profile_names_where_each_kernel_was_launched():
     inner = event("torch/nn/functional.py(12): pad", shade)
     node = event("autograd::engine::evaluate_function: MmBackward0", event("run_backward", learn))
     events = [event("aten::fill_", inner, kernels=2), event("aten::fill_", inner, kernels=1),
-              event("aten::mm", node, kernels=2), event("aten::empty", shade), event("aten::add", step, kernels=1),
+              event("aten::mm", node, kernels=2), event("aten::empty", shade),
+              event("aten::add", step, kernels=1),
               event("void kernel<float>", kernels=1, device=DeviceType.CUDA)]
     assert _profile_tool().launches_by_site(events) == {
         "render/volume.py(58): shade_samples  aten::fill_": 3, "backward: MmBackward0  aten::mm": 2,

@@ -171,8 +171,8 @@ class TrainConfig:
     # val split (docs/training.md)
     occlusion_weight: float | None = option(
         None, "proposal sampler: weight of FreeNeRF's occlusion regularisation, the main field's weight "
-        f"in the first --occlusion-fraction of each ray (default {FORWARD_FACING_OCCLUSION} on forward-facing "
-        "(NDC) scenes, 0 (off) elsewhere)", metavar="W")
+        f"in the first --occlusion-fraction of each ray (default {FORWARD_FACING_OCCLUSION} on "
+        "forward-facing (NDC) scenes, 0 (off) elsewhere)", metavar="W")
     occlusion_fraction: float = option(
         0.1, "proposal sampler: the stretch of each ray, in the sampler's spacing coordinate s in [0, 1], "
         "that --occlusion-weight penalises", metavar="FRACTION")
