@@ -32,7 +32,7 @@ from mixer_nerf.render.skipping import march_samples, march_samples_fixed, rende
 from mixer_nerf.ops.ray_marching import padding_rays
 from mixer_nerf.render.skipping.marching import with_padding_rays
 from mixer_nerf.train.checkpoint import capture_rng_state, restore_rng_state
-from mixer_nerf.train.config import FORWARD_FACING_OCCLUSION
+from mixer_nerf.train.config import FORWARD_FACING_MLCA_DECAY, FORWARD_FACING_OCCLUSION
 from mixer_nerf.train.fields import model_config
 from mixer_nerf.train.sampling import resolve_sampler
 from mixer_nerf.train import trainer as trainer_module
@@ -483,6 +483,20 @@ def test_forward_facing_proposal_runs_get_the_occlusion_loss_unless_told_otherwi
         assert resolve_sampler(TrainConfig(occlusion_weight=typed), box, ndc=True).occlusion_weight == typed
 
 
+def test_forward_facing_runs_decay_the_mlca_mixing_unless_told_otherwise():
+    box = torch.tensor([[-1.0] * 3, [1.0] * 3])
+    decay = {(preset, ndc): resolve_sampler(TrainConfig(preset=preset), box, ndc).mlca_weight_decay
+             for preset in "ABCD" for ndc in (False, True)}
+    assert decay == {("A", False): 0.0, ("A", True): 0.0, ("B", False): 0.0, ("B", True): 0.0,
+                     ("C", False): 0.0, ("C", True): FORWARD_FACING_MLCA_DECAY,
+                     ("D", False): 0.0, ("D", True): FORWARD_FACING_MLCA_DECAY}
+    no_mlca = TrainConfig(preset="D", model_overrides={"use_mlca": False})
+    assert resolve_sampler(no_mlca, box, ndc=True).mlca_weight_decay == 0.0
+    for typed in (0.0, 3.0):
+        assert resolve_sampler(TrainConfig(mlca_weight_decay=typed), box, ndc=True).mlca_weight_decay == typed
+        assert resolve_sampler(TrainConfig(mlca_weight_decay=typed), box, ndc=False).mlca_weight_decay == typed
+
+
 def test_forward_facing_scenes_get_no_direction_mlca_unless_asked():
     box = torch.tensor([[-1.0] * 3, [1.0] * 3])
     assert model_config("D", {}, box, "torch", ndc=False).mlca_directions  # Blender: 360 degrees of views
@@ -846,6 +860,27 @@ def test_the_step_profile_names_where_each_kernel_was_launched():
     assert _profile_tool().launches_by_site(events) == {
         "render/volume.py(58): shade_samples  aten::fill_": 3, "backward: MmBackward0  aten::mm": 2,
         "(no mixer_nerf frame)  aten::add": 1}
+
+
+def test_the_step_profile_sums_the_gpu_idle_gaps_by_size_and_neighbours():
+    """profile_train_step's idle table: the gaps where no kernel runs on any stream (a kernel inside
+    another's span leaves none), by the kernel that ended last and the one after, per step."""
+    from types import SimpleNamespace
+
+    from torch.autograd import DeviceType
+
+    def kernel(name, start, end, device=DeviceType.CUDA):
+        return SimpleNamespace(name=name, time_range=SimpleNamespace(start=start, end=end), device_type=device)
+
+    events = [kernel("void ns::gemm<float, 4>(float*)", 0, 10), kernel("inner(int)", 2, 5),
+              kernel("void ns::mask<float>(float*)", 11, 20), kernel("aten::mm", 0, 100, DeviceType.CPU),
+              kernel("void ns::gemm<float, 4>(float*)", 80, 90), kernel("void ns::mask<float>(float*)", 91, 95)]
+    table = _profile_tool().idle_gaps(events, steps=2)
+    assert table.startswith("GPU idle between kernels: 0.031 ms per step")  # (1 + 60 + 1) us / 2 steps
+    assert "< 2 us 1.0 gaps 0.001 ms, 2-10 us 0.0 gaps 0.000 ms, 10-50 us 0.0 gaps 0.000 ms, >= 50 us 0.5 gaps" \
+        in table
+    rows = [line.split() for line in table.splitlines()[2:]]
+    assert rows[0] == ["mask", "->", "gemm", "0.030"] and rows[1] == ["gemm", "->", "mask", "0.001"], table
 
 
 def test_the_step_profile_times_the_batch_preparation(tmp_path):

@@ -20,6 +20,9 @@ VAL_IMAGES = {"cuda": 3, "cpu": 1}  # views per validation, by device type
 
 FORWARD_FACING_OCCLUSION = 0.01
 """``occlusion_weight`` where the config leaves it open and the scene is forward-facing (NDC)."""
+FORWARD_FACING_MLCA_DECAY = 10.0
+"""``mlca_weight_decay`` where the config leaves it open, the scene is forward-facing (NDC) and the
+preset has MLCA."""
 
 
 def option(default: Any, help: str, **argparse_options: Any) -> Any:
@@ -181,11 +184,13 @@ class TrainConfig:
         0.0, "open the positions' encoding octave by octave over this fraction of the run, coarse to "
         "fine (Nerfies' window; FreeNeRF's frequency regularisation against overfitting on few views; "
         "default 0: every octave from the start)", metavar="FRACTION")
-    # Off until screened: against preset D's late decline on few views (docs/training.md).
-    mlca_weight_decay: float = option(
-        0.0, "decoupled weight decay of MLCA's token- and channel-mixing matrices (presets C and D): "
+    # None: the scene decides (sampling.resolve_sampler); 10 on forward-facing scenes from Fern's val
+    # split, against preset D's late decline on few views (docs/training.md)
+    mlca_weight_decay: float | None = option(
+        None, "decoupled weight decay of MLCA's token- and channel-mixing matrices (presets C and D): "
         "after each step they are scaled by 1 - lr * W, which pulls the mixing toward the identity, "
-        "the NeRF it extends (default 0: off)", metavar="W")
+        f"the NeRF it extends (default {FORWARD_FACING_MLCA_DECAY:g} on forward-facing (NDC) scenes, "
+        "0 (off) elsewhere)", metavar="W")
     cuda_graphs: bool | None = option(
         None, "proposal or occupancy sampler on a GPU: replay each training step as a CUDA graph, without "
         "the host work between its kernels; occupancy batches are padded to a fixed capacity (default: on "
@@ -228,7 +233,8 @@ class TrainConfig:
             raise ValueError(f"downscale must be >= 1, got {self.downscale}")
         if not (isinstance(self.val_holdout, int) and self.val_holdout >= 0):
             raise ValueError(f"val_holdout must be an integer >= 0, got {self.val_holdout!r}")
-        if not (math.isfinite(self.mlca_weight_decay) and self.mlca_weight_decay >= 0):
+        if self.mlca_weight_decay is not None and not (
+                math.isfinite(self.mlca_weight_decay) and self.mlca_weight_decay >= 0):
             raise ValueError(f"mlca_weight_decay must be finite and >= 0, got {self.mlca_weight_decay}")
         if not 0 <= self.frequency_anneal <= 1:
             raise ValueError(f"frequency_anneal must be in [0, 1], got {self.frequency_anneal}")

@@ -9,7 +9,7 @@ from collections.abc import Callable
 
 import torch
 
-from ..model import ModelConfig
+from ..model import ModelConfig, preset_config
 from ..model.proposal_network import ProposalNetwork
 from ..render import ImageRenderer, chunk_result, render_rays
 from ..render.image_renderer import RENDER_SAMPLES, ChunkResult, rays_per_chunk
@@ -25,7 +25,7 @@ from ..render.skipping import (
     render_rays_marched,
     render_rays_proposal,
 )
-from .config import FORWARD_FACING_OCCLUSION, PROPOSAL_REGULARISERS, TrainConfig
+from .config import FORWARD_FACING_MLCA_DECAY, FORWARD_FACING_OCCLUSION, PROPOSAL_REGULARISERS, TrainConfig
 from .fields import RadianceFields
 
 
@@ -38,7 +38,9 @@ def resolve_sampler(cfg: TrainConfig, bbox: torch.Tensor | None, ndc: bool) -> T
     scenes fill their box, so a grid skips little there, and unbounded scenes have no box: both get
     the proposal sampler (docs/skipping.md), as does a model whose density depends on the view
     direction (the paper's Eq. 7), which a grid cannot store. An ``occlusion_weight`` left open is
-    :data:`FORWARD_FACING_OCCLUSION` for the proposal sampler in a forward-facing scene, 0 elsewhere."""
+    :data:`FORWARD_FACING_OCCLUSION` for the proposal sampler in a forward-facing scene, 0 elsewhere;
+    a ``mlca_weight_decay`` left open :data:`FORWARD_FACING_MLCA_DECAY` for a preset with MLCA in a
+    forward-facing scene, 0 elsewhere."""
     view_dependent = bool(cfg.model_overrides.get("mlca_concat_direction", False))
     if cfg.sampler != "auto":
         sampler = cfg.sampler
@@ -58,8 +60,12 @@ def resolve_sampler(cfg: TrainConfig, bbox: torch.Tensor | None, ndc: bool) -> T
     occlusion = cfg.occlusion_weight
     if occlusion is None:
         occlusion = FORWARD_FACING_OCCLUSION if sampler == "proposal" and ndc else 0.0
+    decay = cfg.mlca_weight_decay
+    if decay is None:
+        has_mlca = preset_config(cfg.preset, **cfg.model_overrides).use_mlca
+        decay = FORWARD_FACING_MLCA_DECAY if ndc and has_mlca else 0.0
     return dataclasses.replace(cfg, fine_network=cfg.fine_network and sampler == "hierarchical",
-                               occlusion_weight=occlusion)
+                               occlusion_weight=occlusion, mlca_weight_decay=decay)
 
 
 def make_grid(cfg: TrainConfig, bbox: torch.Tensor | None) -> OccupancyGrid | None:
