@@ -9,14 +9,14 @@ size), times three windows of ``--steps`` steps (the median window's ms per step
 graph recapture), then profiles ``--steps`` steps with torch.profiler. Prints ms per step (wall),
 the GPU's busy ms per step (sum of kernel times; and the time any kernel runs, overlapping streams
 counted once, against the profiled wall time: the GPU idle), kernels per step, with the occupancy
-sampler the host time per step spent preparing the next batch, the kernels sorted by CUDA time and
-the ops by the GPU time of the kernels they launched and the kernels a step by the line that
-launched them (a replayed graph's step run eagerly for these two); a wall time well above the busy
-time means the step waits on the host (Python, launches, synchronisations) or, in a graph, on the
-gaps between its many kernels. The file in ``--out`` also lists
-the Python functions by their own host time (cProfile, ``--steps`` more steps) and the host ms per
-step when the GPU has nothing left to do: the step's host cost, then every call of ``--steps``
-more steps that makes the host wait for the GPU, by its line.
+sampler the host time per step spent preparing the next batch, the kernels sorted by CUDA time,
+the GPU's idle gaps by size and by the kernels around them, the ops by the GPU time of the kernels
+they launched and the kernels a step by the line that launched them (a replayed graph's step run
+eagerly for these two); a wall time well above the busy time means the step waits on the host
+(Python, launches, synchronisations) or, in a graph, on the gaps between its many kernels. The file
+in ``--out`` also lists the Python functions by their own host time (cProfile, ``--steps`` more
+steps) and the host ms per step when the GPU has nothing left to do: the step's host cost, then
+every call of ``--steps`` more steps that makes the host wait for the GPU, by its line.
 """
 
 from __future__ import annotations
@@ -45,6 +45,42 @@ def active_time_us(events) -> float:
             active += end - max(begin, reached)
             reached = end
     return active
+
+
+def idle_gaps(events, steps: int, top: int = 15) -> str:
+    """Where the GPU idles in profiled steps: the gaps in which no kernel or copy runs, on any stream,
+    summed per step by size and by the pair of kernels around them (the one that ended last, the one
+    that starts the gap's end), the largest sums first."""
+    spans = sorted((e.time_range.start, e.time_range.end, _short(e.name)) for e in events
+                   if e.device_type == DeviceType.CUDA)
+    buckets = {"< 2 us": (0, 2), "2-10 us": (2, 10), "10-50 us": (10, 50), ">= 50 us": (50, float("inf"))}
+    by_size = collections.Counter()
+    count = collections.Counter()
+    by_pair = collections.Counter()
+    reached, last = None, None
+    for begin, end, name in spans:
+        if reached is not None and begin > reached:
+            gap = begin - reached
+            size = next(label for label, (low, high) in buckets.items() if low <= gap < high)
+            by_size[size] += gap
+            count[size] += 1
+            by_pair[f"{last} -> {name}"] += gap
+        if reached is None or end > reached:
+            reached, last = end, name
+    total = sum(by_size.values())
+    lines = [f"GPU idle between kernels: {total / 1e3 / steps:.3f} ms per step, by gap size: " + ", ".join(
+        f"{label} {count[label] / steps:.1f} gaps {by_size[label] / 1e3 / steps:.3f} ms" for label in buckets)]
+    lines += [f"{'before -> after the gap':<100} {'ms/step':>8}"]
+    lines += [f"{pair[:100]:<100} {gap / 1e3 / steps:>8.3f}" for pair, gap in by_pair.most_common(top)]
+    return "\n".join(lines) + "\n"
+
+
+def _short(kernel: str) -> str:
+    """A kernel's name without its return type, template arguments and parameters."""
+    name = kernel.removeprefix("void ")
+    for mark in ("<", "("):
+        name = name.split(mark)[0]
+    return name.split("::")[-1] or kernel[:40]
 
 
 def median_step_ms(step, synchronize, steps: int, windows: int = 3) -> float:
@@ -116,6 +152,7 @@ def main() -> None:
               f"marched and {shaded / rays:.1f} shaded samples, bf16 density passes "
               f"{trainer.cfg.bf16_density_passes}")
     table = events.table(sort_by="self_cuda_time_total", row_limit=60, max_name_column_width=70)
+    table += "\n" + idle_gaps(prof.events(), args.steps)
     passes = "_bf16pass" * trainer.cfg.bf16_density_passes
     # named by the step profiled, before the host profile's steps
     graphs = "_graphs" * trainer.cfg.cuda_graphs
