@@ -862,7 +862,7 @@ def test_the_step_profile_names_where_each_kernel_was_launched():
         "(no mixer_nerf frame)  aten::add": 1}
 
 
-def test_the_step_profile_sums_the_gpu_idle_gaps_by_size_and_neighbours():
+def test_the_step_profile_sums_the_gpu_busy_time_and_idle_gaps():
     """profile_train_step's idle table: the gaps where no kernel runs on any stream (a kernel inside
     another's span leaves none), by the kernel that ended last and the one after, per step."""
     from types import SimpleNamespace
@@ -870,15 +870,18 @@ def test_the_step_profile_sums_the_gpu_idle_gaps_by_size_and_neighbours():
     from torch.autograd import DeviceType
 
     def kernel(name, start, end, device=DeviceType.CUDA):
-        return SimpleNamespace(name=name, time_range=SimpleNamespace(start=start, end=end), device_type=device)
+        span = SimpleNamespace(start=start, end=end)
+        return SimpleNamespace(name=name, time_range=span, device_type=device)
 
-    events = [kernel("void ns::gemm<float, 4>(float*)", 0, 10), kernel("inner(int)", 2, 5),
-              kernel("void ns::mask<float>(float*)", 11, 20), kernel("aten::mm", 0, 100, DeviceType.CPU),
-              kernel("void ns::gemm<float, 4>(float*)", 80, 90), kernel("void ns::mask<float>(float*)", 91, 95)]
-    table = _profile_tool().idle_gaps(events, steps=2)
+    gemm, mask = "void ns::gemm<float, 4>(float*)", "void ns::mask<float>(float*)"
+    events = [kernel(gemm, 0, 10), kernel("inner(int)", 2, 5), kernel(mask, 11, 20),
+              kernel("aten::mm", 0, 100, DeviceType.CPU), kernel(gemm, 80, 90), kernel(mask, 91, 95)]
+    tool = _profile_tool()
+    assert tool.active_time_us(events) == 10 + 9 + 10 + 4  # the union of the kernels' spans
+    table = tool.idle_gaps(events, steps=2)
     assert table.startswith("GPU idle between kernels: 0.031 ms per step")  # (1 + 60 + 1) us / 2 steps
-    assert "< 2 us 1.0 gaps 0.001 ms, 2-10 us 0.0 gaps 0.000 ms, 10-50 us 0.0 gaps 0.000 ms, >= 50 us 0.5 gaps" \
-        in table
+    assert "< 2 us 1.0 gaps 0.001 ms, 2-10 us 0.0 gaps 0.000 ms, 10-50 us 0.0 gaps 0.000 ms, " \
+        ">= 50 us 0.5 gaps 0.030 ms" in table
     rows = [line.split() for line in table.splitlines()[2:]]
     assert rows[0] == ["mask", "->", "gemm", "0.030"] and rows[1] == ["gemm", "->", "mask", "0.001"], table
 

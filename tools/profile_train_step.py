@@ -34,42 +34,46 @@ from benchmarks.harness import RESULTS, device_tag, host_profile, scene_tag
 from mixer_nerf.train import TrainConfig, Trainer
 
 
-def active_time_us(events) -> float:
-    """Time some CUDA kernel runs, on any stream, in us: the union of the kernels' intervals (a
-    sum of kernel times counts kernels of overlapping streams twice)."""
-    spans = sorted((e.time_range.start, e.time_range.end) for e in events
-                   if e.device_type == torch.autograd.DeviceType.CUDA)
-    active, reached = 0.0, float("-inf")
-    for begin, end in spans:
-        if end > reached:
-            active += end - max(begin, reached)
-            reached = end
-    return active
+def _kernel_spans(events) -> list[tuple[float, float, str]]:
+    """(start us, end us, short name) of each CUDA kernel and copy, by start."""
+    return sorted((e.time_range.start, e.time_range.end, _short(e.name)) for e in events
+                  if e.device_type == DeviceType.CUDA)
 
 
-def idle_gaps(events, steps: int, top: int = 15) -> str:
-    """Where the GPU idles in profiled steps: the gaps in which no kernel or copy runs, on any stream,
-    summed per step by size and by the pair of kernels around them (the one that ended last, the one
-    that starts the gap's end), the largest sums first."""
-    spans = sorted((e.time_range.start, e.time_range.end, _short(e.name)) for e in events
-                   if e.device_type == DeviceType.CUDA)
-    buckets = {"< 2 us": (0, 2), "2-10 us": (2, 10), "10-50 us": (10, 50), ">= 50 us": (50, float("inf"))}
-    by_size = collections.Counter()
-    count = collections.Counter()
-    by_pair = collections.Counter()
+def _gaps(spans):
+    """Each stretch in which no kernel or copy of ``spans`` runs, on any stream: (us, the kernel
+    that ended last before it, the one that ends it)."""
     reached, last = None, None
     for begin, end, name in spans:
         if reached is not None and begin > reached:
-            gap = begin - reached
-            size = next(label for label, (low, high) in buckets.items() if low <= gap < high)
-            by_size[size] += gap
-            count[size] += 1
-            by_pair[f"{last} -> {name}"] += gap
+            yield begin - reached, last, name
         if reached is None or end > reached:
             reached, last = end, name
+
+
+def active_time_us(events) -> float:
+    """Time some CUDA kernel runs, on any stream, in us: the union of the kernels' intervals (a
+    sum of kernel times counts kernels of overlapping streams twice)."""
+    spans = _kernel_spans(events)
+    if not spans:
+        return 0.0
+    return max(end for _, end, _ in spans) - spans[0][0] - sum(gap for gap, _, _ in _gaps(spans))
+
+
+def idle_gaps(events, steps: int, top: int = 15) -> str:
+    """Where the GPU idles in profiled steps: the gaps in which no kernel or copy runs, summed per
+    step by size and by the pair of kernels around them, the largest sums first."""
+    buckets = {"< 2 us": (0, 2), "2-10 us": (2, 10), "10-50 us": (10, 50), ">= 50 us": (50, float("inf"))}
+    by_size, count, by_pair = collections.Counter(), collections.Counter(), collections.Counter()
+    for gap, before, after in _gaps(_kernel_spans(events)):
+        size = next(label for label, (low, high) in buckets.items() if low <= gap < high)
+        by_size[size] += gap
+        count[size] += 1
+        by_pair[f"{before} -> {after}"] += gap
     total = sum(by_size.values())
-    lines = [f"GPU idle between kernels: {total / 1e3 / steps:.3f} ms per step, by gap size: " + ", ".join(
-        f"{label} {count[label] / steps:.1f} gaps {by_size[label] / 1e3 / steps:.3f} ms" for label in buckets)]
+    sizes = ", ".join(f"{label} {count[label] / steps:.1f} gaps {by_size[label] / 1e3 / steps:.3f} ms"
+                      for label in buckets)
+    lines = [f"GPU idle between kernels: {total / 1e3 / steps:.3f} ms per step, by gap size: {sizes}"]
     lines += [f"{'before -> after the gap':<100} {'ms/step':>8}"]
     lines += [f"{pair[:100]:<100} {gap / 1e3 / steps:>8.3f}" for pair, gap in by_pair.most_common(top)]
     return "\n".join(lines) + "\n"
