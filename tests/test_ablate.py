@@ -300,6 +300,13 @@ def test_a_model_without_the_direction_mlca_is_noted_in_the_table(finished, tmp_
     assert "Note: MLCA mixes PE(x) only" in (out / "ablation.md").read_text()
 
 
+def test_the_regularisers_a_run_trained_with_are_noted_in_the_table(finished, tmp_path):
+    assert "decayed toward the identity" not in (finished / "ablation.md").read_text()
+    out = tmp_path / "decay"
+    assert ablate(out, "--presets", "D", "--seeds", "0", "--mlca-weight-decay", "2") == 0
+    assert "Note: MLCA's mixing decayed toward the identity, W = 2 " in (out / "ablation.md").read_text()
+
+
 @pytest.mark.parametrize(
     "args, message",
     [

@@ -34,7 +34,7 @@ from mixer_nerf.render.skipping.marching import with_padding_rays
 from mixer_nerf.train.checkpoint import capture_rng_state, restore_rng_state
 from mixer_nerf.train.config import FORWARD_FACING_MLCA_DECAY, FORWARD_FACING_OCCLUSION
 from mixer_nerf.train.fields import model_config
-from mixer_nerf.train.sampling import resolve_sampler
+from mixer_nerf.train.sampling import recipe_notes, resolve_sampler
 from mixer_nerf.train import trainer as trainer_module
 from mixer_nerf.render.skipping import SampleBudget
 from mixer_nerf.train import fixed_batch
@@ -1321,6 +1321,15 @@ def test_a_forward_facing_scene_trains_d_without_the_direction_mlca_and_says_so(
     assert trainer.train_scene.ndc and not trainer.model_cfg.mlca_directions
     assert isinstance(trainer.fields.coarse.direction_mixer, torch.nn.Identity)
     assert any("MLCA mixes PE(x) only" in line for line in lines)
+    assert trainer.cfg.mlca_weight_decay == FORWARD_FACING_MLCA_DECAY
+    assert any(f"W = {FORWARD_FACING_MLCA_DECAY:g} (--mlca-weight-decay" in line for line in lines)
+
+
+def test_recipe_notes_name_the_regularisers_that_are_on():
+    assert recipe_notes(TrainConfig(occlusion_weight=0.0, mlca_weight_decay=0.0)) == []
+    notes = recipe_notes(TrainConfig(sampler="proposal", occlusion_weight=0.01, mlca_weight_decay=10.0))
+    assert notes == ["occlusion loss 0.01 on the first 0.1 of each ray (--occlusion-weight)",
+                     "MLCA's mixing decayed toward the identity, W = 10 (--mlca-weight-decay; presets C and D)"]
 
 
 def test_val_holdout_trains_without_the_val_views_and_evaluates_on_them(llff_scene, tmp_path):

@@ -15,7 +15,7 @@ from ..train.config import TrainConfig
 from ..train.fields import model_config_from_dict, model_notes
 from ..train.logbook import CsvLog
 from ..train.output import RunFiles, write_text_atomic
-from ..train.sampling import make_fields
+from ..train.sampling import make_fields, recipe_notes
 from .plan import AblationError, AblationPlan
 from .table import build_table, write_table
 
@@ -134,19 +134,20 @@ def run_one(plan: AblationPlan, preset: str, seed: int, log: Callable[[str], Non
         "steps_per_s": summary["step"] / summary["train_seconds"] if summary["train_seconds"] > 0 else None,
         **_scores(plan, cfg, files, complete=summary["status"] in COMPLETE),
     }
-    params, model = checkpoint_model(files.checkpoint)
-    record.update(params=params, notes=record["notes"] + model_notes(model))
+    params, model, trained = checkpoint_model(files.checkpoint)
+    record.update(params=params, notes=record["notes"] + model_notes(model) + recipe_notes(trained))
     write_text_atomic(record_path, json.dumps(record, indent=1))
     return record
 
 
-def checkpoint_model(ckpt: Path) -> tuple[int, ModelConfig]:
+def checkpoint_model(ckpt: Path) -> tuple[int, ModelConfig, TrainConfig]:
     """The trainable parameters of a checkpoint's fields (both MLPs, proposal networks; not
-    buffers) and its model configuration."""
+    buffers), its model configuration and the settings it trained with."""
     state = load_checkpoint(ckpt)
     model = model_config_from_dict(state["model_config"])
-    fields = make_fields(TrainConfig.from_dict(state["train_config"]), model, state["scene"].get("bbox"))
-    return sum(p.numel() for p in fields.parameters() if p.requires_grad), model
+    trained = TrainConfig.from_dict(state["train_config"])
+    fields = make_fields(trained, model, state["scene"].get("bbox"))
+    return sum(p.numel() for p in fields.parameters() if p.requires_grad), model, trained
 
 
 def _train(cfg: TrainConfig, files: RunFiles, log: Callable[[str], None]) -> dict[str, Any]:

@@ -68,6 +68,19 @@ def resolve_sampler(cfg: TrainConfig, bbox: torch.Tensor | None, ndc: bool) -> T
                                occlusion_weight=occlusion, mlca_weight_decay=decay)
 
 
+def recipe_notes(cfg: TrainConfig) -> list[str]:
+    """What a reader of a run's results needs to know about the regularisers a resolved ``cfg``
+    trained with (some are on by default on forward-facing scenes only)."""
+    notes = []
+    if cfg.occlusion_weight:
+        notes.append(f"occlusion loss {cfg.occlusion_weight:g} on the first {cfg.occlusion_fraction:g} "
+                     "of each ray (--occlusion-weight)")
+    if cfg.mlca_weight_decay:
+        notes.append(f"MLCA's mixing decayed toward the identity, W = {cfg.mlca_weight_decay:g} "
+                     "(--mlca-weight-decay; presets C and D)")
+    return notes
+
+
 def make_grid(cfg: TrainConfig, bbox: torch.Tensor | None) -> OccupancyGrid | None:
     """The occupancy grid of a resolved ``cfg`` (None for hierarchical sampling)."""
     if cfg.sampler != "occupancy":

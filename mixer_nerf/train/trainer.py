@@ -43,7 +43,7 @@ from .occupancy_batch import MarchedBatch, prepare_marched_batch
 from .output import RunFiles, prepare_run_folder, write_text_atomic
 from .precision import set_matmul_precision
 from .sampler import RaySampler
-from .sampling import image_renderer, make_fields, occupancy_sampler, resolve_sampler
+from .sampling import image_renderer, make_fields, occupancy_sampler, recipe_notes, resolve_sampler
 from .scenes import held_out_split, locate_scene, scene_info, scene_source
 
 RESUMABLE_OVERRIDES = ("steps", "time_budget", "device", "backend", "data", "render_samples", "ckpt_every",
@@ -238,7 +238,7 @@ class Trainer:
         self.model_cfg = model_config(cfg.preset, cfg.model_overrides, self.train_scene.bbox, cfg.backend,
                                       ndc=self.train_scene.ndc)
         check_sizes(cfg, self.model_cfg.width, self.device)
-        for note in model_notes(self.model_cfg):
+        for note in model_notes(self.model_cfg) + recipe_notes(cfg):
             self.log(f"  note: {note}")
         self.fields = make_fields(cfg, self.model_cfg, self.train_scene.bbox)
         self.fields.to(self.device)
