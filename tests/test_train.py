@@ -495,6 +495,9 @@ def test_forward_facing_runs_decay_the_mlca_mixing_unless_told_otherwise():
     for typed in (0.0, 3.0):
         assert resolve_sampler(TrainConfig(mlca_weight_decay=typed), box, ndc=True).mlca_weight_decay == typed
         assert resolve_sampler(TrainConfig(mlca_weight_decay=typed), box, ndc=False).mlca_weight_decay == typed
+    with pytest.raises(ValueError, match="lr 0.1 times the MLCA decay forward-facing scenes get by default"):
+        resolve_sampler(TrainConfig(lr=0.1), box, ndc=True)
+    assert resolve_sampler(TrainConfig(lr=0.1), box, ndc=False).mlca_weight_decay == 0.0
 
 
 def test_forward_facing_scenes_get_no_direction_mlca_unless_asked():
