@@ -64,10 +64,13 @@ def resolve_sampler(cfg: TrainConfig, bbox: torch.Tensor | None, ndc: bool) -> T
     if decay is None:
         has_mlca = preset_config(cfg.preset, **cfg.model_overrides).use_mlca
         decay = FORWARD_FACING_MLCA_DECAY if ndc and has_mlca else 0.0
-        if cfg.lr * decay >= 1:  # each step scales the mixing by 1 - lr * W
+    if cfg.lr * decay >= 1:  # each step scales the mixing by 1 - lr * W
+        if cfg.mlca_weight_decay is None:
             raise ValueError(f"lr {cfg.lr:g} times the MLCA decay forward-facing scenes get by default "
                              f"({decay:g}) must be below 1: pass a smaller lr, or mlca_weight_decay "
                              "(0 turns the decay off)")
+        raise ValueError(f"mlca_weight_decay {decay} times lr {cfg.lr} must be below 1 "
+                         "(each step scales the mixing by 1 - lr * W)")
     return dataclasses.replace(cfg, fine_network=cfg.fine_network and sampler == "hierarchical",
                                occlusion_weight=occlusion, mlca_weight_decay=decay)
 

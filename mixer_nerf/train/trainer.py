@@ -253,9 +253,6 @@ class Trainer:
             self.params, lr=cfg.lr, eps=cfg.adam_eps, fused=self.device.type == "cuda"
         )
         self.decayed = [w for m in self.fields.modules() if isinstance(m, MLCA) for w in m.mixing_weights()]
-        if cfg.mlca_weight_decay > 0 and cfg.lr * cfg.mlca_weight_decay >= 1:
-            raise ValueError(f"mlca_weight_decay {cfg.mlca_weight_decay} times lr {cfg.lr} must be below 1 "
-                             "(each step scales the mixing by 1 - lr * W)")
         if cfg.mlca_weight_decay > 0 and not self.decayed:
             self.log(f"  note: --mlca-weight-decay does nothing in preset {cfg.preset}, which has no MLCA")
         near, far = self.train_scene.near, self.train_scene.far
