@@ -889,6 +889,27 @@ def test_the_step_profile_sums_the_gpu_busy_time_and_idle_gaps():
     assert rows[0] == ["mask", "->", "gemm", "0.030"] and rows[1] == ["gemm", "->", "mask", "0.001"], table
 
 
+def test_the_step_profile_splits_a_steps_stream_time_by_events():
+    """profile_train_step's event timeline: a step's span on the stream (first launch to last) and
+    the stream's idle between steps, the means over the steps, each step between its two events."""
+    clock = iter([0.0, 5.0, 5.5, 10.5, 12.5, 17.5])  # steps of 5 ms, 0.5 then 2 ms apart
+    calls = []
+
+    class Event:
+        def record(self):
+            self.t = next(clock)
+
+        def elapsed_time(self, other):
+            return other.t - self.t
+
+        def synchronize(self):
+            calls.append("sync")
+
+    span, between = _profile_tool().step_timeline_ms(lambda: calls.append("step"), 3, event=Event)
+    assert (span, between) == (5.0, 1.25)
+    assert calls == ["step", "step", "step", "sync"]
+
+
 def test_the_step_profile_times_the_batch_preparation(tmp_path):
     """tools/profile_train_step.py's host time in the occupancy path's batch preparation: a part of
     the step's time, measured on real steps, the trainer's prefetch left as it was."""

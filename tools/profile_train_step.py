@@ -6,7 +6,8 @@
 
 Trains ``--warmup`` steps (past the occupancy grid's dense warm-up, so the batch has its steady
 size), times three windows of ``--steps`` steps (the median window's ms per step: one may hold a
-graph recapture), then profiles ``--steps`` steps with torch.profiler. Prints ms per step (wall),
+graph recapture), times ``--steps`` more by CUDA events (a step's span on the stream, the stream's
+idle between steps), then profiles ``--steps`` steps with torch.profiler. Prints ms per step (wall),
 the GPU's busy ms per step (sum of kernel times; and the time any kernel runs, overlapping streams
 counted once, against the profiled wall time: the GPU idle), kernels per step, with the occupancy
 sampler the host time per step spent preparing the next batch, the kernels sorted by CUDA time,
@@ -23,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import collections
+import functools
 import tempfile
 import time
 from pathlib import Path
@@ -73,7 +75,8 @@ def idle_gaps(events, steps: int, top: int = 15) -> str:
     total = sum(by_size.values())
     sizes = ", ".join(f"{label} {count[label] / steps:.1f} gaps {by_size[label] / 1e3 / steps:.3f} ms"
                       for label in buckets)
-    lines = [f"GPU idle between kernels: {total / 1e3 / steps:.3f} ms per step, by gap size: {sizes}"]
+    lines = [f"GPU idle between kernels: {total / 1e3 / steps:.3f} ms per step, by gap size: {sizes} "
+             "(profiled steps: the profiler's tracing stretches a replayed graph's gaps)"]
     lines += [f"{'before -> after the gap':<100} {'ms/step':>8}"]
     lines += [f"{pair[:100]:<100} {gap / 1e3 / steps:>8.3f}" for pair, gap in by_pair.most_common(top)]
     return "\n".join(lines) + "\n"
@@ -100,6 +103,23 @@ def median_step_ms(step, synchronize, steps: int, windows: int = 3) -> float:
         synchronize()
         times.append((time.perf_counter() - start) * 1e3 / steps)
     return sorted(times)[windows // 2]
+
+
+def step_timeline_ms(step, steps: int, event=None) -> tuple[float, float]:
+    """(ms the stream takes from a step's first launch to its last, ms it idles between steps): the
+    means over ``steps`` steps, from CUDA events recorded around each step, without the profiler
+    (its tracing stretches the gaps inside a replayed graph). The first less the GPU's busy time is
+    the idle inside a step; the second the GPU waiting for the host to launch the next step."""
+    event = event or functools.partial(torch.cuda.Event, enable_timing=True)
+    marks = [(event(), event()) for _ in range(steps)]
+    for start, end in marks:
+        start.record()
+        step()
+        end.record()
+    marks[-1][1].synchronize()
+    span = sum(start.elapsed_time(end) for start, end in marks) / steps
+    between = sum(end.elapsed_time(start) for (_, end), (start, _) in zip(marks, marks[1:]))
+    return span, between / max(1, steps - 1)
 
 
 def main() -> None:
@@ -133,6 +153,7 @@ def main() -> None:
     wall_ms = median_step_ms(trainer.train_step, torch.cuda.synchronize, args.steps)
     rays, shaded, marched = (now - before for now, before in
                              zip((trainer.rays_seen, trainer.samples_seen, trainer.marched_seen), seen))
+    span_ms, between_ms = step_timeline_ms(trainer.train_step, args.steps)
     with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CUDA]) as prof:
         start = time.perf_counter()
         for _ in range(args.steps):
@@ -152,6 +173,9 @@ def main() -> None:
               f"(kernel times summed; {active_ms:.2f} ms with some kernel running on any stream, idle "
               f"{100 * max(0.0, 1 - active_ms / profiled_ms):.0f}% of the profiled {profiled_ms:.2f} ms; "
               f"{launches:.0f} kernels and copies a step), "
+              f"a step spans {span_ms:.2f} ms of the stream (CUDA events, unprofiled: "
+              f"{span_ms - active_ms:.2f} ms of it idle) and the stream idles {between_ms:.2f} ms "
+              f"between steps, "
               f"batch {batch_rays(trainer)} rays, step {trainer.step}, per ray {marched / rays:.1f} "
               f"marched and {shaded / rays:.1f} shaded samples, bf16 density passes "
               f"{trainer.cfg.bf16_density_passes}")
