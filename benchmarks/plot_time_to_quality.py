@@ -25,15 +25,15 @@ from benchmarks.time_to_quality import save_runs  # noqa: E402
 
 
 def plot(path: str | Path, targets_db: tuple[float, ...] = (25.0, 28.0, 31.0)) -> None:
-    """Plot and tabulate one runs file; the table gives each run's first checkpoint at or above each
-    of ``targets_db``."""
+    """Plot and tabulate one runs file; the table gives each run's PSNR on its training views at its
+    last checkpoint (where it has one) and its first checkpoint at or above each of ``targets_db``."""
     path = Path(path)
     records = json.loads(path.read_text())
     fig, ax = plt.subplots(figsize=(6, 4))
     seconds = sorted({pt["seconds"] // 1 for r in records for pt in r["curve"]})
     rows = ["| method | " + " | ".join(f"~{int(s)} s" for s in seconds) + " | samples/ray | steps | "
-            + " | ".join(f"first checkpoint >= {t} dB" for t in targets_db) + " |",
-            "|---|" + "---:|" * (len(seconds) + 2 + len(targets_db))]
+            + "train views at the end | " + " | ".join(f"first checkpoint >= {t} dB" for t in targets_db) + " |",
+            "|---|" + "---:|" * (len(seconds) + 3 + len(targets_db))]
     for r in records:
         xs = [pt["seconds"] for pt in r["curve"]]
         ys = [pt["val_psnr"] for pt in r["curve"]]
@@ -43,8 +43,9 @@ def plot(path: str | Path, targets_db: tuple[float, ...] = (25.0, 28.0, 31.0)) -
         cells = [f"{by_time[s]:.2f}" if s in by_time else "" for s in seconds]
         reached = [next((f"{pt['seconds']:.0f} s" for pt in r["curve"] if pt["val_psnr"] >= t),
                         f"not by {last.get('seconds', 0):.0f} s") for t in targets_db]
+        fit = f"{last['train_psnr']:.2f}" if "train_psnr" in last else ""  # runs before --train-views: none
         rows.append(f"| {r['label']} | " + " | ".join(cells)
-                    + f" | {last.get('samples_per_ray', float('nan')):.1f} | {last.get('step', '')} | "
+                    + f" | {last.get('samples_per_ray', float('nan')):.1f} | {last.get('step', '')} | {fit} | "
                     + " | ".join(reached) + " |")
     ax.set(xlabel="training time (s)", ylabel="val PSNR (dB)", title=records[0]["data"] if records else "")
     ax.grid(alpha=0.3)

@@ -13,7 +13,9 @@ Methods:
             networks, rays, optimizer settings and learning-rate schedule; only the estimator differs.
   ours      our trainer (``mixer_nerf.train``), any preset, every skip switchable.
 The clock counts training only: it stops for validation, and JIT builds (nerfacc's and ours) and
-data loading happen before it starts. Validation renders every view of the val split.
+data loading happen before it starts. Validation renders every view of the val split, and
+``--train-views`` training views spread over the split (``train_psnr``: how far a run fits what it
+sees beyond what it shows on held-out views).
 Writes the run into ``<out>/<scene>_<device>.json`` (default
 ``benchmarks/results/time_to_quality/lego_h100.json`` for Lego on an H100), a list of runs in which it
 replaces the run of its label or comes last, after every checkpoint (a run cut short keeps its
@@ -62,10 +64,11 @@ class Method:
 def run_curve(step_fn: Callable[[int], dict | Callable[[], dict]], render: Callable, val,
               checkpoints: list[float], log: Callable, clock: TrainingClock,
               start: tuple[int, int] | None = None, save: Callable[[int], None] | None = None,
-              save_every: float = math.inf, stop_after: float = math.inf) -> int:
+              save_every: float = math.inf, stop_after: float = math.inf,
+              train: tuple[object, list[int]] | None = None) -> int:
     """Train with ``step_fn(step)`` until the last checkpoint, validating at each one (``clock``
-    pauses meanwhile) and logging the stats of the step before it (``step_fn``'s dict, or what
-    the callable it returned reads then). Step 0 runs before the clock starts: it builds any JIT
+    pauses meanwhile; ``train``: a training split and the views of it scored as well) and logging
+    the stats of the step before it (``step_fn``'s dict, or what the callable it returned reads then). Step 0 runs before the clock starts: it builds any JIT
     kernels (nerfacc's, ours) and warms up caches. ``start``: (step, checkpoints done) of a
     resumed run, which skips the warm-up. ``save(step)`` runs, clock paused, every ``save_every``
     training seconds, at each checkpoint and before a stop after ``stop_after`` seconds. Returns
@@ -86,8 +89,10 @@ def run_curve(step_fn: Callable[[int], dict | Callable[[], dict]], render: Calla
         now = clock.now()
         if now >= pending[0]:
             elapsed = clock.pause()
-            point = {"seconds": round(elapsed, 2), "step": step, "val_psnr": validate(render, val),
-                     **(stats() if callable(stats) else stats)}
+            point = {"seconds": round(elapsed, 2), "step": step, "val_psnr": validate(render, val)}
+            if train is not None:
+                point["train_psnr"] = validate(render, train[0], views=train[1])
+            point.update(stats() if callable(stats) else stats)
             pending.pop(0)
             done += 1
             log(point)
@@ -327,6 +332,9 @@ def main() -> None:
                         help="scene name in the result file's name (default: the --data folder's name up to "
                              "its first '_', e.g. lego for .data/lego_400)")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--train-views", type=int, default=3,
+                        help="training views (spread over the split) scored at each checkpoint too, as "
+                             "train_psnr (0: none)")
     parser.add_argument("--device", default="cuda", help="cuda, or cpu for a smoke run")
     parser.add_argument("--preset", default="D", help="ours: model preset")
     parser.add_argument("--sampler", default="auto",
@@ -447,8 +455,10 @@ def main() -> None:
                                                       "curve": record["curve"]}))
 
     clock = trainer.clock if trainer is not None else TrainingClock(device)
+    views = torch.linspace(0, len(train) - 1, min(args.train_views, len(train))).round().long().tolist()
     done = run_curve(method.step_fn, method.render, val, checkpoints, log=log, clock=clock, start=start, save=save,
-                     save_every=args.save_every if save else math.inf, stop_after=args.stop_after)
+                     save_every=args.save_every if save else math.inf, stop_after=args.stop_after,
+                     train=(train, views) if views else None)
     if done < len(checkpoints):
         print(label, f"stopped at {clock.elapsed:.1f} s of training; the same command resumes it", flush=True)
     elif args.skip_report:

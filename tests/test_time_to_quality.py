@@ -38,6 +38,7 @@ def test_a_stopped_curve_resumes_from_its_run_dir(tmp_path, monkeypatch, capsys)
     (record,) = json.loads(next(tmp_path.glob("*_cpu.json")).read_text())
     points = record["curve"]
     assert len(points) == 2 and points[0] == first["curve"][0]
+    assert all(0 < point["train_psnr"] < 100 for point in points)  # 3 training views by default
     assert 0.5 <= points[0]["seconds"] < points[1]["seconds"] and points[1]["seconds"] >= 3
     assert points[1]["step"] > state["step"] >= points[0]["step"]
 
@@ -138,16 +139,18 @@ def test_plot_adds_runs_from_side_by_side_files_in_place_of_their_labels(tmp_pat
     the record, a run of the same label replaced, then plots the merged file."""
     from benchmarks import plot_time_to_quality
 
-    def record_of(label, psnr):
+    def record_of(label, psnr, **fit):
         return {"label": label, "method": "ours", "data": "d", "device": "cpu", "val_views": 1,
-                "curve": [{"seconds": 30.0, "step": 10, "val_psnr": psnr, "samples_per_ray": 8.0}]}
+                "curve": [{"seconds": 30.0, "step": 10, "val_psnr": psnr, "samples_per_ray": 8.0, **fit}]}
 
     record, side = tmp_path / "record", tmp_path / "gpu1"
     record.mkdir(), side.mkdir()
     (record / "fern_cpu.json").write_text(json.dumps([record_of("a", 20.0), record_of("b", 21.0)]))
-    (side / "fern_cpu.json").write_text(json.dumps([record_of("b", 22.0), record_of("c", 23.0)]))
+    (side / "fern_cpu.json").write_text(json.dumps([record_of("b", 22.0), record_of("c", 23.0, train_psnr=26.5)]))
     monkeypatch.setattr("sys.argv", ["plot", str(record), "--add", str(side / "fern_cpu.json")])
     plot_time_to_quality.main()
     merged = json.loads((record / "fern_cpu.json").read_text())
     assert [(r["label"], r["curve"][0]["val_psnr"]) for r in merged] == [("a", 20.0), ("b", 22.0), ("c", 23.0)]
-    assert (record / "fern_cpu.png").is_file() and "| c |" in (record / "fern_cpu.md").read_text()
+    table = (record / "fern_cpu.md").read_text()
+    assert (record / "fern_cpu.png").is_file() and "| c | 23.00 | 8.0 | 10 | 26.50 |" in table
+    assert "| a | 20.00 | 8.0 | 10 |  |" in table  # a run without training views: an empty cell
