@@ -342,7 +342,7 @@ def main() -> None:
                              "hierarchical")
     parser.add_argument("--target-samples", type=int, help="ours: MLP samples per step (default: the trainer's)")
     parser.add_argument("--batch-rays", type=int, default=None,
-                        help="ours, hierarchical sampler: rays per step (default: the trainer's)")
+                        help="ours, hierarchical and proposal samplers: rays per step (default: the trainer's)")
     parser.add_argument("--precision",
                         help="ours: bf16 | tf32 | fp32 (default: the trainer's, the sampler's recipe on CUDA)")
     parser.add_argument("--lr", type=float, default=None, help="ours: learning rate (default: the sampler's recipe)")
