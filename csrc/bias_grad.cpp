@@ -15,7 +15,6 @@
 #include <ATen/ATen.h>
 #include <ATen/Parallel.h>
 
-#include <tuple>
 #include <vector>
 
 #include "bias_grad.h"
@@ -24,8 +23,14 @@
 namespace mixer_nerf {
 namespace {
 
+struct Cpu {
+  static constexpr at::DeviceType kind = at::kCPU;
+  template <bool kRelu>
+  static at::Tensor column_sums(const at::Tensor& grad, const at::Tensor* out, at::Tensor* masked);
+};
+
 template <bool kRelu>
-at::Tensor column_sums(const at::Tensor& grad, const at::Tensor* out, at::Tensor* masked) {
+at::Tensor Cpu::column_sums(const at::Tensor& grad, const at::Tensor* out, at::Tensor* masked) {
   const int64_t N = grad.size(0), C = grad.size(1);
   at::Tensor sums = at::empty({C}, grad.options());
   MIXER_NERF_DISPATCH_FLOATING(grad.scalar_type(), "bias_grad_cpu", [&] {
@@ -60,23 +65,8 @@ at::Tensor column_sums(const at::Tensor& grad, const at::Tensor* out, at::Tensor
   return sums;
 }
 
-at::Tensor bias_grad_cpu(const at::Tensor& grad) {
-  bias_grad::check_args("bias_grad", grad, nullptr, at::kCPU);
-  return column_sums<false>(grad, nullptr, nullptr);
-}
-
-std::tuple<at::Tensor, at::Tensor> relu_bias_bwd_cpu(const at::Tensor& grad, const at::Tensor& out) {
-  bias_grad::check_args("relu_bias_bwd", grad, &out, at::kCPU);
-  at::Tensor masked = at::empty_like(grad);
-  at::Tensor sums = column_sums<true>(grad, &out, &masked);
-  return {masked, sums};
-}
-
 }  // namespace
 
-TORCH_LIBRARY_IMPL(mixer_nerf, CPU, m) {
-  m.impl("bias_grad", &bias_grad_cpu);
-  m.impl("relu_bias_bwd", &relu_bias_bwd_cpu);
-}
+TORCH_LIBRARY_IMPL(mixer_nerf, CPU, m) { bias_grad::BiasGradOps<Cpu>::register_ops(m); }
 
 }  // namespace mixer_nerf

@@ -1,12 +1,15 @@
-// What the CPU and CUDA kernels of bias_grad and relu_bias_bwd share: the host-side checks, and
-// the band of rows each partial sum covers. The callers are ops.linear / ops.linear_relu's
-// backward (mixer_nerf/ops/linear_relu.py), which hand over contiguous tensors of one dtype.
+// What the CPU and CUDA kernels of bias_grad and relu_bias_bwd share: the host-side checks, the
+// ops themselves around each device's column sums, and the band of rows each partial sum covers.
+// The callers are ops.linear / ops.linear_relu's backward (mixer_nerf/ops/linear_relu.py), which
+// hand over contiguous tensors of one dtype.
 #pragma once
 
 #include <ATen/ATen.h>
+#include <torch/library.h>
 
 #include <algorithm>
 #include <cstdint>
+#include <tuple>
 
 #include "common.h"
 
@@ -34,6 +37,29 @@ inline int64_t band_rows(int64_t N, int64_t max_bands) {
   const int64_t bands = std::min(std::max<int64_t>((N + kBandRows - 1) / kBandRows, 1), max_bands);
   return std::max<int64_t>((N + bands - 1) / bands, 1);
 }
+
+// The two ops of one device: the shared checks, then Device::column_sums<kRelu>(grad, out, masked)
+// (the bias gradient; with kRelu it also writes the masked gradient), which the device's source
+// registers with register_ops.
+template <typename Device>
+struct BiasGradOps {
+  static at::Tensor bias_grad(const at::Tensor& grad) {
+    check_args("bias_grad", grad, nullptr, Device::kind);
+    return Device::template column_sums<false>(grad, nullptr, nullptr);
+  }
+
+  static std::tuple<at::Tensor, at::Tensor> relu_bias_bwd(const at::Tensor& grad, const at::Tensor& out) {
+    check_args("relu_bias_bwd", grad, &out, Device::kind);
+    at::Tensor masked = at::empty_like(grad);
+    at::Tensor sums = Device::template column_sums<true>(grad, &out, &masked);
+    return {masked, sums};
+  }
+
+  static void register_ops(torch::Library& m) {
+    m.impl("bias_grad", &bias_grad);
+    m.impl("relu_bias_bwd", &relu_bias_bwd);
+  }
+};
 
 }  // namespace bias_grad
 }  // namespace mixer_nerf

@@ -15,7 +15,6 @@
 #include <cuda_runtime.h>
 
 #include <cstdint>
-#include <tuple>
 
 #include "bias_grad.h"
 #include "columns.cuh"
@@ -71,8 +70,14 @@ __global__ void __launch_bounds__(kThreads)
   }
 }
 
+struct Cuda {
+  static constexpr at::DeviceType kind = at::kCUDA;
+  template <bool kRelu>
+  static at::Tensor column_sums(const at::Tensor& grad, const at::Tensor* out, at::Tensor* masked);
+};
+
 template <bool kRelu>
-at::Tensor column_sums(const at::Tensor& grad, const at::Tensor* out, at::Tensor* masked) {
+at::Tensor Cuda::column_sums(const at::Tensor& grad, const at::Tensor* out, at::Tensor* masked) {
   const c10::cuda::CUDAGuard device_guard(grad.device());
   const int64_t N = grad.size(0), C = grad.size(1);
   if (N == 0 || C == 0) return at::zeros({C}, grad.options());
@@ -102,23 +107,8 @@ at::Tensor column_sums(const at::Tensor& grad, const at::Tensor* out, at::Tensor
   return sums;
 }
 
-at::Tensor bias_grad_cuda(const at::Tensor& grad) {
-  bias_grad::check_args("bias_grad", grad, nullptr, at::kCUDA);
-  return column_sums<false>(grad, nullptr, nullptr);
-}
-
-std::tuple<at::Tensor, at::Tensor> relu_bias_bwd_cuda(const at::Tensor& grad, const at::Tensor& out) {
-  bias_grad::check_args("relu_bias_bwd", grad, &out, at::kCUDA);
-  at::Tensor masked = at::empty_like(grad);
-  at::Tensor sums = column_sums<true>(grad, &out, &masked);
-  return {masked, sums};
-}
-
 }  // namespace
 
-TORCH_LIBRARY_IMPL(mixer_nerf, CUDA, m) {
-  m.impl("bias_grad", &bias_grad_cuda);
-  m.impl("relu_bias_bwd", &relu_bias_bwd_cuda);
-}
+TORCH_LIBRARY_IMPL(mixer_nerf, CUDA, m) { bias_grad::BiasGradOps<Cuda>::register_ops(m); }
 
 }  // namespace mixer_nerf
