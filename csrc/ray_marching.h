@@ -10,6 +10,7 @@
 #include <tuple>
 
 #include "common.h"
+#include "ray_layout.h"
 #include "ray_marching_math.h"
 
 namespace mixer_nerf {
@@ -73,10 +74,7 @@ struct TransmittanceFilter {
   double limit;            // -log(threshold); +inf without early termination
   double alpha_threshold;  // 0: no alpha test
 
-  C10_HOST_DEVICE int64_t offset(int64_t r) const {
-    const int64_t o = offsets[r];
-    return o < 0 ? 0 : (o > N ? N : o);
-  }
+  C10_HOST_DEVICE int64_t offset(int64_t r) const { return composite_layout::PackedRays::clamp(offsets[r], 0, N); }
   C10_HOST_DEVICE double tau(int64_t i) const {
     // the gap rounded to scalar_t, as the reference's
     const double t = double(sigmas[i]) * double(scalar_t(t_ends[i] - t_starts[i]));
@@ -147,7 +145,7 @@ struct SelectFixed {
     const int64_t a = N > capacity ? N : capacity;
     return a > R + 1 ? a : R + 1;
   }
-  C10_HOST_DEVICE int64_t clamp_row(int64_t o) const { return o < 0 ? 0 : (o > N ? N : o); }
+  C10_HOST_DEVICE int64_t clamp_row(int64_t o) const { return composite_layout::PackedRays::clamp(o, 0, N); }
   C10_HOST_DEVICE int64_t before(int64_t i) const { return i == 0 ? 0 : inclusive[i - 1]; }
   C10_HOST_DEVICE void write(int64_t j) const {
     const int64_t end = clamp_row(offsets[R]), kept = before(end);
@@ -220,10 +218,7 @@ struct PaddingLayout {
   int64_t R, N, P, rows_per_ray;
 
   C10_HOST_DEVICE int64_t items() const { return N > R + 1 + P ? N : R + 1 + P; }
-  C10_HOST_DEVICE int64_t end() const {
-    const int64_t e = offsets[R];
-    return e < 0 ? 0 : (e > N ? N : e);
-  }
+  C10_HOST_DEVICE int64_t end() const { return composite_layout::PackedRays::clamp(offsets[R], 0, N); }
   C10_HOST_DEVICE void write(int64_t j, int64_t end) const {
     if (j < N) out_ray_indices[j] = j < end ? ray_indices[j] : R + (j - end) / rows_per_ray;
     if (j <= R) {
