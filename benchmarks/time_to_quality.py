@@ -68,11 +68,11 @@ def run_curve(step_fn: Callable[[int], dict | Callable[[], dict]], render: Calla
               train: tuple[object, list[int]] | None = None) -> int:
     """Train with ``step_fn(step)`` until the last checkpoint, validating at each one (``clock``
     pauses meanwhile; ``train``: a training split and the views of it scored as well) and logging
-    the stats of the step before it (``step_fn``'s dict, or what the callable it returned reads then). Step 0 runs before the clock starts: it builds any JIT
-    kernels (nerfacc's, ours) and warms up caches. ``start``: (step, checkpoints done) of a
-    resumed run, which skips the warm-up. ``save(step)`` runs, clock paused, every ``save_every``
-    training seconds, at each checkpoint and before a stop after ``stop_after`` seconds. Returns
-    the checkpoints reached."""
+    the stats of the step before it (``step_fn``'s dict, or what the callable it returned reads
+    then). Step 0 runs before the clock starts: it builds any JIT kernels (nerfacc's, ours) and
+    warms up caches. ``start``: (step, checkpoints done) of a resumed run, which skips the warm-up.
+    ``save(step)`` runs, clock paused, every ``save_every`` training seconds, at each checkpoint and
+    before a stop after ``stop_after`` seconds. Returns the checkpoints reached."""
     if start is None:
         step_fn(0)
         step, done = 1, 0
