@@ -43,7 +43,7 @@ def test_weights_cast_together_give_what_autocast_gives(backend):
     model, args = field(backend), packed_rays()
     together = MixedPrecisionField(model, "cpu", torch.bfloat16)
     one_by_one = MixedPrecisionField(model, "cpu", torch.bfloat16)
-    one_by_one._linear_names = []  # the field's own parameters: autocast casts each
+    one_by_one._linear_slots = []  # the field's own parameters: autocast casts each
     got, want = outputs_and_grads(together, args), outputs_and_grads(one_by_one, args)
     assert got[0].dtype == got[1].dtype == torch.float32
     for a, b in zip(got, want, strict=True):
