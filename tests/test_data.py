@@ -25,10 +25,11 @@ from mixer_nerf.data import (
     load_split,
     ndc_rays,
 )
+from mixer_nerf.data.blender import write_blender_split
 from mixer_nerf.data.images import check_downscale, downscaled_size
 from mixer_nerf.data.images import downscale as downscale_image
 from mixer_nerf.data.llff import BD_FACTOR, average_pose, llff_to_opengl, recenter_poses, split_indices
-from mixer_nerf.data.procedural import render
+from mixer_nerf.data.procedural import orbit_poses, render
 from mixer_nerf.train.sampler import RaySampler
 
 LLFF_FACTOR = 4  # the llff_scene fixture provides images_4/
@@ -492,14 +493,48 @@ def test_val_holdout_carves_a_val_split_out_of_train(n, holdout, val_holdout):
     assert np.array_equal(split_indices(n, "val", holdout, Path("x")), splits["test"])  # the default
 
 
-def test_val_holdout_reaches_the_llff_loader_and_refuses_blender(llff_scene, blender_scene):
+def test_val_holdout_reaches_the_llff_loader(llff_scene):
     val = load_llff(llff_scene, factor=LLFF_FACTOR, split="val", val_holdout=4)
     train = load_llff(llff_scene, factor=LLFF_FACTOR, val_holdout=4)
     assert [p.name for p in val.image_paths] == ["img_001.png", "img_005.png"]  # every 4th of 1-7 and 9
     assert len(train) == 6 and not {p.name for p in val.image_paths} & {p.name for p in train.image_paths}
-    with pytest.raises(DatasetError, match="Blender scenes ship a val split"):
-        load_split(blender_scene, "blender", "val", val_holdout=4)
     with pytest.raises(ValueError, match="val_holdout must be >= 0"):
         split_indices(10, "val", 8, Path("x"), -1)
     with pytest.raises(DatasetError, match="split 'train' is empty"):  # every non-test view to val
         split_indices(10, "train", 8, Path("x"), 1)
+
+
+def _blender_views(root: Path, n_train: int, n_val: int, n_test: int) -> Path:
+    rng = np.random.default_rng(2)
+    for seed, (split, n) in enumerate((("train", n_train), ("val", n_val), ("test", n_test))):
+        if n:
+            write_blender_split(root, split, rng.uniform(size=(n, 4, 4, 4)), orbit_poses(n, seed), 0.69)
+    return root
+
+
+@pytest.mark.parametrize("n_train, holdout", [(10, 4), (7, 3), (5, 2), (3, 8)])
+@pytest.mark.parametrize("has_test", [True, False])
+def test_val_holdout_carves_a_blender_val_split_out_of_train(tmp_path, n_train, holdout, has_test):
+    """val: every K-th training view from the first, train the others; test: the scene's test views,
+    or its own val views where it ships none (nothing was tuned on them)."""
+    root = _blender_views(tmp_path / "scene", n_train, 3, 2 if has_test else 0)
+
+    def names(split: str, val_holdout: int = holdout) -> list[str]:
+        scene = load_split(root, "blender", split, val_holdout=val_holdout)
+        return [f"{p.parent.name}/{p.name}" for p in scene.image_paths]
+
+    val, train = names("val"), names("train")
+    assert val == [f"train/r_{k}.png" for k in range(0, n_train, holdout)]
+    assert not set(val) & set(train) and len(val) + len(train) == n_train
+    assert set(val) | set(train) == {f"train/r_{k}.png" for k in range(n_train)}
+    shipped = [f"test/r_{k}.png" for k in range(2)] if has_test else [f"val/r_{k}.png" for k in range(3)]
+    assert names("test") == shipped
+    assert names("val", val_holdout=0) == [f"val/r_{k}.png" for k in range(3)]  # the default: as shipped
+
+
+def test_a_blender_val_holdout_that_leaves_no_training_view_is_refused(tmp_path):
+    root = _blender_views(tmp_path / "scene", 1, 1, 0)
+    with pytest.raises(DatasetError, match="val_holdout 2 leaves the 'train' split empty"):
+        load_split(root, "blender", "train", val_holdout=2)
+    with pytest.raises(ValueError, match="val_holdout must be >= 0"):
+        load_split(root, "blender", "train", val_holdout=-1)

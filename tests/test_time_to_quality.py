@@ -125,13 +125,16 @@ def test_the_nerfacc_proposal_method_trains_our_networks_on_its_schedule(tmp_pat
     assert calls["sampled"] > point["step"] and 0 < calls["updates"] < point["step"] + 1
 
 
-def test_a_val_holdout_on_a_blender_scene_is_refused_as_the_trainer_refuses_it(tmp_path, monkeypatch):
-    from mixer_nerf.data import DatasetError
-
-    scene = ensure_procedural_scene(resolution=16, n_train=4, n_val=2, n_test=2)
-    with pytest.raises(DatasetError, match="Blender scenes ship a val split"):
-        run(monkeypatch, "--method", "ours", "--device", "cpu", "--data", str(scene), "--out", str(tmp_path),
-            "--val-holdout", "2")
+def test_a_val_holdout_on_a_blender_scene_scores_training_views_the_curve_left_out(tmp_path, monkeypatch):
+    """As the trainer does: every K-th training view is the val split (here 3 of 6), trained without."""
+    fake_nerfacc(monkeypatch)
+    scene = ensure_procedural_scene(resolution=16, n_train=6, n_val=2, n_test=2)
+    overrides = [f"--model-override={k}={json.dumps(v)}" for k, v in TINY_DEMO["model_overrides"].items()]
+    run(monkeypatch, "--method", "nerfacc-proposal", "--device", "cpu", "--backend", "torch", "--data", str(scene),
+        "--label", "tiny", "--batch-rays", "16", "--proposal-samples", "8", "--checkpoints", "0.5",
+        "--out", str(tmp_path), "--val-holdout", "2", *overrides)
+    (record,) = json.loads(next(tmp_path.glob("*_cpu.json")).read_text())
+    assert record["val_views"] == 3 and record["curve"]
 
 
 def test_plot_adds_runs_from_side_by_side_files_in_place_of_their_labels(tmp_path, monkeypatch):

@@ -1374,6 +1374,26 @@ def test_val_holdout_trains_without_the_val_views_and_evaluates_on_them(llff_sce
         tiny_config(tmp_path, val_holdout=-1)
 
 
+def test_a_blender_val_holdout_trains_without_the_carved_views_and_reports_the_shipped_ones(tmp_path):
+    """Lego's case: a scene with train and val views only. Validation uses every 4th training view,
+    which training leaves out; the default eval scores the scene's own val views (tuned on by nothing)."""
+    from mixer_nerf.data.blender import write_blender_split
+    from mixer_nerf.data.procedural import orbit_poses
+    from mixer_nerf.evaluate import evaluate
+
+    rng, root = np.random.default_rng(3), tmp_path / "scene"
+    for seed, (split, n) in enumerate((("train", 9), ("val", 2))):
+        write_blender_split(root, split, rng.uniform(size=(n, 8, 8, 4)), orbit_poses(n, seed), 0.69)
+    trainer = Trainer(tiny_config(tmp_path / "run", data=str(root), val_holdout=4, steps=3), log=quiet)
+    trained = {p.name for p in trainer.train_scene.image_paths}
+    assert trainer.val_split == "val" and trained == {f"r_{k}.png" for k in (1, 2, 3, 5, 6, 7)}
+    trainer.fit()
+    record = evaluate(tmp_path / "run" / "checkpoint.pt", lpips=False, log=quiet)
+    assert record["summary"]["split"] == "test" and record["summary"]["images"] == 2  # the val folder's two
+    record = evaluate(tmp_path / "run" / "checkpoint.pt", split="val", out=tmp_path / "carved", lpips=False, log=quiet)
+    assert [image["name"] for image in record["images"]] == ["r_0.png", "r_4.png", "r_8.png"]
+
+
 def test_the_logged_gradient_norm_is_the_clipped_one(tmp_path):
     trainer = Trainer(tiny_config(tmp_path, grad_clip=1e-4, steps=3), log=quiet)
     trainer.fit()

@@ -80,13 +80,9 @@ def load_split(
     folder: str | Path, format: str, split: str, downscale: float = 1, val_holdout: int = 0
 ) -> Scene:
     """One split, refusing an empty one (a loader may return zero views for a short capture).
-    ``val_holdout`` > 0: a capture's val split of its own (:func:`.llff.split_indices`)."""
-    kwargs = {}
-    if val_holdout:
-        if format == "blender":
-            raise DatasetError(f"{folder}: val_holdout carves a val split out of a capture's training views; "
-                               "Blender scenes ship a val split of their own")
-        kwargs["val_holdout"] = val_holdout
+    ``val_holdout`` > 0: a val split carved out of the training views (captures:
+    :func:`.llff.split_indices`; Blender: :func:`.blender.holdout_split`)."""
+    kwargs = {"val_holdout": val_holdout} if val_holdout else {}
     # every loader takes downscale
     scene = load_scene(folder, format=format, split=split, downscale=downscale, **kwargs)
     if len(scene) == 0:

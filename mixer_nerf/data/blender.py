@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -26,7 +26,8 @@ BACKGROUNDS = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}
 
 
 def load_blender(
-    root: str | Path, split: str = "train", background: str = "white", downscale: float = 1.0
+    root: str | Path, split: str = "train", background: str = "white", downscale: float = 1.0,
+    val_holdout: int = 0,
 ) -> Scene:
     """Load one split of a Blender-format scene.
 
@@ -36,6 +37,8 @@ def load_blender(
         background: "white" or "black", the colour transparent pixels are composited on.
         downscale: any number >= 1; images shrink by area averaging (:func:`.images.downscale`)
             and the intrinsics with them.
+        val_holdout: 0, or a val split carved out of the training views (:func:`holdout_split`),
+            to tune on views that the scene's own held-out views are not.
 
     Returns:
         A Scene with bbox [-1.5, 1.5]^3, near 2 and far 6 (the nerf_synthetic conventions), and
@@ -46,8 +49,11 @@ def load_blender(
         raise ValueError(f"background must be one of {sorted(BACKGROUNDS)}, got {background!r}")
     downscale = check_downscale(downscale)
     bg = np.array(BACKGROUNDS[background], dtype=np.float32)
-    meta_path = root / f"transforms_{split}.json"
+    file_split, keep = holdout_split(root, split, val_holdout)
+    meta_path = root / f"transforms_{file_split}.json"
     angle_x, frames = _read_transforms(meta_path)
+    if keep is not None:
+        frames = [frames[k] for k in keep(len(frames), meta_path)]
 
     paths, images, poses = [], [], []
     for k, frame in enumerate(frames):
@@ -78,6 +84,32 @@ def load_blender(
         split=split,
         image_paths=paths,
     )
+
+
+def holdout_split(
+    root: Path, split: str, val_holdout: int
+) -> tuple[str, Callable[[int, Path], Sequence[int]] | None]:
+    """Where ``split`` of a scene with a carved val split (``val_holdout`` K > 0) comes from: the
+    transforms file's split and which of its frames to keep (None: all). val is every K-th training
+    frame from the first and train the others; test is the scene's test split, or its own val split
+    when it ships no test views (those are then the views nothing was tuned on)."""
+    if val_holdout < 0:
+        raise ValueError(f"val_holdout must be >= 0, got {val_holdout}")
+    if not val_holdout:
+        return split, None
+    if split == "test":
+        return ("test" if (root / "transforms_test.json").is_file() else "val"), None
+    if split not in ("train", "val"):
+        return split, None
+
+    def keep(n: int, path: Path) -> Sequence[int]:
+        val = range(0, n, val_holdout)
+        kept = val if split == "val" else sorted(set(range(n)) - set(val))
+        if not kept:
+            raise DatasetError(f"{path}: val_holdout {val_holdout} leaves the {split!r} split empty ({n} frames)")
+        return kept
+
+    return "train", keep
 
 
 def write_blender_split(

@@ -51,9 +51,10 @@ class TrainConfig:
     format: str = option("auto", "scene format (default: detected)", choices=FORMATS)
     downscale: float = option(1.0, "image downscale, any factor >= 1")
     val_holdout: int = option(
-        0, "captures (LLFF, COLMAP, nerfstudio): validate on every K-th of the views not held out for "
-        "test, which training then leaves out, to tune without looking at test (default 0: validate on "
-        "the test views)",
+        0, "validate on every K-th training view (of a capture: of those not held out for test), which "
+        "training then leaves out, so that nothing is tuned on the views reported: test, or a Blender "
+        "scene's own val views when it ships no test split (default 0: validate on the val views, a "
+        "capture's being its test views)",
         metavar="K")
     procedural_resolution: int = 100  # image size of the built-in scene
     procedural_views: int = 100  # its number of training views
