@@ -111,6 +111,35 @@ def test_se_per_point_gates_each_sample_by_itself():
     assert not torch.allclose(gate, gate[:, :1].expand_as(gate))
 
 
+@pytest.mark.parametrize("backend", ["torch", "kernel"])
+def test_se_that_gates_colour_only_leaves_each_point_its_own_density(backend):
+    """se_gates_density=False: the density a ray's sample gets does not depend on the ray's other
+    samples and equals what the grid and the pre-pass see (density(x) with no layout); the colour
+    still takes the ray's gate. The default gates both (the density moves with the others)."""
+    R, S = 4, 6
+    x, d = random_rays(R, S)
+    x, d = x.reshape(-1, 3), d.expand(R, S, 3).reshape(-1, 3)
+    offsets = torch.arange(0, R * S + 1, S)
+    moved = x.clone()
+    moved[1::S] += 0.4  # every ray's second sample elsewhere: its other samples keep their places
+    others = torch.ones(R * S, dtype=torch.bool)
+    others[1::S] = False
+    for gates_density in (False, True):
+        torch.manual_seed(0)
+        model = randomize_(small_model("D", se_gates_density=gates_density, backend=backend))
+        with torch.no_grad():
+            sigma, rgb = model(x, d, offsets=offsets)
+            sigma_moved, rgb_moved = model(moved, d, offsets=offsets)
+            alone = model.density(x)
+        assert not torch.allclose(rgb[others], rgb_moved[others])  # the colour sees the whole ray
+        if gates_density:
+            assert not torch.allclose(sigma[others], sigma_moved[others])
+        else:
+            torch.testing.assert_close(sigma[others], sigma_moved[others], rtol=0, atol=0)
+            torch.testing.assert_close(sigma, alone)
+            torch.testing.assert_close(model.density(x, offsets=offsets), alone)
+
+
 def test_mean_over_ray_indices_equals_dense_mean_for_full_rays_in_any_order():
     R, S, C = 6, 5, 8
     dense = torch.randn(R, S, C)
@@ -256,7 +285,7 @@ def test_initial_density_is_the_same_fog_for_every_seed():
 def test_relu_density_option():
     model = small_model("A", density_activation="relu")
     x, d = random_rays(8, 8)
-    raw = model.head(model._trunk_features(x, None, None, None))[..., 0]
+    raw = model.head(model._trunk_features(x, None))[..., 0]
     torch.testing.assert_close(model(x, d)[0], torch.relu(raw))
 
 
@@ -686,8 +715,9 @@ def test_bad_config(kwargs, error):
         preset_config(**kwargs)
 
 
-@pytest.mark.parametrize("variant", [{"se_per_point": True}, {"mlca_concat_direction": True}])
-def test_faithful_variants_train(variant):
+@pytest.mark.parametrize("variant", [{"se_per_point": True}, {"mlca_concat_direction": True},
+                                     {"se_gates_density": False}])
+def test_model_variants_train(variant):
     # A few Adam steps on fixed rays: every weight that shapes the colour gets a gradient and the
     # fit improves without going non-finite.
     torch.manual_seed(0)

@@ -44,6 +44,9 @@ class ModelConfig:
     # Squeeze-and-excitation
     se_reduction: int = 16
     se_per_point: bool = False  # gate each sample by itself instead of by its ray's mean
+    # The gate scales the features both heads read (the paper's); False: the colour branch's only,
+    # so that the density is the point's alone, as the occupancy grid and the marching pre-pass see it.
+    se_gates_density: bool = True
     # Density
     density_activation: str = "softplus"  # "relu" reproduces the original NeRF recipe
     density_shift: float = -1.0  # sigma = softplus(raw + density_shift)

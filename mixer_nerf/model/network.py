@@ -2,6 +2,7 @@
 
     x -> (x - center) / scale -> PE (10 octaves) -> [MLCA] -> trunk 8 x 256, ReLU, skip at 4
       -> [SE over the ray's samples] -> Linear 256 -> 1 + 256 -> sigma = softplus(raw - 1), feature
+         (se_gates_density=False: sigma from the trunk's output before SE, the feature after it)
     d -> PE (4 octaves) -> [MLCA, unless mlca_directions=False] ---+
     feature -> Linear 256 -> 128  +  Linear (PE(d) width) -> 128  -+-> ReLU -> Linear 128 -> 3 -> sigmoid
 
@@ -122,8 +123,11 @@ class MixerNeRF(nn.Module):
             raise ValueError("d is required (or ray_directions, for packed samples with a layout)")
         self._check_matches_parameters(x)
         direction, trunk_direction, spread = self._directions(x, d, ray_indices, offsets, ray_directions)
-        features = self._trunk_features(x, trunk_direction, ray_indices, num_rays, offsets)
-        feature, raw = self._head(features)
+        trunk = self._trunk_features(x, trunk_direction)
+        gated = self._gated(trunk, ray_indices, num_rays, offsets)
+        feature, raw = self._head(gated)
+        if not self.cfg.se_gates_density and gated is not trunk:
+            raw = self._density_logit(trunk)
         sigma = self._activate_density(raw, x.dtype)
         view_term = spread(self.view_direction(self.direction_mixer(direction)))  # per ray when d is
         hidden = torch.relu(self._linear(self.view_feature, feature) + view_term)
@@ -147,10 +151,10 @@ class MixerNeRF(nn.Module):
         trunk_direction = None
         if self.cfg.mlca_concat_direction:
             _, trunk_direction, _ = self._directions(x, d, ray_indices, offsets, ray_directions)
-        features = self._trunk_features(x, trunk_direction, ray_indices, num_rays, offsets)
-        return self._activate_density(
-            F.linear(features, self.head.weight[:1], self.head.bias[:1])[..., 0], x.dtype
-        )
+        features = self._trunk_features(x, trunk_direction)
+        if self.cfg.se_gates_density:
+            features = self._gated(features, ray_indices, num_rays, offsets)
+        return self._activate_density(self._density_logit(features), x.dtype)
 
     def set_frequency_window(self, alpha: float | None) -> None:
         """Coarse-to-fine positional encoding of positions (Nerfies' window; FreeNeRF's frequency
@@ -196,14 +200,8 @@ class MixerNeRF(nn.Module):
         direction = self._encode_direction(ray_directions)
         return direction, spread(direction) if self.cfg.mlca_concat_direction else None, spread
 
-    def _trunk_features(
-        self,
-        x: torch.Tensor,
-        direction: torch.Tensor | None,
-        ray_indices: torch.Tensor | None,
-        num_rays: int | None,
-        offsets: torch.Tensor | None = None,
-    ) -> torch.Tensor:
+    def _trunk_features(self, x: torch.Tensor, direction: torch.Tensor | None) -> torch.Tensor:
+        """The trunk's output at ``x`` (before SE)."""
         cfg = self.cfg
         normalised = (x - self.scene_center.to(x.dtype)) / cfg.scene_scale
         encoded = positional_encoding(normalised, cfg.pos_freqs, scale=cfg.pe_scale, backend=cfg.backend)
@@ -222,9 +220,16 @@ class MixerNeRF(nn.Module):
             if i in cfg.skips:
                 h = torch.cat([encoded.to(h.dtype), h], dim=-1)
             h = linear_relu(h, layer.weight, layer.bias, backend=cfg.backend)
-        if self.se is not None:
-            h = self.se(h, ray_indices, num_rays, offsets)
         return h
+
+    def _gated(self, features: torch.Tensor, ray_indices: torch.Tensor | None, num_rays: int | None,
+               offsets: torch.Tensor | None) -> torch.Tensor:
+        """SE's gating of the trunk's ``features`` over each ray (``features`` itself without SE)."""
+        return features if self.se is None else self.se(features, ray_indices, num_rays, offsets)
+
+    def _density_logit(self, features: torch.Tensor) -> torch.Tensor:
+        """The head's density row alone: ``(..., width) -> (...)``."""
+        return F.linear(features, self.head.weight[:1], self.head.bias[:1])[..., 0]
 
     def _head(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The feature ``(..., width)`` and the density pre-activation ``(...)`` in one GEMM whose

@@ -62,9 +62,12 @@ def model_config(
 
 def model_notes(cfg: ModelConfig) -> list[str]:
     """What a reader of a run's results needs to know about its model beyond the preset letter."""
+    notes = []
     if cfg.use_mlca and not cfg.mlca_directions:
-        return ["MLCA mixes PE(x) only (mlca_directions=false: the default on forward-facing scenes)"]
-    return []
+        notes.append("MLCA mixes PE(x) only (mlca_directions=false: the default on forward-facing scenes)")
+    if cfg.use_se and not cfg.se_gates_density:
+        notes.append("SE gates the colour branch only (se_gates_density=false)")
+    return notes
 
 
 def model_config_to_dict(cfg: ModelConfig) -> dict[str, Any]:
