@@ -38,7 +38,7 @@ def load_blender(
         downscale: any number >= 1; images shrink by area averaging (:func:`.images.downscale`)
             and the intrinsics with them.
         val_holdout: 0, or a val split carved out of the training views (:func:`holdout_split`),
-            to tune on views that the scene's own held-out views are not.
+            to tune on views other than the scene's own held-out ones.
 
     Returns:
         A Scene with bbox [-1.5, 1.5]^3, near 2 and far 6 (the nerf_synthetic conventions), and
