@@ -538,3 +538,24 @@ def test_a_blender_val_holdout_that_leaves_no_training_view_is_refused(tmp_path)
         load_split(root, "blender", "train", val_holdout=2)
     with pytest.raises(ValueError, match="val_holdout must be >= 0"):
         load_split(root, "blender", "train", val_holdout=-1)
+
+
+def test_subset_views_tool_trains_on_every_kth_view_and_keeps_the_held_out_ones(tmp_path):
+    """tools/subset_views.py (the sparse-view screens): every K-th training view from the first, the
+    other splits as they are, the images read from the source scene."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("subset_views", Path(__file__).parents[1] / "tools" / "subset_views.py")
+    tool = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(tool)
+    source = _blender_views(tmp_path / "scene", 7, 3, 2)
+    assert tool.subset_views(source, tmp_path / "subset", 3) == 3
+    full, subset = load_split(source, "blender", "train"), load_split(tmp_path / "subset", "blender", "train")
+    assert torch.equal(subset.images, full.images[::3]) and torch.equal(subset.poses, full.poses[::3])
+    for split in ("val", "test"):
+        assert torch.equal(load_split(tmp_path / "subset", "blender", split).images,
+                           load_split(source, "blender", split).images)
+    with pytest.raises(FileNotFoundError, match="no transforms_train.json"):
+        tool.subset_views(tmp_path, tmp_path / "other", 2)
+    with pytest.raises(ValueError, match="--every must be >= 1"):
+        tool.subset_views(source, tmp_path / "other", 0)
