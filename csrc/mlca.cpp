@@ -10,7 +10,8 @@
 // Work is split into fixed chunks of points, each accumulating its weight gradients into its own
 // row of a (chunks, P) buffer; the rows are then summed in order, so the result does not depend on
 // the number of threads. A chunk runs the stages one after another over all its points (Batch
-// below); token mixing as (W_t X) lift^T + b_t, which mixes D < C values per token.
+// below); token mixing as (W_t X) lift^T + b_t, which mixes D < C values per token, and its backward
+// likewise through G = gP lift (dW_t = sum G X^T, dlift = sum dY^T X + gP^T W_t X, dX = dY lift + W_t^T G).
 #include <torch/library.h>
 
 #include <ATen/ATen.h>
@@ -35,6 +36,7 @@ using mm::Sizes;
 // the thread count.
 constexpr int64_t kChunkPoints = 256;
 constexpr int64_t kMaxChannels = 32;  // a row of C on the stack (row_times); mlca() refuses C > 32 first
+constexpr int64_t kMaxTokenDim = 32;  // mlca() refuses D > 32 first
 
 // The weights in the accumulation type, in the layouts the per-point loops read contiguously.
 template <typename acc>
@@ -85,11 +87,12 @@ Weights<acc_t<scalar_t>> weights_of(const Sizes& s, const at::Tensor& lift, cons
 template <typename acc, int kC>
 struct Batch {
   int64_t T, C, D, capacity, n = 0;
-  std::vector<acc> x, mixed_x, lifted, pre, mixed, chan, tmp, grad;  // mixed_x = W_t X, (T, n, D)
+  // mixed_x = W_t X and (backward) lifted_grad = gP lift: (T, n, D)
+  std::vector<acc> x, mixed_x, lifted, pre, mixed, chan, tmp, grad, lifted_grad;
   Batch(const Sizes& s, int64_t points, bool backward)
       : T(s.T), C(kC > 0 ? kC : s.C), D(s.D), capacity(points), x(points * s.T * s.D), mixed_x(x.size()),
         lifted(points * s.T * C), pre(lifted.size()), mixed(lifted.size()), chan(lifted.size()), tmp(lifted.size()),
-        grad(backward ? lifted.size() : 0) {}
+        grad(backward ? lifted.size() : 0), lifted_grad(backward ? x.size() : 0) {}
 
   int64_t channels() const { return kC > 0 ? kC : C; }
 
@@ -198,6 +201,21 @@ void forward_chunks(const scalar_t* encoded, scalar_t* out, int64_t n, int64_t f
   }
 }
 
+// A chunk's channel-mixing and lift gradients (dW_c, db_c, dlift) while its rows are summed; sized
+// at compile time for the model's channels (kC > 0) so that they can live in registers.
+template <typename acc, int kC>
+struct Sums {
+  static constexpr int64_t kMaxC = kC > 0 ? kC : kMaxChannels;
+  int64_t C, D;
+  acc channel[kMaxC * kMaxC] = {}, channel_bias[kMaxC] = {}, lift[kMaxC * kMaxTokenDim] = {};
+  Sums(int64_t channels, int64_t token_dim) : C(channels), D(token_dim) {}
+  void add_to(acc* d_channel, acc* d_channel_bias, acc* d_lift) const {
+    for (int64_t j = 0; j < C * C; ++j) d_channel[j] += channel[j];
+    for (int64_t c = 0; c < C; ++c) d_channel_bias[c] += channel_bias[c];
+    for (int64_t j = 0; j < C * D; ++j) d_lift[j] += lift[j];
+  }
+};
+
 // For chunks [first_chunk, last_chunk) of n points: adds chunk k's weight gradients to row k of
 // `partials` (rows of Sizes::params()) and, with grad_encoded, writes its points' input gradients.
 template <int kC, typename scalar_t>
@@ -221,6 +239,9 @@ void backward_chunks(const scalar_t* grad_out, const scalar_t* encoded, scalar_t
     // Channel mixing: tmp = gQ = G * GELU'(Q), then grad = dY = G + gQ W_c.
     at::Tensor gq = b.view(b.tmp);
     at::cpu::gelu_backward_out(gq, b.view(b.grad), b.view(b.chan));
+    // The chunk's weight gradients summed in locals, then added to its row once: accumulated in the
+    // row itself, every update was a store and a reload (the compiler cannot rule out aliasing).
+    Sums<acc, kC> sums(C, D);
     for (int64_t m = 0; m < rows; ++m) {
       const acc* q = &b.tmp[m * C];
       const acc* y = &b.mixed[m * C];
@@ -233,46 +254,57 @@ void backward_chunks(const scalar_t* grad_out, const scalar_t* encoded, scalar_t
       }
       for (int64_t c = 0; c < C; ++c) {
         const acc gqc = q[c];
-        d_channel_bias[c] += gqc;
-        acc* dwc = &d_channel[c * C];
+        sums.channel_bias[c] += gqc;
+        acc* dwc = &sums.channel[c * C];
 #pragma omp simd
         for (int64_t e = 0; e < C; ++e) dwc[e] += gqc * y[e];
       }
     }
-    // Token mixing: tmp = gP = dY * GELU'(P), then grad = dL = dY + W_t^T gP.
+    // Token mixing: tmp = gP = dY * GELU'(P). Its gradients pass through the lift first, G = gP lift
+    // (D < C values per token, as the forward mixes W_t X): dW_t = sum G X^T, db_t = sum_c gP, and
+    // with dL = dY + W_t^T gP never formed, dlift = sum (dY^T X + gP^T W_t X), dX = dY lift + W_t^T G.
     at::Tensor gp = b.view(b.tmp);
     at::cpu::gelu_backward_out(gp, b.view(b.grad), b.view(b.pre));
+    for (int64_t m = 0; m < rows; ++m) {
+      const acc* gpm = &b.tmp[m * C];
+      const acc* dym = &b.grad[m * C];
+      const acc* xm = &b.x[m * D];
+      const acc* wxm = &b.mixed_x[m * D];
+      for (int64_t k = 0; k < D; ++k) {
+        const acc* lift_k = &w.lift_t[k * C];
+        acc g = 0, dy_lift = 0;
+#pragma omp simd reduction(+ : g, dy_lift)
+        for (int64_t c = 0; c < C; ++c) {
+          g += gpm[c] * lift_k[c];
+          dy_lift += dym[c] * lift_k[c];
+        }
+        b.lifted_grad[m * D + k] = g;
+        if (grad_encoded != nullptr) dx[m * D + k] = dy_lift;
+      }
+      for (int64_t c = 0; c < C; ++c) {
+        for (int64_t k = 0; k < D; ++k) sums.lift[c * D + k] += dym[c] * xm[k] + gpm[c] * wxm[k];
+      }
+    }
+    sums.add_to(d_channel, d_channel_bias, d_lift);
+    const int64_t x_width = b.n * D;
     for (int64_t t = 0; t < T; ++t) {
       const acc* gpt = &b.tmp[t * width];
       acc bias = 0;
 #pragma omp simd reduction(+ : bias)
       for (int64_t j = 0; j < width; ++j) bias += gpt[j];
       d_token_bias[t] += bias;
+      const acc* gt = &b.lifted_grad[t * x_width];
       for (int64_t u = 0; u < T; ++u) {
-        const acc* lu = &b.lifted[u * width];
+        const acc* xu = &b.x[u * x_width];
         acc dot = 0;
 #pragma omp simd reduction(+ : dot)
-        for (int64_t j = 0; j < width; ++j) dot += gpt[j] * lu[j];
+        for (int64_t j = 0; j < x_width; ++j) dot += gt[j] * xu[j];
         d_token[t * T + u] += dot;
-        const acc wtu = w.token[t * T + u];
-        acc* dlu = &b.grad[u * width];
+        if (grad_encoded != nullptr) {
+          const acc wtu = w.token[t * T + u];
+          acc* dxu = &dx[u * x_width];
 #pragma omp simd
-        for (int64_t j = 0; j < width; ++j) dlu[j] += wtu * gpt[j];
-      }
-    }
-    // Lift: dlift += dL^T X, dX = dL lift.
-    for (int64_t m = 0; m < rows; ++m) {
-      const acc* dl = &b.grad[m * C];
-      const acc* xm = &b.x[m * D];
-      for (int64_t c = 0; c < C; ++c) {
-        for (int64_t k = 0; k < D; ++k) d_lift[c * D + k] += dl[c] * xm[k];
-      }
-      if (grad_encoded != nullptr) {
-        for (int64_t k = 0; k < D; ++k) {
-          acc sum = 0;
-#pragma omp simd reduction(+ : sum)
-          for (int64_t c = 0; c < C; ++c) sum += dl[c] * w.lift_t[k * C + c];
-          dx[m * D + k] = sum;
+          for (int64_t j = 0; j < x_width; ++j) dxu[j] += wtu * gt[j];
         }
       }
     }
@@ -284,6 +316,7 @@ Sizes check_cpu_args(const at::Tensor& encoded, const at::Tensor& lift, const at
                      const at::Tensor& token_bias, const at::Tensor& channel_weight, const at::Tensor& channel_bias) {
   const Sizes s = mm::check_args(encoded, lift, token_weight, token_bias, channel_weight, channel_bias, at::kCPU);
   MIXER_NERF_CHECK(s.C <= kMaxChannels, "mlca: the CPU kernel takes C <= ", kMaxChannels, ", got C=", s.C);
+  MIXER_NERF_CHECK(s.D <= kMaxTokenDim, "mlca: the CPU kernel takes D <= ", kMaxTokenDim, ", got D=", s.D);
   return s;
 }
 

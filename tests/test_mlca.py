@@ -150,10 +150,15 @@ def test_cpu_results_do_not_depend_on_the_thread_count(C, gen):
 
 @needs_kernels
 def test_cpu_op_refuses_more_channels_than_it_holds(gen):
-    """The op's own check (mlca() refuses C > 32 before it): the kernel keeps a row of C on the stack."""
+    """The op's own checks (mlca() refuses C > 32 and D > 32 before them): the kernels keep a row of C
+    and the backward a chunk's dlift on the stack."""
     inputs = make_inputs((2,), 3, 33, 2, gen)
     with pytest.raises(RuntimeError, match="C <= 32"):
         torch.ops.mixer_nerf.mlca_fwd(*inputs)
+    inputs = make_inputs((2,), 3, 8, 33, gen)  # D > 32: the backward sums dlift (C x D) on the stack
+    grad = torch.ones(2, 3 * 8)
+    with pytest.raises(RuntimeError, match="D <= 32"):
+        torch.ops.mixer_nerf.mlca_bwd(grad, *inputs, False)
 
 
 @needs_kernels
