@@ -129,7 +129,7 @@ def path_cameras(run: TrainedRun, path: str, n_frames: int) -> CameraPath:
         return fixed_intrinsics_path(run.scene["train_poses"], run.scene, "train")
     if path in DATASET_PATHS:
         folder, fmt = scene_source(run.cfg)
-        return split_path(folder, fmt, path, run.cfg.downscale)
+        return split_path(folder, fmt, path, run.cfg.downscale, run.cfg.val_holdout)
     return read_nerfstudio_path(path)
 
 

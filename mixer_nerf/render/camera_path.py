@@ -65,9 +65,10 @@ def fixed_intrinsics_path(poses: torch.Tensor, scene: dict[str, Any], kind: str)
     return CameraPath(poses.float(), focals, scene["H"], scene["W"], scene["cx"], scene["cy"], kind)
 
 
-def split_path(folder: Path, format: str, split: str, downscale: float) -> CameraPath:
-    """The cameras of a dataset split, with their own intrinsics."""
-    scene = load_split(folder, format, split, downscale)
+def split_path(folder: Path, format: str, split: str, downscale: float, val_holdout: int = 0) -> CameraPath:
+    """The cameras of a dataset split, with their own intrinsics (``val_holdout``: the splits of a
+    run that carved its val views out of the training views, as its ``eval`` scores them)."""
+    scene = load_split(folder, format, split, downscale, val_holdout)
     focals = torch.full((len(scene),), float(scene.focal))
     return CameraPath(scene.poses.float().cpu(), focals, scene.H, scene.W, scene.cx, scene.cy, split)
 
