@@ -8,12 +8,22 @@ from pathlib import Path
 
 import numpy as np
 
+from mixer_nerf.data.blender import write_blender_split
 from mixer_nerf.data.images import write_png
 from mixer_nerf.data.procedural import orbit_poses
 
 COLMAP_MODEL_IDS = {"SIMPLE_PINHOLE": 0, "PINHOLE": 1, "SIMPLE_RADIAL": 2, "RADIAL": 3, "OPENCV": 4,
                     "OPENCV_FISHEYE": 5}  # fmt: skip
 CV_FROM_GL = np.diag([1.0, -1.0, -1.0])
+
+
+def write_blender_scene(root: Path, size: int = 8, seed: int = 0, **views: int) -> Path:
+    """A Blender scene in ``root`` with ``views`` (split name -> count) of random size x size RGBA
+    images and orbit cameras, e.g. ``write_blender_scene(root, train=9, val=2)``."""
+    rng = np.random.default_rng(seed)
+    for k, (split, n) in enumerate(views.items()):
+        write_blender_split(root, split, rng.uniform(size=(n, size, size, 4)), orbit_poses(n, k), 0.69)
+    return root
 
 
 def orbit_rig(n: int, seed: int = 0) -> np.ndarray:

@@ -166,15 +166,12 @@ def test_dataset_paths_of_a_run_with_a_carved_val_split_are_the_views_its_eval_s
     split, "val" every K-th training view, as eval scores them."""
     from types import SimpleNamespace
 
+    from capture_files import write_blender_scene
     from mixer_nerf.data import load_split
-    from mixer_nerf.data.blender import write_blender_split
-    from mixer_nerf.data.procedural import orbit_poses
     from mixer_nerf.train import TrainConfig
     from mixer_nerf.video import path_cameras
 
-    rng, root = np.random.default_rng(4), tmp_path / "scene"
-    for seed, (split, n) in enumerate((("train", 6), ("val", 2))):
-        write_blender_split(root, split, rng.uniform(size=(n, 8, 8, 4)), orbit_poses(n, seed), 0.69)
+    root = write_blender_scene(tmp_path / "scene", train=6, val=2)
     run = SimpleNamespace(cfg=TrainConfig(data=str(root), val_holdout=4), scene={})
     test, val = path_cameras(run, "test", 0), path_cameras(run, "val", 0)
     torch.testing.assert_close(test.poses, load_split(root, "blender", "val").poses)

@@ -12,6 +12,7 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 import torch
+from capture_files import write_blender_scene
 
 import mixer_nerf.data as data
 from mixer_nerf.data import (
@@ -25,11 +26,10 @@ from mixer_nerf.data import (
     load_split,
     ndc_rays,
 )
-from mixer_nerf.data.blender import write_blender_split
 from mixer_nerf.data.images import check_downscale, downscaled_size
 from mixer_nerf.data.images import downscale as downscale_image
 from mixer_nerf.data.llff import BD_FACTOR, average_pose, llff_to_opengl, recenter_poses, split_indices
-from mixer_nerf.data.procedural import orbit_poses, render
+from mixer_nerf.data.procedural import render
 from mixer_nerf.train.sampler import RaySampler
 
 LLFF_FACTOR = 4  # the llff_scene fixture provides images_4/
@@ -504,20 +504,13 @@ def test_val_holdout_reaches_the_llff_loader(llff_scene):
         split_indices(10, "train", 8, Path("x"), 1)
 
 
-def _blender_views(root: Path, n_train: int, n_val: int, n_test: int) -> Path:
-    rng = np.random.default_rng(2)
-    for seed, (split, n) in enumerate((("train", n_train), ("val", n_val), ("test", n_test))):
-        if n:
-            write_blender_split(root, split, rng.uniform(size=(n, 4, 4, 4)), orbit_poses(n, seed), 0.69)
-    return root
-
-
 @pytest.mark.parametrize("n_train, holdout", [(10, 4), (7, 3), (5, 2), (3, 8)])
 @pytest.mark.parametrize("has_test", [True, False])
 def test_val_holdout_carves_a_blender_val_split_out_of_train(tmp_path, n_train, holdout, has_test):
     """val: every K-th training view from the first, train the others; test: the scene's test views,
     or its own val views where it ships none (nothing was tuned on them)."""
-    root = _blender_views(tmp_path / "scene", n_train, 3, 2 if has_test else 0)
+    tests = {"test": 2} if has_test else {}
+    root = write_blender_scene(tmp_path / "scene", size=4, train=n_train, val=3, **tests)
 
     def names(split: str, val_holdout: int = holdout) -> list[str]:
         scene = load_split(root, "blender", split, val_holdout=val_holdout)
@@ -533,7 +526,7 @@ def test_val_holdout_carves_a_blender_val_split_out_of_train(tmp_path, n_train, 
 
 
 def test_a_blender_val_holdout_that_leaves_no_training_view_is_refused(tmp_path):
-    root = _blender_views(tmp_path / "scene", 1, 1, 0)
+    root = write_blender_scene(tmp_path / "scene", size=4, train=1, val=1)
     with pytest.raises(DatasetError, match="val_holdout 2 leaves the 'train' split empty"):
         load_split(root, "blender", "train", val_holdout=2)
     with pytest.raises(ValueError, match="val_holdout must be >= 0"):
@@ -548,7 +541,7 @@ def test_subset_views_tool_trains_on_every_kth_view_and_keeps_the_held_out_ones(
     spec = importlib.util.spec_from_file_location("subset_views", Path(__file__).parents[1] / "tools" / "subset_views.py")
     tool = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(tool)
-    source = _blender_views(tmp_path / "scene", 7, 3, 2)
+    source = write_blender_scene(tmp_path / "scene", size=4, train=7, val=3, test=2)
     assert tool.subset_views(source, tmp_path / "subset", 3) == 3
     full, subset = load_split(source, "blender", "train"), load_split(tmp_path / "subset", "blender", "train")
     assert torch.equal(subset.images, full.images[::3]) and torch.equal(subset.poses, full.poses[::3])

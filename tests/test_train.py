@@ -1377,13 +1377,10 @@ def test_val_holdout_trains_without_the_val_views_and_evaluates_on_them(llff_sce
 def test_a_blender_val_holdout_trains_without_the_carved_views_and_reports_the_shipped_ones(tmp_path):
     """Lego's case: a scene with train and val views only. Validation uses every 4th training view,
     which training leaves out; the default eval scores the scene's own val views (tuned on by nothing)."""
-    from mixer_nerf.data.blender import write_blender_split
-    from mixer_nerf.data.procedural import orbit_poses
+    from capture_files import write_blender_scene
     from mixer_nerf.evaluate import evaluate
 
-    rng, root = np.random.default_rng(3), tmp_path / "scene"
-    for seed, (split, n) in enumerate((("train", 9), ("val", 2))):
-        write_blender_split(root, split, rng.uniform(size=(n, 8, 8, 4)), orbit_poses(n, seed), 0.69)
+    root = write_blender_scene(tmp_path / "scene", train=9, val=2)
     trainer = Trainer(tiny_config(tmp_path / "run", data=str(root), val_holdout=4, steps=3), log=quiet)
     trained = {p.name for p in trainer.train_scene.image_paths}
     assert trainer.val_split == "val" and trained == {f"r_{k}.png" for k in (1, 2, 3, 5, 6, 7)}
