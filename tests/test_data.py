@@ -538,7 +538,8 @@ def test_subset_views_tool_trains_on_every_kth_view_and_keeps_the_held_out_ones(
     other splits as they are, the images read from the source scene."""
     import importlib.util
 
-    spec = importlib.util.spec_from_file_location("subset_views", Path(__file__).parents[1] / "tools" / "subset_views.py")
+    path = Path(__file__).parents[1] / "tools" / "subset_views.py"
+    spec = importlib.util.spec_from_file_location("subset_views", path)
     tool = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(tool)
     source = write_blender_scene(tmp_path / "scene", size=4, train=7, val=3, test=2)

@@ -110,17 +110,22 @@ def fake_nerfacc(monkeypatch) -> dict:
     return calls
 
 
+def tiny_nerfacc_curve(monkeypatch, tmp_path, scene, *argv: str) -> dict:
+    """The record of a one-checkpoint nerfacc-proposal curve of a tiny model on ``scene`` (CPU)."""
+    overrides = [f"--model-override={k}={json.dumps(v)}" for k, v in TINY_DEMO["model_overrides"].items()]
+    run(monkeypatch, "--method", "nerfacc-proposal", "--device", "cpu", "--backend", "torch", "--data", str(scene),
+        "--label", "tiny", "--batch-rays", "16", "--proposal-samples", "8", "--checkpoints", "0.5",
+        "--out", str(tmp_path), *argv, *overrides)
+    (record,) = json.loads(next(tmp_path.glob("*_cpu.json")).read_text())
+    return record
+
+
 def test_the_nerfacc_proposal_method_trains_our_networks_on_its_schedule(tmp_path, monkeypatch):
     """The glue around nerfacc's estimator (learning rate from our schedule, its requires-grad
     schedule, validation renders) on a CPU, with nerfacc's names faked."""
     calls = fake_nerfacc(monkeypatch)
     scene = ensure_procedural_scene(resolution=16, n_train=4, n_val=2, n_test=2)
-    overrides = [f"--model-override={k}={json.dumps(v)}" for k, v in TINY_DEMO["model_overrides"].items()]
-    run(monkeypatch, "--method", "nerfacc-proposal", "--device", "cpu", "--backend", "torch", "--data", str(scene),
-        "--label", "tiny", "--batch-rays", "16", "--proposal-samples", "8", "--checkpoints", "0.5",
-        "--out", str(tmp_path), *overrides)
-    (record,) = json.loads(next(tmp_path.glob("*_cpu.json")).read_text())
-    (point,) = record["curve"]
+    (point,) = tiny_nerfacc_curve(monkeypatch, tmp_path, scene)["curve"]
     assert point["step"] > 0 and 0 < point["val_psnr"] < 100 and point["samples_per_ray"] == 8
     assert calls["sampled"] > point["step"] and 0 < calls["updates"] < point["step"] + 1
 
@@ -129,11 +134,7 @@ def test_a_val_holdout_on_a_blender_scene_scores_training_views_the_curve_left_o
     """As the trainer does: every K-th training view is the val split (here 3 of 6), trained without."""
     fake_nerfacc(monkeypatch)
     scene = ensure_procedural_scene(resolution=16, n_train=6, n_val=2, n_test=2)
-    overrides = [f"--model-override={k}={json.dumps(v)}" for k, v in TINY_DEMO["model_overrides"].items()]
-    run(monkeypatch, "--method", "nerfacc-proposal", "--device", "cpu", "--backend", "torch", "--data", str(scene),
-        "--label", "tiny", "--batch-rays", "16", "--proposal-samples", "8", "--checkpoints", "0.5",
-        "--out", str(tmp_path), "--val-holdout", "2", *overrides)
-    (record,) = json.loads(next(tmp_path.glob("*_cpu.json")).read_text())
+    record = tiny_nerfacc_curve(monkeypatch, tmp_path, scene, "--val-holdout", "2")
     assert record["val_views"] == 3 and record["curve"]
 
 

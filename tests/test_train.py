@@ -1384,11 +1384,13 @@ def test_a_blender_val_holdout_trains_without_the_carved_views_and_reports_the_s
     trainer = Trainer(tiny_config(tmp_path / "run", data=str(root), val_holdout=4, steps=3), log=quiet)
     trained = {p.name for p in trainer.train_scene.image_paths}
     assert trainer.val_split == "val" and trained == {f"r_{k}.png" for k in (1, 2, 3, 5, 6, 7)}
-    assert recipe_notes(trainer.cfg) == ["val views: 1 in 4 of the training views, left out of training (--val-holdout 4)"]
+    assert recipe_notes(trainer.cfg) == [
+        "val views: 1 in 4 of the training views, left out of training (--val-holdout 4)"]
     trainer.fit()
     record = evaluate(tmp_path / "run" / "checkpoint.pt", lpips=False, log=quiet)
     assert record["summary"]["split"] == "test" and record["summary"]["images"] == 2  # the val folder's two
-    record = evaluate(tmp_path / "run" / "checkpoint.pt", split="val", out=tmp_path / "carved", lpips=False, log=quiet)
+    record = evaluate(tmp_path / "run" / "checkpoint.pt", split="val", out=tmp_path / "carved", lpips=False,
+                      log=quiet)
     assert [image["name"] for image in record["images"]] == ["r_0.png", "r_4.png", "r_8.png"]
 
 

@@ -24,18 +24,19 @@ def subset_views(source: Path, out: Path, every: int) -> int:
         raise FileNotFoundError(f"{source}: no transforms_train.json (not a Blender scene)")
     out.mkdir(parents=True, exist_ok=True)
     to_source = Path(os.path.relpath(source.resolve(), out.resolve()))
-    kept = 0
+    kept = {}
     for path in splits:
         meta = json.loads(path.read_text())
         frames = meta["frames"][::every] if path.name == "transforms_train.json" else meta["frames"]
         meta["frames"] = [{**frame, "file_path": str(to_source / frame["file_path"])} for frame in frames]
         (out / path.name).write_text(json.dumps(meta, indent=1))
-        kept = len(frames) if path.name == "transforms_train.json" else kept
-    return kept
+        kept[path.name] = len(frames)
+    return kept["transforms_train.json"]
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("source", type=Path, help="a Blender scene folder")
     parser.add_argument("out", type=Path, help="the subset scene's folder")
     parser.add_argument("--every", type=int, default=4, help="keep every K-th training view (default 4)")

@@ -106,7 +106,8 @@ def holdout_split(
         val = range(0, n, val_holdout)
         kept = val if split == "val" else sorted(set(range(n)) - set(val))
         if not kept:
-            raise DatasetError(f"{path}: val_holdout {val_holdout} leaves the {split!r} split empty ({n} frames)")
+            raise DatasetError(f"{path}: val_holdout {val_holdout} leaves the {split!r} split empty "
+                               f"({n} frames)")
         return kept
 
     return "train", keep

@@ -80,7 +80,8 @@ def recipe_notes(cfg: TrainConfig) -> list[str]:
     trained with (some are on by default on forward-facing scenes only) and about its val split."""
     notes = []
     if cfg.val_holdout:
-        notes.append(f"val views: 1 in {cfg.val_holdout} of the training views, left out of training (--val-holdout {cfg.val_holdout})")
+        notes.append(f"val views: 1 in {cfg.val_holdout} of the training views, left out of training "
+                     f"(--val-holdout {cfg.val_holdout})")
     if cfg.occlusion_weight:
         notes.append(f"occlusion loss {cfg.occlusion_weight:g} on the first {cfg.occlusion_fraction:g} "
                      "of each ray (--occlusion-weight)")
