@@ -610,6 +610,25 @@ def test_a_discarded_prefetch_rewinds_the_rays_and_the_batch_size(tmp_path):
     assert torch.equal(again.rays_o, ahead.rays_o) and torch.equal(again.samples.t_starts, ahead.samples.t_starts)
 
 
+def test_a_step_counted_on_the_device_prefetches_the_batch_the_next_step_takes(tmp_path):
+    """The graphed path's eager steps pass ``_learn`` a device step counter: the prefetch is still
+    the next host step's, so the next take() uses it (it was discarded and prepared again in line,
+    a second grid refresh included, every eager step). A tensor step is refused by prefetch."""
+    trainer = Trainer(tiny_config(tmp_path, sampler="occupancy", grid_warmup=100), log=quiet)
+    prepared = []
+    prepare = trainer.batches.prepare
+    trainer.batches.prepare = lambda step: prepared.append(step) or prepare(step)
+    counter = torch.tensor(0)  # as the trainer's: one tensor, counted up before each step's take()
+    for _ in range(3):
+        counter.add_(1)
+        batch = trainer.batches.take(trainer.step)
+        trainer._learn(trainer._marched_losses(batch), counter)
+        trainer.step += 1
+    assert prepared == [0, 1, 2, 3]
+    with pytest.raises(TypeError, match="host's int"):
+        trainer.batches.prefetch(torch.tensor(4))
+
+
 class _OpaqueSlab(torch.nn.Module):
     """A density pre-pass that ends every ray soon after it enters x > 0."""
 

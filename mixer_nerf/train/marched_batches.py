@@ -54,6 +54,8 @@ class MarchedBatches:
         """Prepare the batch of ``step`` (on the side stream on CUDA). Returns once its sample
         counts are known; the current stream then waits for it before anything it queues next
         (the optimizer step that changes the weights the pre-pass read, the batch's use)."""
+        if not isinstance(step, int):  # a device tensor would sync at take() and never match it
+            raise TypeError(f"step must be the host's int, got {type(step).__name__}")
         rewind = (self.rays.generator.get_state(), self.rays.batch_rays)
         with self._on_side_stream():
             batch = self.prepare(step)

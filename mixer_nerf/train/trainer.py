@@ -398,7 +398,9 @@ class Trainer:
         self.guard.observe_losses(step, **losses)
         mean = self.ranks and self.ranks.start_gradient_mean(self.params)  # overlaps the prefetch
         if self.batches is not None and prefetch:
-            self.batches.prefetch(step)  # overlaps the backward pass; reads the weights before the update
+            # Overlaps the backward pass; reads the weights before the update. The host's number of the
+            # next step, whatever ``step`` is: a device counter would not match take()'s.
+            self.batches.prefetch(self.step + 1)
         if mean:
             mean.finish()
         if cfg.check_grads:
