@@ -910,8 +910,10 @@ def test_the_step_profile_sums_the_gpu_busy_time_and_idle_gaps():
 
 def test_the_step_profile_splits_a_steps_stream_time_by_events():
     """profile_train_step's event timeline: a step's span on the stream (first launch to last) and
-    the stream's idle between steps, the means over the steps, each step between its two events."""
-    clock = iter([0.0, 5.0, 5.5, 10.5, 12.5, 17.5])  # steps of 5 ms, 0.5 then 2 ms apart
+    the stream's idle between steps, the medians over the steps (one step that captures a graph
+    again does not move them), each step between its two events."""
+    # steps of 5 ms but the third (a recapture: 60 ms), 0.5, 2 and 1 ms apart
+    clock = iter([0.0, 5.0, 5.5, 10.5, 12.5, 72.5, 73.5, 78.5])
     calls = []
 
     class Event:
@@ -924,9 +926,9 @@ def test_the_step_profile_splits_a_steps_stream_time_by_events():
         def synchronize(self):
             calls.append("sync")
 
-    span, between = _profile_tool().step_timeline_ms(lambda: calls.append("step"), 3, event=Event)
-    assert (span, between) == (5.0, 1.25)
-    assert calls == ["step", "step", "step", "sync"]
+    span, between = _profile_tool().step_timeline_ms(lambda: calls.append("step"), 4, event=Event)
+    assert (span, between) == (5.0, 1.0)
+    assert calls == ["step"] * 4 + ["sync"]
 
 
 def test_the_step_profile_times_the_batch_preparation(tmp_path):
