@@ -15,6 +15,7 @@ import datetime
 import importlib
 import json
 import platform
+import time
 from pathlib import Path
 
 import torch
@@ -86,8 +87,11 @@ def main() -> None:
     for op in args.ops.split(","):
         module = importlib.import_module(f"benchmarks.cases_{op}")
         for case in module.cases(device):
+            start = time.perf_counter()
             results.extend(run_case(case, device, repeats=repeats, warmup=max(2, repeats // 10)))
             torch.manual_seed(0)
+            # where a run's time goes (torch.compile's builds included): what splits a cut-off run into calls
+            print(f"{case.op} {case.mode} {case.size}: {time.perf_counter() - start:.0f} s", flush=True)
         text = write_results(results, device, repeats, copy_gbps, out)  # after each op: a cut-off run keeps what it did
     print(text)
 
