@@ -612,8 +612,8 @@ def test_a_discarded_prefetch_rewinds_the_rays_and_the_batch_size(tmp_path):
 
 def test_a_step_counted_on_the_device_prefetches_the_batch_the_next_step_takes(tmp_path):
     """The graphed path's eager steps pass ``_learn`` a device step counter: the prefetch is still
-    the next host step's, so the next take() uses it (it was discarded and prepared again in line,
-    a second grid refresh included, every eager step). A tensor step is refused by prefetch."""
+    the next host step's, so the next take() uses it instead of preparing the batch again in line.
+    A tensor step is refused by prefetch."""
     trainer = Trainer(tiny_config(tmp_path, sampler="occupancy", grid_warmup=100), log=quiet)
     prepared = []
     prepare = trainer.batches.prepare

@@ -110,9 +110,8 @@ def step_timeline_ms(step, steps: int, event=None) -> tuple[float, float]:
     """(ms the stream takes from a step's first launch to its last, ms it idles between steps): the
     medians over ``steps`` steps, from CUDA events recorded around each step, without the profiler
     (its tracing stretches the gaps inside a replayed graph). Medians: one step of a window may
-    check the batch capacity and capture a graph again (the means of a run at step 1,150 read 7.97
-    ms against 5.89 ms of wall time a step). The first less the GPU's busy time is the idle inside a
-    step; the second the GPU waiting for the host to launch the next step."""
+    check the batch capacity and capture a graph again. The first less the GPU's busy time is the
+    idle inside a step; the second the GPU waiting for the host to launch the next step."""
     event = event or functools.partial(torch.cuda.Event, enable_timing=True)
     marks = [(event(), event()) for _ in range(steps)]
     for start, end in marks:
