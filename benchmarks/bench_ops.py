@@ -36,18 +36,20 @@ def fmt(value: float | None, spec: str) -> str:
 
 
 def table(results: list[Result], copy_gbps: float | None) -> str:
-    head = ("| op | mode | size | variant | ms | GB/s | % of copy | ms queued | max abs err | max rel err "
-            "| kernel speedup |")
-    lines = [head, "|---|---|---|---|---:|---:|---:|---:|---:|---:|---|"]
+    head = ("| op | mode | size | variant | ms | GB/s | % of copy | ms queued | ms kernels | max abs err "
+            "| max rel err | kernel speedup (one at a time, queued, kernels) |")
+    lines = [head, "|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|---|"]
     for r in results:
         pct = None if (r.gbps is None or not copy_gbps) else 100 * r.gbps / copy_gbps
-        queued = {k: f" (queued {v:.1f}x)" for k, v in r.queued_speedups.items()}
-        speed = ", ".join(f"{v:.1f}x{queued.get(k, '')} vs {k}" for k, v in r.speedups.items())
+        speed = ", ".join(
+            f"{v:.1f}x" + "".join(f" / {other[k]:.1f}x" if k in other else " / -"
+                                  for other in (r.queued_speedups, r.kernel_speedups) if other)
+            + f" vs {k}" for k, v in r.speedups.items())
         ms = fmt(r.ms, ".3f") if r.error is None else f"failed: {r.error}"
         lines.append(
             f"| {r.op} | {r.mode} | {r.size} | {r.variant} | {ms} | {fmt(r.gbps, '.0f')} | {fmt(pct, '.0f')} "
-            f"| {fmt(r.queued_ms, '.3f')} | {fmt(r.max_abs_err, '.2e')} | {fmt(r.max_rel_err, '.2e')} "
-            f"| {speed} |"
+            f"| {fmt(r.queued_ms, '.3f')} | {fmt(r.kernel_ms, '.3f')} | {fmt(r.max_abs_err, '.2e')} "
+            f"| {fmt(r.max_rel_err, '.2e')} | {speed} |"
         )
     return "\n".join(lines)
 
@@ -92,7 +94,7 @@ def main() -> None:
             torch.manual_seed(0)
             # where a run's time goes (torch.compile's builds included): what splits a cut-off run into calls
             print(f"{case.op} {case.mode} {case.size}: {time.perf_counter() - start:.0f} s", flush=True)
-        text = write_results(results, device, repeats, copy_gbps, out)  # after each op: a cut-off run keeps what it did
+            text = write_results(results, device, repeats, copy_gbps, out)  # a cut-off run keeps what it did
     print(text)
 
 
@@ -102,7 +104,8 @@ def write_results(results: list[Result], device: torch.device, repeats: int, cop
     header = (f"# Op benchmarks on {device_name(device)}, {stamp}\n\ntorch {torch.__version__}; "
               f"median of {repeats} runs, each after a synchronisation (host work included); ms queued: "
               f"per call of {repeats} calls queued back to back and synchronised once, the median of 5 such "
-              "batches (GPU only); errors against a float64 reference (rel: scaled by each output's max |truth|)"
+              "batches (GPU only); ms kernels: the kernels and copies of 10 calls summed, per call (GPU only, "
+              "no host time); errors against a float64 reference (rel: scaled by each output's max |truth|)"
               + (f"; device copy bandwidth {copy_gbps:.0f} GB/s (read + write)" if copy_gbps else "")
               + "\n\nCommand: `python -m benchmarks.bench_ops " + f"--device {device.type} --repeats {repeats}`\n\n")
     text = header + table(results, copy_gbps) + "\n"

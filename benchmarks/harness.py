@@ -55,6 +55,8 @@ class Result:
     queued_ms: float | None = None  # per call, queued back to back (GPU only; see queued_ms)
     speedups: dict[str, float] = field(default_factory=dict)  # other variant -> its ms / ours
     queued_speedups: dict[str, float] = field(default_factory=dict)  # the same, queued
+    kernel_ms: float | None = None  # per call, the GPU's kernels and copies summed (see kernel_ms)
+    kernel_speedups: dict[str, float] = field(default_factory=dict)  # the same, in kernel time
 
 
 VENDOR_WORDS = {"nvidia", "geforce", "tesla", "quadro", "amd", "instinct", "radeon"}
@@ -145,6 +147,26 @@ def queued_ms(fn: Callable[[], Any], device: torch.device, calls: int, batches: 
     return statistics.median(means)
 
 
+def kernel_ms(fn: Callable[[], Any], device: torch.device, calls: int = 10) -> float | None:
+    """Milliseconds per call of the GPU's own work: the durations of the kernels, copies and fills
+    of ``calls`` calls summed (torch.profiler), no host time between them. Where the host cannot
+    enqueue a call as fast as the GPU runs it, ``queued_ms`` measures the host; this does not (GPU
+    only)."""
+    if device.type != "cuda":
+        return None
+    from torch.autograd import DeviceType
+    from torch.profiler import ProfilerActivity, profile
+
+    fn()
+    torch.cuda.synchronize(device)
+    with profile(activities=[ProfilerActivity.CUDA]) as prof:
+        for _ in range(calls):
+            fn()
+        torch.cuda.synchronize(device)
+    total_us = sum(e.device_time for e in prof.events() if e.device_type == DeviceType.CUDA)
+    return total_us / 1e3 / calls
+
+
 def host_profile(step: Callable[[], Any], steps: int, top: int) -> str:
     """Python functions by own host time over ``steps`` calls of ``step`` (cProfile, the ``top``
     first), after each of which the host waits for the GPU: the host's cost of a step with nothing
@@ -186,7 +208,8 @@ def run_case(case: Case, device: torch.device, repeats: int, warmup: int) -> lis
             ms = time_ms(variant.fn, device, repeats, warmup)
             gbps = case.min_bytes / (ms * 1e-3) / 1e9
             results.append(Result(case.op, case.mode, case.size, variant.name, ms, gbps, abs_err, rel_err,
-                                  queued_ms=queued_ms(variant.fn, device, repeats)))
+                                  queued_ms=queued_ms(variant.fn, device, repeats),
+                                  kernel_ms=kernel_ms(variant.fn, device)))
         except Exception as exc:  # a peer that fails to build or run is reported, not fatal
             results.append(Result(case.op, case.mode, case.size, variant.name, None, None, None, None,
                                   error=f"{type(exc).__name__}: {str(exc).splitlines()[0][:160]}"))
@@ -202,4 +225,6 @@ def run_case(case: Case, device: torch.device, repeats: int, warmup: int) -> lis
             ours.speedups[r.variant] = r.ms / ours.ms
             if r.queued_ms and ours.queued_ms:
                 ours.queued_speedups[r.variant] = r.queued_ms / ours.queued_ms
+            if r.kernel_ms and ours.kernel_ms:
+                ours.kernel_speedups[r.variant] = r.kernel_ms / ours.kernel_ms
     return results

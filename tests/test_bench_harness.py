@@ -1,11 +1,15 @@
 """The benchmark harness: errors against a truth, and none for variants that draw their own
-random positions (a case without a truth)."""
+random positions (a case without a truth); the GPU-only times and how the table gives them."""
 
 from __future__ import annotations
 
+import time
+
+import pytest
 import torch
 
-from benchmarks.harness import Case, Variant, run_case
+from benchmarks.bench_ops import table
+from benchmarks.harness import Case, Result, Variant, kernel_ms, run_case
 
 
 def test_a_case_without_a_truth_times_its_variants_and_reports_no_error():
@@ -32,3 +36,29 @@ def test_speedups_are_our_kernels_and_our_default_calls_against_the_others():
     assert not peer.speedups and not kernel.queued_speedups  # nothing is queued on a CPU
     (defaults, _) = run_case(Case("op", "fwd", "64", both[1:], None, 512), torch.device("cpu"), 2, 1)
     assert set(defaults.speedups) == {"torch"}
+
+
+def test_a_cpu_run_measures_no_gpu_only_times():
+    x = torch.rand(64)
+    case = Case("op", "fwd", "64", [Variant("kernel", lambda: x * 2)], None, 512)
+    (result,) = run_case(case, torch.device("cpu"), repeats=2, warmup=1)
+    assert result.queued_ms is None and result.kernel_ms is None
+
+
+def test_the_table_gives_each_speedup_one_at_a_time_queued_and_in_kernel_time():
+    ours = Result("op", "fwd", "64", "kernel", 1.0, 1.0, None, None, queued_ms=0.5, kernel_ms=0.25,
+                  speedups={"torch": 3.0}, queued_speedups={"torch": 4.0}, kernel_speedups={"torch": 6.0})
+    peer = Result("op", "fwd", "64", "torch", 3.0, 1.0, None, None, queued_ms=2.0, kernel_ms=1.5)
+    rows = table([ours, peer], copy_gbps=100.0).splitlines()
+    assert "ms kernels" in rows[0]
+    assert "| 0.250 |" in rows[2] and rows[2].endswith("| 3.0x / 4.0x / 6.0x vs torch |")
+    cpu = Result("op", "fwd", "64", "kernel", 1.0, 1.0, None, None, speedups={"torch": 3.0})
+    assert table([cpu], None).splitlines()[2].endswith("| 3.0x vs torch |")
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a GPU")
+def test_kernel_time_counts_the_gpus_work_not_the_hosts():
+    x = torch.rand(1 << 20, device="cuda")
+    assert kernel_ms(lambda: time.sleep(0.002), x.device) == 0  # host work alone: no GPU time
+    assert kernel_ms(lambda: x * 2, x.device) > 0
