@@ -7,8 +7,9 @@ Runs the ``bench_ops`` composite forward+backward case (R=65536, S=192) with the
 after another: median GPU ms per step from CUDA events, then a torch.profiler pass of each that
 lists the CUDA runtime calls per step (a cudaHostAlloc or a synchronising call is a host wait
 the events show as GPU idle), the host time to enqueue a step and, of it, the time spent in
-``deferred_checks.watch``, and the GPU kernels per step (busy time against the event-timed step:
-the rest is the GPU waiting for the host), and a cProfile of the host's Python per variant (the
+``deferred_checks.watch``, in the composite call and in ``torch.autograd.grad``, and the GPU
+kernels per step (busy time against the event-timed step: the rest is the GPU waiting for the
+host), and a cProfile of the host's Python per variant (the
 autograd engine's own thread, where backward nodes run, shows only as ``torch.autograd.grad``).
 """
 
@@ -35,10 +36,14 @@ def main() -> None:
     upstream = [torch.randn_like(inputs["sigmas"][:, :3]), torch.randn_like(inputs["sigmas"][:, 0]),
                 torch.randn_like(inputs["sigmas"][:, 0])]
 
-    def step(check_values: bool) -> None:
+    def step(check_values: bool, split: list | None = None) -> None:
         leaves = [inputs["sigmas"].detach().requires_grad_(), inputs["rgbs"].detach().requires_grad_()]
+        start = time.perf_counter()
         out = composite(*leaves, inputs["t_starts"], inputs["t_ends"], inputs["background"], check_values=check_values)
+        called = time.perf_counter()
         torch.autograd.grad(out[:3], leaves, upstream)
+        if split is not None:
+            split.append((called - start, time.perf_counter() - called))
 
     watch, watch_seconds = deferred_checks.watch, []
 
@@ -62,12 +67,13 @@ def main() -> None:
             times.append(start.elapsed_time(end))
         torch.cuda.synchronize()
         watch_seconds.clear()
-        host = []
+        host, split = [], []
         for _ in range(args.steps):
             start = time.perf_counter()
-            step(check_values)
+            step(check_values, split)
             host.append(time.perf_counter() - start)
             torch.cuda.synchronize()
+        forward_call, grad_call = (1e3 * statistics.median(part) for part in zip(*split))
         watched = 1e3 * sum(watch_seconds) / args.steps
         with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
             for _ in range(args.steps):
@@ -79,7 +85,8 @@ def main() -> None:
         busy = sum(e.self_device_time_total for e in kernels) / args.steps / 1e3
         print(f"\ncheck_values={check_values}: {statistics.median(times):.3f} ms per step (median of {args.steps}), "
               f"GPU busy {busy:.3f} ms, host {1e3 * statistics.median(host):.3f} ms to enqueue a step "
-              f"({watched:.3f} ms of it in deferred_checks.watch)")
+              f"({watched:.3f} ms of it in deferred_checks.watch; medians: the composite call {forward_call:.3f} ms, "
+              f"torch.autograd.grad {grad_call:.3f} ms)")
         for e in sorted(kernels, key=lambda e: -e.self_device_time_total):
             print(f"  {e.key[:60]:<60} {e.count / args.steps:4.1f} per step  {e.self_device_time_total / args.steps:8.1f} us per step")
         calls = [e for e in averages if e.key.startswith("cuda")]
