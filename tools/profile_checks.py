@@ -9,8 +9,8 @@ lists the CUDA runtime calls per step (a cudaHostAlloc or a synchronising call i
 the events show as GPU idle), the host time to enqueue a step and, of it, the time spent in
 ``deferred_checks.watch``, in the composite call and in ``torch.autograd.grad``, and the GPU
 kernels per step (busy time against the event-timed step: the rest is the GPU waiting for the
-host), and a cProfile of the host's Python per variant (the
-autograd engine's own thread, where backward nodes run, shows only as ``torch.autograd.grad``).
+host), and a cProfile of the host's Python per variant (the autograd engine's own thread, where
+backward nodes run, shows only as ``torch.autograd.grad``).
 """
 
 from __future__ import annotations
