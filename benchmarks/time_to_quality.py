@@ -328,6 +328,9 @@ def main() -> None:
     parser.add_argument("--checkpoints", default="30,60,120,240")
     parser.add_argument("--nominal-steps", type=int, default=50000, help="schedule length (nerfacc recipe)")
     parser.add_argument("--out", default=str(RESULTS / "time_to_quality"))
+    parser.add_argument("--record-from", default=None, metavar="DIR",
+                        help="where --out has no file for this scene and device yet, start it from DIR's "
+                             "(the record's runs, this run's label replaced in it): only that file is copied")
     parser.add_argument("--scene", default=None,
                         help="scene name in the result file's name (default: the --data folder's name up to "
                              "its first '_', e.g. lego for .data/lego_400)")
@@ -424,6 +427,8 @@ def main() -> None:
     scene = args.scene or scene_tag(args.data)
     path = Path(args.out) / f"{scene}_{device_tag(device)}.json"
     path.parent.mkdir(parents=True, exist_ok=True)
+    if args.record_from is not None and not path.exists() and (Path(args.record_from) / path.name).is_file():
+        path.write_text((Path(args.record_from) / path.name).read_text())
     record = {"label": label, "method": args.method, "data": args.data, "device": torch.cuda.get_device_name() if device.type == "cuda" else "cpu",
               "val_views": len(val), "curve": []}
 

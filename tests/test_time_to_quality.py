@@ -1,5 +1,5 @@
-"""benchmarks.time_to_quality: a curve longer than one call, stopped and resumed from --run-dir;
-benchmarks.plot_time_to_quality merging curves run side by side."""
+"""benchmarks.time_to_quality: a curve longer than one call, stopped and resumed from --run-dir; a
+run's file started from the record's; benchmarks.plot_time_to_quality merging curves run side by side."""
 
 from __future__ import annotations
 
@@ -11,6 +11,7 @@ import pytest
 from test_cli import TINY_DEMO
 
 from benchmarks import time_to_quality
+from benchmarks.harness import scene_tag
 from mixer_nerf.data import ensure_procedural_scene
 
 
@@ -41,6 +42,23 @@ def test_a_stopped_curve_resumes_from_its_run_dir(tmp_path, monkeypatch, capsys)
     assert all(0 < point["train_psnr"] < 100 for point in points)  # 3 training views by default
     assert 0.5 <= points[0]["seconds"] < points[1]["seconds"] and points[1]["seconds"] >= 3
     assert points[1]["step"] > state["step"] >= points[0]["step"]
+
+
+def test_a_run_starts_its_file_from_the_record_and_copies_no_other(tmp_path, monkeypatch):
+    scene = ensure_procedural_scene(resolution=16, n_train=4, n_val=2, n_test=2)
+    record, out = tmp_path / "record", tmp_path / "out"
+    record.mkdir()
+    name = f"{scene_tag(str(scene))}_cpu.json"
+    (record / name).write_text(json.dumps([{"label": "older", "curve": []}, {"label": "tiny", "curve": []}]))
+    (record / "other_cpu.json").write_text("[]")
+    overrides = [f"--model-override={k}={json.dumps(v)}" for k, v in TINY_DEMO["model_overrides"].items()]
+    run(monkeypatch, "--method", "ours", "--device", "cpu", "--backend", "torch", "--data", str(scene),
+        "--label", "tiny", "--sampler", "hierarchical", "--batch-rays", "16", "--checkpoints", "0.2",
+        "--train-views", "0", "--out", str(out), "--record-from", str(record), *overrides)
+    assert sorted(p.name for p in out.iterdir()) == [name]
+    runs = json.loads((out / name).read_text())
+    assert [r["label"] for r in runs] == ["older", "tiny"] and len(runs[1]["curve"]) == 1
+    assert json.loads((record / name).read_text())[1]["curve"] == []  # the record itself is left as it was
 
 
 def test_trainer_flags_reach_our_trainers_config_and_clip_only_ours(tmp_path, monkeypatch, capsys):

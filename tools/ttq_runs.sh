@@ -5,20 +5,21 @@
 # One after another on one GPU (never side by side: they would share it); with GPUS=0,1,2,3 side
 # by side, run k alone on GPU k (at most one run per GPU), each into its own folder
 # $OUT/time_to_quality_gpu<k>/ (merge them with python -m benchmarks.plot_time_to_quality --add).
-# The runs files of $RESULTS (default benchmarks/results/time_to_quality, the current record; empty
-# for a screen of its own) are copied to $OUT/time_to_quality/ first, and each run goes into its
-# scene's file there (<scene>_<device>.json) after every checkpoint, replacing a run of its label:
-# copy the returned files back over $RESULTS and plot them (python -m benchmarks.plot_time_to_quality).
+# Each run goes into its scene's file in $OUT/time_to_quality/ (<scene>_<device>.json) after every
+# checkpoint, replacing a run of its label; the file starts as $RESULTS' (default
+# benchmarks/results/time_to_quality, the current record; empty for a screen of its own), and only
+# the files the runs write are copied (the device returns at most 8 files): copy the returned files
+# back over $RESULTS and plot them (python -m benchmarks.plot_time_to_quality).
 # Logs go to $OUT/ttq_logs.tgz as runs end (one after another) or once all have (side by side), so
 # a call keeps within the device's limit on returned files. A summary line per run.
 source tools/gpu_env.sh >/dev/null
 OUT=${OUT:-/tmp/ttq_runs}; mkdir -p "$OUT/time_to_quality"
 RESULTS=${RESULTS-benchmarks/results/time_to_quality}
-[ -n "$RESULTS" ] && [ -z "$GPUS" ] && cp "$RESULTS"/*.json "$OUT/time_to_quality/"
 logs=$(mktemp -d)/logs; mkdir -p "$logs"
 run() {  # run SPEC OUT_DIR
   local label args; read -r label args <<<"$1"
   [[ $args == *--method* ]] || args="--method ours $args"
+  [ -n "$RESULTS" ] && [ -z "$GPUS" ] && args="$args --record-from $RESULTS"
   mkdir -p "$2"
   # shellcheck disable=SC2086
   python -m benchmarks.time_to_quality --label "$label" --checkpoints "${CHECKPOINTS:-30,60,120,240}" \
