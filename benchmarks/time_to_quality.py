@@ -274,7 +274,8 @@ def ours_method(args, train, val, device) -> Method:
     cfg = TrainConfig(
         data=args.data, preset=args.preset, sampler=args.sampler, steps=args.nominal_steps,
         device=str(device), seed=args.seed, val_every=10**9, ckpt_every=10**9, log_every=10**9,
-        # as a user training for a fixed time would: the schedule ends at the last checkpoint
+        # as `mixer-nerf train --time-budget` with its default --steps: the schedule ends at the last
+        # checkpoint or at --nominal-steps, whichever comes first (on Fern, 600 s: at the steps)
         time_budget=max(float(c) for c in args.checkpoints.split(",")),
         progress=False, out=args.run_dir or tempfile.mkdtemp(prefix="ttq_"), backend=args.backend,
         model_overrides=parse_model_overrides(args.model_override),
