@@ -80,6 +80,11 @@ def test_trainer_flags_reach_our_trainers_config_and_clip_only_ours(tmp_path, mo
     (cfg,) = built.value.args
     assert (cfg.grad_clip, cfg.adam_eps, cfg.proposal_residual, cfg.proposal_intervals, cfg.frequency_anneal,
             cfg.mlca_weight_decay, cfg.proposal_loss_weight) == (0.5, 1e-8, "last", "between", 0.25, 2.0, 0.02)
+    # the schedule ends at the last checkpoint, however many steps the run makes: no step count ends it first
+    assert cfg.time_budget == 240 and cfg.steps >= 10**9
+    with pytest.raises(Built) as built:
+        run(monkeypatch, "--method", "ours", *argv, "--nominal-steps", "7000")
+    assert built.value.args[0].steps == 7000
     with pytest.raises(SystemExit):
         run(monkeypatch, "--method", "nerfacc-proposal", *argv)
     assert "--grad-clip needs --method ours" in capsys.readouterr().err
