@@ -23,7 +23,8 @@ points); ``benchmarks.plot_time_to_quality`` plots and tabulates that file.
 A curve longer than one call: ``--run-dir DIR`` (ours, nerfacc-proposal) keeps the run's state in
 DIR, saved every ``--save-every`` training seconds and at each checkpoint; the same command again
 resumes it there (same batches, the training clock going on). ``--stop-after S`` ends a call after S
-seconds of training, saved, before a device call's limit would kill it.
+seconds of training, saved, before a device call's limit would kill it; ``--stop-after +S`` after S
+more than the run had when this call resumed it.
 """
 
 from __future__ import annotations
@@ -324,6 +325,17 @@ def save_runs(path: Path, records: list[dict]) -> None:
     path.write_text(json.dumps(runs, indent=1))
 
 
+def _stop_after(text: str) -> tuple[float, bool]:
+    """``--stop-after``: (seconds, whether they count from where the run resumes)."""
+    try:
+        seconds = float(text.removeprefix("+"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected S or +S (seconds), got {text!r}") from None
+    if not seconds > 0:
+        raise argparse.ArgumentTypeError(f"expected a positive number of seconds, got {text!r}")
+    return seconds, text.startswith("+")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--method", choices=sorted(METHODS), required=True)
@@ -401,8 +413,9 @@ def main() -> None:
                         "from there (a curve longer than one call)")
     parser.add_argument("--save-every", type=float, default=60.0,
                         help="with --run-dir: training seconds between saves (default 60)")
-    parser.add_argument("--stop-after", type=float, default=math.inf,
-                        help="with --run-dir: end this call after this many seconds of training, saved")
+    parser.add_argument("--stop-after", type=_stop_after, default=(math.inf, False), metavar="S|+S",
+                        help="with --run-dir: end this call after S seconds of training (+S: S more than "
+                             "the run had when this call resumed it), saved")
     args = parser.parse_args()
     if args.skip_report and (args.method != "ours" or args.sampler not in ("auto", "occupancy")):
         parser.error("--skip-report needs --method ours and the occupancy sampler")
@@ -410,7 +423,7 @@ def main() -> None:
         parser.error("--run-dir needs --method ours or nerfacc-proposal")
     if args.grad_clip is not None and args.method != "ours":
         parser.error("--grad-clip needs --method ours (nerfacc's estimator steps its own optimizer)")
-    if args.stop_after != math.inf and args.run_dir is None:
+    if args.stop_after[0] != math.inf and args.run_dir is None:
         parser.error("--stop-after needs --run-dir (a stopped run is resumed from there)")
 
     torch.manual_seed(args.seed)
@@ -466,9 +479,12 @@ def main() -> None:
                                                       "curve": record["curve"]}))
 
     clock = trainer.clock if trainer is not None else TrainingClock(device)
+    stop_after, relative = args.stop_after
+    if relative:
+        stop_after += clock.elapsed
     views = torch.linspace(0, len(train) - 1, min(args.train_views, len(train))).round().long().tolist()
     done = run_curve(method.step_fn, method.render, val, checkpoints, log=log, clock=clock, start=start, save=save,
-                     save_every=args.save_every if save else math.inf, stop_after=args.stop_after,
+                     save_every=args.save_every if save else math.inf, stop_after=stop_after,
                      train=(train, views) if views else None)
     if done < len(checkpoints):
         print(label, f"stopped at {clock.elapsed:.1f} s of training; the same command resumes it", flush=True)

@@ -1,9 +1,11 @@
-"""benchmarks.time_to_quality: a curve longer than one call, stopped and resumed from --run-dir; a
-run's file started from the record's; benchmarks.plot_time_to_quality merging curves run side by side."""
+"""benchmarks.time_to_quality: a curve longer than one call, stopped and resumed from --run-dir (at
+an absolute or a relative stop); a run's file started from the record's;
+benchmarks.plot_time_to_quality merging curves run side by side."""
 
 from __future__ import annotations
 
 import json
+import re
 import sys
 
 import pytest
@@ -42,6 +44,24 @@ def test_a_stopped_curve_resumes_from_its_run_dir(tmp_path, monkeypatch, capsys)
     assert all(0 < point["train_psnr"] < 100 for point in points)  # 3 training views by default
     assert 0.5 <= points[0]["seconds"] < points[1]["seconds"] and points[1]["seconds"] >= 3
     assert points[1]["step"] > state["step"] >= points[0]["step"]
+
+
+def test_a_stop_after_plus_s_counts_from_where_the_call_resumed(tmp_path, monkeypatch, capsys):
+    scene = ensure_procedural_scene(resolution=16, n_train=4, n_val=2, n_test=2)
+    overrides = [f"--model-override={k}={json.dumps(v)}" for k, v in TINY_DEMO["model_overrides"].items()]
+    argv = ["--method", "ours", "--device", "cpu", "--backend", "torch", "--data", str(scene), "--label", "tiny",
+            "--sampler", "hierarchical", "--batch-rays", "16", "--checkpoints", "0.5,30", "--train-views", "0",
+            "--out", str(tmp_path), "--run-dir", str(tmp_path / "run"), *overrides]
+    stopped_at = []
+    for stop in ("0.8", "+1.0"):
+        run(monkeypatch, *argv, "--stop-after", stop)
+        out = capsys.readouterr().out
+        stopped_at.append(float(re.search(r"stopped at ([0-9.]+) s of training", out)[1]))
+    assert stopped_at[0] >= 0.8 and stopped_at[1] >= stopped_at[0] + 1.0
+    for bad in ("soon", "+0", "-5"):
+        with pytest.raises(SystemExit):
+            run(monkeypatch, *argv, "--stop-after", bad)
+    assert "expected" in capsys.readouterr().err
 
 
 def test_a_run_starts_its_file_from_the_record_and_copies_no_other(tmp_path, monkeypatch):

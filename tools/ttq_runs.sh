@@ -12,6 +12,11 @@
 # back over $RESULTS and plot them (python -m benchmarks.plot_time_to_quality).
 # Logs go to $OUT/ttq_logs.tgz as runs end (one after another) or once all have (side by side), so
 # a call keeps within the device's limit on returned files. A summary line per run.
+# $DEADLINE (seconds from this script's start; one after another only): curves longer than a call
+# go through one queue over several calls. Each run (with --run-dir) whose saved curve already
+# holds every checkpoint is skipped, the next one resumed with --stop-after +(what is left, less
+# $RUN_MARGIN, default 60 s for loading and validation), and no run starts with under twice that left;
+# repeat the same call, the run folders carried, until every run is done.
 source tools/gpu_env.sh >/dev/null
 OUT=${OUT:-/tmp/ttq_runs}; mkdir -p "$OUT/time_to_quality"
 RESULTS=${RESULTS-benchmarks/results/time_to_quality}
@@ -27,8 +32,25 @@ run() {  # run SPEC OUT_DIR
   echo "$label rc=$? $(grep -o '"seconds": [0-9.]*\|"val_psnr": [0-9.]*\|"rays": [0-9]*' "$logs/$label.log" | tr '\n' ' ')"
 }
 pack_logs() { tar czf "$OUT/ttq_logs.tgz" -C "$(dirname "$logs")" logs; }
+finished() {  # finished ARGS: the run's --run-dir holds a curve of all its checkpoints
+  local dir checkpoints=${CHECKPOINTS:-30,60,120,240}
+  [[ $1 =~ --run-dir[=\ ]([^ ]+) ]] || return 1
+  dir=${BASH_REMATCH[1]}
+  [[ $1 =~ --checkpoints[=\ ]([^ ]+) ]] && checkpoints=${BASH_REMATCH[1]}
+  python -c 'import json, sys; sys.exit(len(json.load(open(sys.argv[1]))["curve"]) < int(sys.argv[2]))' \
+    "$dir/ttq_state.json" "$(tr ',' '\n' <<<"$checkpoints" | wc -l)" 2>/dev/null
+}
 if [ -z "$GPUS" ]; then
-  for spec in "$@"; do run "$spec" "$OUT/time_to_quality"; pack_logs; done
+  margin=${RUN_MARGIN:-60}
+  for spec in "$@"; do
+    if [ -n "$DEADLINE" ]; then
+      finished "$spec" && { echo "${spec%% *}: done in an earlier call"; continue; }
+      left=$((DEADLINE - SECONDS))
+      [ "$left" -lt $((2 * margin)) ] && { echo "${spec%% *}: not started, ${left}s left"; continue; }
+      spec="$spec --stop-after +$((left - margin))"
+    fi
+    run "$spec" "$OUT/time_to_quality"; pack_logs
+  done
 else
   IFS=, read -ra gpus <<<"$GPUS"
   [ $# -le ${#gpus[@]} ] || { echo "ttq_runs.sh: $# runs for ${#gpus[@]} GPUs (one run per GPU)"; exit 2; }
