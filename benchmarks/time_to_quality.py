@@ -343,8 +343,9 @@ def main() -> None:
     parser.add_argument("--data", default=".data/lego_400")
     parser.add_argument("--checkpoints", default="30,60,120,240")
     parser.add_argument("--nominal-steps", type=int, default=None,
-                        help=f"schedule length in steps (default: nerfacc's occupancy recipe {NERFACC_RECIPE_STEPS}; "
-                             "ours and nerfacc-proposal: none, the schedule follows the time to the last checkpoint)")
+                        help=f"schedule length in steps (default: nerfacc's occupancy recipe "
+                             f"{NERFACC_RECIPE_STEPS}; ours and nerfacc-proposal: none, the schedule follows "
+                             "the time to the last checkpoint)")
     parser.add_argument("--out", default=str(RESULTS / "time_to_quality"))
     parser.add_argument("--record-from", default=None, metavar="DIR",
                         help="where --out has no file for this scene and device yet, start it from DIR's "

@@ -13,8 +13,8 @@
 # Logs go to $OUT/ttq_logs.tgz as runs end (one after another) or once all have (side by side), so
 # a call keeps within the device's limit on returned files. A summary line per run.
 # $DEADLINE (seconds from this script's start; one after another only): curves longer than a call
-# go through one queue over several calls. Each run (with --run-dir) whose saved curve already
-# holds every checkpoint is skipped, the next one resumed with --stop-after +(what is left, less
+# go through one queue over several calls. A run with --run-dir whose saved curve already holds
+# every checkpoint is skipped, the next one resumed with --stop-after +(what is left, less
 # $RUN_MARGIN, default 60 s for loading and validation), and no run starts with under twice that left;
 # repeat the same call, the run folders carried, until every run is done.
 source tools/gpu_env.sh >/dev/null
@@ -47,7 +47,7 @@ if [ -z "$GPUS" ]; then
       finished "$spec" && { echo "${spec%% *}: done in an earlier call"; continue; }
       left=$((DEADLINE - SECONDS))
       [ "$left" -lt $((2 * margin)) ] && { echo "${spec%% *}: not started, ${left}s left"; continue; }
-      spec="$spec --stop-after +$((left - margin))"
+      [[ $spec == *--run-dir* ]] && spec="$spec --stop-after +$((left - margin))"  # else it runs whole
     fi
     run "$spec" "$OUT/time_to_quality"; pack_logs
   done
