@@ -447,8 +447,9 @@ def main() -> None:
     scene = args.scene or scene_tag(args.data)
     path = Path(args.out) / f"{scene}_{device_tag(device)}.json"
     path.parent.mkdir(parents=True, exist_ok=True)
-    if args.record_from is not None and not path.exists() and (Path(args.record_from) / path.name).is_file():
-        path.write_text((Path(args.record_from) / path.name).read_text())
+    record_file = None if args.record_from is None else Path(args.record_from) / path.name
+    if record_file is not None and record_file.is_file() and not path.exists():
+        path.write_text(record_file.read_text())
     record = {"label": label, "method": args.method, "data": args.data, "device": torch.cuda.get_device_name() if device.type == "cuda" else "cpu",
               "val_views": len(val), "curve": []}
 
