@@ -50,7 +50,6 @@ from mixer_nerf.train.output import write_text_atomic
 from mixer_nerf.train.trainer import TrainingClock
 
 NERFACC_RECIPE_STEPS = 50_000  # nerfacc's occupancy recipe: its MultiStepLR milestones are fractions of it
-UNBOUNDED_STEPS = 10**9  # a trainer schedule that only the time budget ends
 
 
 @dataclass
@@ -276,10 +275,11 @@ def ours_method(args, train, val, device) -> Method:
     from mixer_nerf.train import TrainConfig, Trainer
 
     cfg = TrainConfig(
-        data=args.data, preset=args.preset, sampler=args.sampler, steps=args.nominal_steps or UNBOUNDED_STEPS,
+        data=args.data, preset=args.preset, sampler=args.sampler,
         device=str(device), seed=args.seed, val_every=10**9, ckpt_every=10**9, log_every=10**9,
-        # the schedule ends at the last checkpoint (or at --nominal-steps if given first), for ours
-        # and for nerfacc's estimator around our networks alike, however many steps each makes
+        # as `mixer-nerf train --time-budget`: the schedule ends at the last checkpoint or at the
+        # trainer's --steps (or --nominal-steps), whichever comes first
+        **({"steps": args.nominal_steps} if args.nominal_steps else {}),
         time_budget=max(float(c) for c in args.checkpoints.split(",")),
         progress=False, out=args.run_dir or tempfile.mkdtemp(prefix="ttq_"), backend=args.backend,
         model_overrides=parse_model_overrides(args.model_override),
@@ -344,8 +344,8 @@ def main() -> None:
     parser.add_argument("--checkpoints", default="30,60,120,240")
     parser.add_argument("--nominal-steps", type=int, default=None,
                         help=f"schedule length in steps (default: nerfacc's occupancy recipe "
-                             f"{NERFACC_RECIPE_STEPS}; ours and nerfacc-proposal: none, the schedule follows "
-                             "the time to the last checkpoint)")
+                             f"{NERFACC_RECIPE_STEPS}; ours and nerfacc-proposal: the trainer's --steps, the "
+                             "schedule ending there or at the last checkpoint, whichever comes first)")
     parser.add_argument("--out", default=str(RESULTS / "time_to_quality"))
     parser.add_argument("--record-from", default=None, metavar="DIR",
                         help="where --out has no file for this scene and device yet, start it from DIR's "
