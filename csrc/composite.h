@@ -107,13 +107,22 @@ inline int64_t check_packed(const at::Tensor& sigmas, const at::Tensor& offsets,
   return offsets.size(0) - 1;
 }
 
-// One call's input tensors, as the op received them (checked by CompositeOps).
+inline std::optional<at::Tensor> contiguous(const std::optional<at::Tensor>& t) {
+  return t ? std::optional<at::Tensor>(t->contiguous()) : std::nullopt;
+}
+
+// One call's input tensors, contiguous (the ops take any strides; a contiguous one is not copied).
 struct CompositeTensors {
-  const at::Tensor& sigmas;
-  const at::Tensor& rgbs;
-  const at::Tensor& t_starts;
-  const at::Tensor& t_ends;
-  const std::optional<at::Tensor>& background;
+  at::Tensor sigmas, rgbs, t_starts, t_ends;
+  std::optional<at::Tensor> background;
+
+  CompositeTensors(const at::Tensor& sigmas_, const at::Tensor& rgbs_, const at::Tensor& t_starts_,
+                   const at::Tensor& t_ends_, const std::optional<at::Tensor>& background_)
+      : sigmas(sigmas_.contiguous()),
+        rgbs(rgbs_.contiguous()),
+        t_starts(t_starts_.contiguous()),
+        t_ends(t_ends_.contiguous()),
+        background(contiguous(background_)) {}
 
   template <typename scalar_t>
   CompositeInputs<scalar_t> pointers() const {
@@ -129,12 +138,14 @@ struct CompositeTensors {
   }
 };
 
-// The upstream gradients of a backward, each absent (zeros) or shaped like its output.
+// The upstream gradients of a backward, each absent (zeros) or shaped like its output; contiguous.
 struct Upstream {
-  const std::optional<at::Tensor>& color;
-  const std::optional<at::Tensor>& depth;
-  const std::optional<at::Tensor>& opacity;
-  const std::optional<at::Tensor>& weights;
+  std::optional<at::Tensor> color, depth, opacity, weights;
+
+  Upstream(const std::optional<at::Tensor>& color_, const std::optional<at::Tensor>& depth_,
+           const std::optional<at::Tensor>& opacity_, const std::optional<at::Tensor>& weights_)
+      : color(contiguous(color_)), depth(contiguous(depth_)), opacity(contiguous(opacity_)),
+        weights(contiguous(weights_)) {}
 };
 
 // Upstream gradients: each absent (zeros) or of its output's shape and dtype.
@@ -274,9 +285,10 @@ struct CompositeOps {
   static CompositeForward packed_fwd(const at::Tensor& sigmas, const at::Tensor& rgbs, const at::Tensor& t_starts,
                                      const at::Tensor& t_ends, const std::optional<at::Tensor>& background,
                                      const at::Tensor& offsets) {
-    const int64_t R = check_packed(sigmas, offsets, Device::kind);
+    const at::Tensor rows = offsets.contiguous();
+    const int64_t R = check_packed(sigmas, rows, Device::kind);
     return forward({sigmas, rgbs, t_starts, t_ends, background}, R,
-                   composite_layout::PackedRays{offsets.const_data_ptr<int64_t>(), sigmas.size(0), R});
+                   composite_layout::PackedRays{rows.const_data_ptr<int64_t>(), sigmas.size(0), R});
   }
 
   static CompositeBackward packed_bwd(const std::optional<at::Tensor>& grad_color,
@@ -287,10 +299,11 @@ struct CompositeOps {
                                       const std::optional<at::Tensor>& background, const at::Tensor& offsets,
                                       const at::Tensor& chunk_transmittances, bool interval_grads,
                                       bool background_grad) {
-    const int64_t R = check_packed(sigmas, offsets, Device::kind);
+    const at::Tensor rows = offsets.contiguous();
+    const int64_t R = check_packed(sigmas, rows, Device::kind);
     return backward({grad_color, grad_depth, grad_opacity, grad_weights}, {sigmas, rgbs, t_starts, t_ends, background},
                     chunk_transmittances, interval_grads, background_grad, R,
-                    composite_layout::PackedRays{offsets.const_data_ptr<int64_t>(), sigmas.size(0), R});
+                    composite_layout::PackedRays{rows.const_data_ptr<int64_t>(), sigmas.size(0), R});
   }
 
   static void register_ops(torch::Library& m) {

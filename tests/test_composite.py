@@ -418,12 +418,63 @@ def op_samples(gen, device="cpu"):
     return samples
 
 
+def differentiable(fwd_args):
+    """The op's arguments with sigmas, rgbs, t_starts, t_ends and background requiring grad."""
+    return [*with_grad(fwd_args[:5]), *fwd_args[5:]]
+
+
 @needs_kernels
 def test_opcheck_cpu(gen):
     composite(*valid_inputs(), backend="kernel")  # registers the fake kernels
     for fwd_args, bwd_args in op_samples(gen):
-        torch.library.opcheck(torch.ops.mixer_nerf.composite_fwd.default, fwd_args)
+        for args in (fwd_args, differentiable(fwd_args)):
+            torch.library.opcheck(torch.ops.mixer_nerf.composite_fwd.default, args)
         torch.library.opcheck(torch.ops.mixer_nerf.composite_bwd.default, bwd_args)
+
+
+@needs_kernels
+@pytest.mark.parametrize("packed", [False, True], ids=["dense", "packed"])
+def test_autograd_is_the_ops_own(gen, packed):
+    """The registered forward records its backward in C++ (csrc/composite_autograd.cpp): called
+    directly, as composite() calls it, it is differentiable, with no Python autograd Function."""
+    inputs, offsets = make_packed([3, 0, 5], 3, gen, "shared") if packed else (make_inputs(3, 5, 3, gen, "shared"), None)
+    inputs = with_grad(inputs)
+    fn = packed_fn(offsets) if packed else composite
+    out = fn(*inputs, backend="kernel")
+    assert "CompositeFunction" in out.color.grad_fn.name()
+    op = torch.ops.mixer_nerf.composite_packed_fwd if packed else torch.ops.mixer_nerf.composite_fwd
+    raw = op(*inputs, *([offsets] if packed else []))
+    assert [t.requires_grad for t in raw] == [True] * 4 + [False] * 2  # chunk_transmittances, invalid
+    assert torch.autograd.gradcheck(lambda *x: op(*x, *([offsets] if packed else []))[:4], tuple(inputs))
+
+
+@needs_kernels
+def test_double_backward_raises(gen):
+    """A backward that would have to be differentiated (create_graph, an upstream gradient that
+    depends on the inputs) says so instead of returning gradients with no history."""
+    inputs = with_grad(make_inputs(2, 4, 3, gen))
+    loss = composite(*inputs, backend="kernel").color.pow(2).sum()
+    with pytest.raises(RuntimeError, match="differentiable once"):
+        torch.autograd.grad(loss, inputs[0], create_graph=True)
+
+
+@needs_kernels
+def test_ops_take_any_strides(gen):
+    """The registered ops make their inputs contiguous themselves, below autograd too (inference
+    mode dispatches straight to the kernel)."""
+    inputs = make_inputs(4, 6, 3, gen, "per_ray")
+    strided = [t.transpose(0, -1).contiguous().transpose(0, -1) for t in inputs]
+    assert not strided[0].is_contiguous()
+    want = torch.ops.mixer_nerf.composite_fwd(*inputs)
+    with torch.inference_mode():
+        got = torch.ops.mixer_nerf.composite_fwd(*strided)
+    for g, w in zip(got[:4], want[:4]):
+        torch.testing.assert_close(g, w)
+    upstream = [u.expand_as(u).t().contiguous().t() if u.dim() == 2 else u for u in random_upstream(inputs, gen)]
+    grads = torch.ops.mixer_nerf.composite_bwd(*upstream, *strided, want[4], True, True)
+    want_grads = torch.ops.mixer_nerf.composite_bwd(*[u.contiguous() for u in upstream], *inputs, want[4], True, True)
+    for g, w in zip(grads, want_grads):
+        torch.testing.assert_close(g, w)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -530,7 +581,8 @@ def test_cuda_half_precision(gen, dtype):
 def test_opcheck_cuda(gen):
     composite(*[t.cuda() for t in valid_inputs()], backend="kernel")
     for fwd_args, bwd_args in op_samples(gen, device="cuda"):
-        torch.library.opcheck(torch.ops.mixer_nerf.composite_fwd.default, fwd_args)
+        for args in (fwd_args, differentiable(fwd_args)):
+            torch.library.opcheck(torch.ops.mixer_nerf.composite_fwd.default, args)
         torch.library.opcheck(torch.ops.mixer_nerf.composite_bwd.default, bwd_args)
 
 
@@ -815,7 +867,8 @@ def packed_op_samples(gen, device="cpu"):
 def test_packed_opcheck_cpu(gen):
     composite_packed(*valid_packed(), backend="kernel")  # registers the fake kernels
     for fwd_args, bwd_args in packed_op_samples(gen):
-        torch.library.opcheck(torch.ops.mixer_nerf.composite_packed_fwd.default, fwd_args)
+        for args in (fwd_args, differentiable(fwd_args)):
+            torch.library.opcheck(torch.ops.mixer_nerf.composite_packed_fwd.default, args)
         torch.library.opcheck(torch.ops.mixer_nerf.composite_packed_bwd.default, bwd_args)
 
 
@@ -888,5 +941,6 @@ def test_packed_cuda_unchecked_bad_offsets_stay_in_bounds(gen):
 def test_packed_opcheck_cuda(gen):
     composite_packed(*[t.cuda() for t in valid_packed()], backend="kernel")
     for fwd_args, bwd_args in packed_op_samples(gen, device="cuda"):
-        torch.library.opcheck(torch.ops.mixer_nerf.composite_packed_fwd.default, fwd_args)
+        for args in (fwd_args, differentiable(fwd_args)):
+            torch.library.opcheck(torch.ops.mixer_nerf.composite_packed_fwd.default, args)
         torch.library.opcheck(torch.ops.mixer_nerf.composite_packed_bwd.default, bwd_args)

@@ -31,7 +31,7 @@ from ._checks import (
 )
 from . import deferred_checks
 from ._dispatch import use_kernel
-from ._kernel_op import KernelOp
+from ._kernel_op import declare_fake
 from .composite_reference import composite_packed_reference, composite_reference
 
 
@@ -73,7 +73,7 @@ def composite(
     _validate(sigmas, rgbs, t_starts, t_ends, background, check_values and not deferred)
     if not kernel:
         return CompositeResult(*composite_reference(sigmas, rgbs, t_starts, t_ends, background))
-    *result, _chunk_transmittances, invalid = _COMPOSITE(sigmas, rgbs, t_starts, t_ends, background)
+    *result, _chunk_transmittances, invalid = torch.ops.mixer_nerf.composite_fwd(sigmas, rgbs, t_starts, t_ends, background)
     if deferred:
         deferred_checks.watch(invalid, "composite", INVALID_INPUT)
     return CompositeResult(*result)
@@ -115,7 +115,9 @@ def composite_packed(
         return CompositeResult(
             *composite_packed_reference(sigmas, rgbs, t_starts, t_ends, offsets, background)
         )
-    *result, _chunk_transmittances, invalid = _COMPOSITE_PACKED(sigmas, rgbs, t_starts, t_ends, background, offsets)
+    *result, _chunk_transmittances, invalid = torch.ops.mixer_nerf.composite_packed_fwd(
+        sigmas, rgbs, t_starts, t_ends, background, offsets
+    )
     if deferred:
         deferred_checks.watch(invalid, "composite_packed", INVALID_INPUT)
     return CompositeResult(*result)
@@ -222,25 +224,8 @@ def _composite_bwd_fake(
     return torch.empty_like(sigmas), torch.empty_like(rgbs), grad_t_starts, grad_t_ends, grad_background
 
 
-def _grad_flags(needs_input_grad: tuple[bool, ...]) -> tuple[bool, bool]:
-    """The backward kernels' flags: whether t_starts or t_ends want gradients, and the background."""
-    return needs_input_grad[2] or needs_input_grad[3], needs_input_grad[4]
-
-
-class _Composite(KernelOp):
-    """The backward kernel takes the forward's ``chunk_transmittances`` output after the inputs."""
-
-    def save(self, ctx, inputs: tuple, outputs: tuple) -> None:
-        super().save(ctx, (*inputs, outputs[4]), outputs)
-
-    def backward(self, ctx, *grads) -> tuple:
-        return super().backward(ctx, *grads)[:-1]  # the transmittances were no input
-
-
-_COMPOSITE = _Composite(
-    "composite_fwd", _composite_fwd_fake, "composite_bwd", _composite_bwd_fake, _grad_flags, aux_outputs=2
-)
-_COMPOSITE_PACKED = _Composite(
-    "composite_packed_fwd", _composite_fwd_fake, "composite_packed_bwd", _composite_bwd_fake, _grad_flags,
-    aux_outputs=2,
-)
+# The ops' autograd is C++ (csrc/composite_autograd.cpp): a training step crosses Python once per call.
+declare_fake("composite_fwd", _composite_fwd_fake)
+declare_fake("composite_bwd", _composite_bwd_fake)
+declare_fake("composite_packed_fwd", _composite_fwd_fake)
+declare_fake("composite_packed_bwd", _composite_bwd_fake)
