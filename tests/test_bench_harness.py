@@ -3,11 +3,13 @@ random positions (a case without a truth); the GPU-only times and how the table 
 
 from __future__ import annotations
 
+import json
 import time
 
 import pytest
 import torch
 
+from benchmarks import host_overhead
 from benchmarks.bench_ops import table
 from benchmarks.harness import Case, Result, Variant, kernel_ms, run_case
 
@@ -62,3 +64,12 @@ def test_kernel_time_counts_the_gpus_work_not_the_hosts():
     x = torch.rand(1 << 20, device="cuda")
     assert kernel_ms(lambda: time.sleep(0.002), x.device) == 0  # host work alone: no GPU time
     assert kernel_ms(lambda: x * 2, x.device) > 0
+
+
+def test_host_overhead_times_every_differentiable_op(tmp_path, monkeypatch):
+    monkeypatch.setattr("sys.argv", ["host_overhead", "--calls", "2", "--out", str(tmp_path)])
+    host_overhead.main()
+    rows = json.loads((tmp_path / "cpu.json").read_text())["rows"]
+    assert [r["op"] for r in rows] == list(host_overhead.cases(torch.device("cpu")))
+    assert all(r["forward_us"] > 0 and r["forward_backward_us"] > 0 for r in rows)
+    assert "| composite |" in (tmp_path / "cpu.md").read_text()

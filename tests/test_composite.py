@@ -433,32 +433,6 @@ def test_opcheck_cpu(gen):
 
 
 @needs_kernels
-@pytest.mark.parametrize("packed", [False, True], ids=["dense", "packed"])
-def test_autograd_is_the_ops_own(gen, packed):
-    """The registered forward records its backward in C++ (csrc/composite_autograd.cpp): called
-    directly, as composite() calls it, it is differentiable, with no Python autograd Function."""
-    inputs, offsets = make_packed([3, 0, 5], 3, gen, "shared") if packed else (make_inputs(3, 5, 3, gen, "shared"), None)
-    inputs = with_grad(inputs)
-    fn = packed_fn(offsets) if packed else composite
-    out = fn(*inputs, backend="kernel")
-    assert "CompositeFunction" in out.color.grad_fn.name()
-    op = torch.ops.mixer_nerf.composite_packed_fwd if packed else torch.ops.mixer_nerf.composite_fwd
-    raw = op(*inputs, *([offsets] if packed else []))
-    assert [t.requires_grad for t in raw] == [True] * 4 + [False] * 2  # chunk_transmittances, invalid
-    assert torch.autograd.gradcheck(lambda *x: op(*x, *([offsets] if packed else []))[:4], tuple(inputs))
-
-
-@needs_kernels
-def test_double_backward_raises(gen):
-    """A backward that would have to be differentiated (create_graph, an upstream gradient that
-    depends on the inputs) says so instead of returning gradients with no history."""
-    inputs = with_grad(make_inputs(2, 4, 3, gen))
-    loss = composite(*inputs, backend="kernel").color.pow(2).sum()
-    with pytest.raises(RuntimeError, match="differentiable once"):
-        torch.autograd.grad(loss, inputs[0], create_graph=True)
-
-
-@needs_kernels
 def test_ops_take_any_strides(gen):
     """The registered ops make their inputs contiguous themselves, below autograd too (inference
     mode dispatches straight to the kernel)."""

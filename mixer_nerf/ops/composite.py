@@ -31,7 +31,7 @@ from ._checks import (
 )
 from . import deferred_checks
 from ._dispatch import use_kernel
-from ._kernel_op import declare_fake
+from ._kernel_op import KernelOp
 from .composite_reference import composite_packed_reference, composite_reference
 
 
@@ -73,7 +73,7 @@ def composite(
     _validate(sigmas, rgbs, t_starts, t_ends, background, check_values and not deferred)
     if not kernel:
         return CompositeResult(*composite_reference(sigmas, rgbs, t_starts, t_ends, background))
-    *result, _chunk_transmittances, invalid = torch.ops.mixer_nerf.composite_fwd(sigmas, rgbs, t_starts, t_ends, background)
+    *result, _chunk_transmittances, invalid = _COMPOSITE(sigmas, rgbs, t_starts, t_ends, background)
     if deferred:
         deferred_checks.watch(invalid, "composite", INVALID_INPUT)
     return CompositeResult(*result)
@@ -115,9 +115,7 @@ def composite_packed(
         return CompositeResult(
             *composite_packed_reference(sigmas, rgbs, t_starts, t_ends, offsets, background)
         )
-    *result, _chunk_transmittances, invalid = torch.ops.mixer_nerf.composite_packed_fwd(
-        sigmas, rgbs, t_starts, t_ends, background, offsets
-    )
+    *result, _chunk_transmittances, invalid = _COMPOSITE_PACKED(sigmas, rgbs, t_starts, t_ends, background, offsets)
     if deferred:
         deferred_checks.watch(invalid, "composite_packed", INVALID_INPUT)
     return CompositeResult(*result)
@@ -224,8 +222,5 @@ def _composite_bwd_fake(
     return torch.empty_like(sigmas), torch.empty_like(rgbs), grad_t_starts, grad_t_ends, grad_background
 
 
-# The ops' autograd is C++ (csrc/composite_autograd.cpp): a training step crosses Python once per call.
-declare_fake("composite_fwd", _composite_fwd_fake)
-declare_fake("composite_bwd", _composite_bwd_fake)
-declare_fake("composite_packed_fwd", _composite_fwd_fake)
-declare_fake("composite_packed_bwd", _composite_bwd_fake)
+_COMPOSITE = KernelOp("composite_fwd", _composite_fwd_fake, "composite_bwd", _composite_bwd_fake)
+_COMPOSITE_PACKED = KernelOp("composite_packed_fwd", _composite_fwd_fake, "composite_packed_bwd", _composite_bwd_fake)

@@ -100,9 +100,4 @@ def _mlca_bwd_fake(grad_out, encoded, *weights_and_flag):
     return (torch.empty_like(encoded) if input_grad else None, *(torch.empty_like(t) for t in weights))
 
 
-def _input_grad(needs_input_grad: tuple[bool, ...]) -> tuple[bool]:
-    """The backward kernel's flag: the encoding of positions needs no gradient in training."""
-    return (needs_input_grad[0],)
-
-
-_MLCA = KernelOp("mlca_fwd", _mlca_fwd_fake, "mlca_bwd", _mlca_bwd_fake, _input_grad)
+_MLCA = KernelOp("mlca_fwd", _mlca_fwd_fake, "mlca_bwd", _mlca_bwd_fake)

@@ -309,28 +309,10 @@ def _stratified_fwd_fake(bins, weights, *offsets_and_draw):
             bins.new_empty(1, dtype=torch.int32))
 
 
-class _Stratified(KernelOp):
-    """A ``*_stratified_fwd`` op: inputs ``(*pdf, num_samples, generator, weight_padding,
-    keep_positions)``, outputs (samples, the positions drawn, invalid). Its backward is the
-    given-positions op's, on the positions drawn (kept: the caller passes keep_positions=True when
-    a backward is recorded) in place of ``num_samples`` and ``generator``."""
-
-    def save(self, ctx, inputs: tuple, outputs: tuple) -> None:
-        *pdf, _num_samples, _generator, weight_padding, _keep_positions = inputs
-        super().save(ctx, (*pdf, outputs[1], weight_padding), outputs)
-
-    def backward(self, ctx, *grads) -> tuple:
-        # The positions' slot stood for num_samples and generator, and keep_positions has none.
-        return *super().backward(ctx, *grads), None, None
-
-
 _SAMPLE_PDF = KernelOp("sample_pdf_fwd", _sample_pdf_fwd_fake, "sample_pdf_bwd", _sample_pdf_bwd_fake)
 _SAMPLE_PDF_PACKED = KernelOp(
     "sample_pdf_packed_fwd", _sample_pdf_packed_fwd_fake, "sample_pdf_packed_bwd", _sample_pdf_bwd_fake
 )
-_SAMPLE_PDF_STRATIFIED = _Stratified(
-    "sample_pdf_stratified_fwd", _stratified_fwd_fake, "sample_pdf_bwd", aux_outputs=2
-)
-_SAMPLE_PDF_PACKED_STRATIFIED = _Stratified(
-    "sample_pdf_packed_stratified_fwd", _stratified_fwd_fake, "sample_pdf_packed_bwd", aux_outputs=2
-)
+# Backward: the given-positions op's, on the positions drawn (kept where a backward is recorded).
+_SAMPLE_PDF_STRATIFIED = KernelOp("sample_pdf_stratified_fwd", _stratified_fwd_fake, "sample_pdf_bwd")
+_SAMPLE_PDF_PACKED_STRATIFIED = KernelOp("sample_pdf_packed_stratified_fwd", _stratified_fwd_fake, "sample_pdf_packed_bwd")

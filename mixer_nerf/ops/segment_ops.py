@@ -112,20 +112,5 @@ def _ray_scale_bwd_fake(grad_out, features, scale, offsets):
     return torch.empty_like(features), torch.empty_like(scale)
 
 
-class _SegmentMean(KernelOp):
-    """The backward kernel takes the number of rows, not the values: it spreads each ray's mean."""
-
-    def save(self, ctx, inputs: tuple, outputs: torch.Tensor) -> None:
-        values, offsets = inputs
-        ctx.save_for_backward(offsets)
-        ctx.num_rows = values.shape[0]
-
-    def backward(self, ctx, grad) -> tuple:
-        (offsets,) = ctx.saved_tensors
-        return torch.ops.mixer_nerf.segment_mean_bwd(grad.contiguous(), offsets, ctx.num_rows), None
-
-
-_SEGMENT_MEAN = _SegmentMean(
-    "segment_mean_fwd", _segment_mean_fwd_fake, "segment_mean_bwd", _segment_mean_bwd_fake
-)
+_SEGMENT_MEAN = KernelOp("segment_mean_fwd", _segment_mean_fwd_fake, "segment_mean_bwd", _segment_mean_bwd_fake)
 _RAY_SCALE = KernelOp("ray_scale_fwd", _ray_scale_fwd_fake, "ray_scale_bwd", _ray_scale_bwd_fake)
