@@ -132,3 +132,14 @@ def test_opcheck_with_grad(gen):
     weights = (0.1 + torch.rand(4, 5, generator=gen)).requires_grad_()
     u = torch.rand(4, 7, generator=gen).sort(-1).values
     torch.library.opcheck(torch.ops.mixer_nerf.sample_pdf_fwd.default, (bins, weights, u, 0.0))
+
+
+def test_a_strided_view_passes_its_gradient_to_its_base(gen):
+    """The autograd kernel makes a view contiguous with a differentiable copy: the base gets the gradient."""
+    base = leaf(gen, 3, 5)
+    x = base.t()
+    assert not x.is_contiguous()
+    assert torch.autograd.gradcheck(lambda b: positional_encoding(b.t(), 3, backend="kernel"), (base,))
+    (grad,) = torch.autograd.grad(positional_encoding(x, 3, backend="kernel").sum(), base)
+    (want,) = torch.autograd.grad(positional_encoding(x, 3, backend="torch").sum(), base)
+    torch.testing.assert_close(grad, want)
