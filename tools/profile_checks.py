@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import functools
+import importlib
 import statistics
 import time
 
@@ -45,36 +46,50 @@ def main() -> None:
         if split is not None:
             split.append((called - start, time.perf_counter() - called))
 
-    watch, watch_seconds = deferred_checks.watch, []
+    def timed(fn, seconds: list):
+        def call(*args, **kwargs):
+            start = time.perf_counter()
+            result = fn(*args, **kwargs)
+            seconds.append(time.perf_counter() - start)
+            return result
+        return call
 
-    def timed_watch(*args, **kwargs):
-        start = time.perf_counter()
-        watch(*args, **kwargs)
-        watch_seconds.append(time.perf_counter() - start)
-
-    deferred_checks.watch = timed_watch
-    for check_values in (False, True):
+    # What of the composite call is the registered op (its C++ autograd, allocations and launch)
+    # and what is deferred_checks.watch; the rest is the Python wrapper.
+    composite_module = importlib.import_module("mixer_nerf.ops.composite")  # the function shadows it
+    watch_seconds, op_seconds = [], []
+    deferred_checks.watch = timed(deferred_checks.watch, watch_seconds)
+    composite_module._COMPOSITE = timed(composite_module._COMPOSITE, op_seconds)
+    variants = (False, True)
+    for check_values in variants:
         for _ in range(5):
             step(check_values)
-        check_pending()
-        times = []
-        for _ in range(args.steps):
+    check_pending()
+    # The variants take turns step by step, so that a drift of the host's speed over the run (this
+    # host's timings wander) weighs on both alike.
+    times, host, split = ({v: [] for v in variants} for _ in range(3))
+    for _ in range(args.steps):
+        for check_values in variants:
             start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
             start.record()
             step(check_values)
             end.record()
             end.synchronize()
-            times.append(start.elapsed_time(end))
-        torch.cuda.synchronize()
-        watch_seconds.clear()
-        host, split = [], []
-        for _ in range(args.steps):
+            times[check_values].append(start.elapsed_time(end))
+    torch.cuda.synchronize()
+    watch_seconds.clear()
+    op_seconds_of = {v: [] for v in variants}
+    for _ in range(args.steps):
+        for check_values in variants:
             start = time.perf_counter()
-            step(check_values, split)
-            host.append(time.perf_counter() - start)
+            op_seconds.clear()
+            step(check_values, split[check_values])
+            op_seconds_of[check_values] += op_seconds
+            host[check_values].append(time.perf_counter() - start)
             torch.cuda.synchronize()
-        forward_call, grad_call = (1e3 * statistics.median(part) for part in zip(*split))
-        watched = 1e3 * sum(watch_seconds) / args.steps
+    watched = 1e3 * sum(watch_seconds) / args.steps
+    for check_values in variants:
+        forward_call, grad_call = (1e3 * statistics.median(part) for part in zip(*split[check_values]))
         with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
             for _ in range(args.steps):
                 step(check_values)
@@ -83,10 +98,11 @@ def main() -> None:
         averages = prof.key_averages()
         kernels = [e for e in averages if e.device_type == torch.autograd.DeviceType.CUDA and e.self_device_time_total > 0]
         busy = sum(e.self_device_time_total for e in kernels) / args.steps / 1e3
-        print(f"\ncheck_values={check_values}: {statistics.median(times):.3f} ms per step (median of {args.steps}), "
-              f"GPU busy {busy:.3f} ms, host {1e3 * statistics.median(host):.3f} ms to enqueue a step "
-              f"({watched:.3f} ms of it in deferred_checks.watch; medians: the composite call {forward_call:.3f} ms, "
-              f"torch.autograd.grad {grad_call:.3f} ms)")
+        print(f"\ncheck_values={check_values}: {statistics.median(times[check_values]):.3f} ms per step (median of {args.steps}), "
+              f"GPU busy {busy:.3f} ms, host {1e3 * statistics.median(host[check_values]):.3f} ms to enqueue a step "
+              f"({watched if check_values else 0.0:.3f} ms of it in deferred_checks.watch; medians: the composite call {forward_call:.3f} ms, "
+              f"torch.autograd.grad {grad_call:.3f} ms; of the call, the registered op "
+              f"{1e3 * statistics.median(op_seconds_of[check_values]):.3f} ms)")
         for e in sorted(kernels, key=lambda e: -e.self_device_time_total):
             print(f"  {e.key[:60]:<60} {e.count / args.steps:4.1f} per step  {e.self_device_time_total / args.steps:8.1f} us per step")
         calls = [e for e in averages if e.key.startswith("cuda")]
