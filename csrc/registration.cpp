@@ -51,10 +51,11 @@ TORCH_LIBRARY(mixer_nerf, m) {
   m.def("padding_rays_fwd(Tensor offsets, Tensor ray_indices, int rows_per_ray) -> (Tensor, Tensor)");
   // segment_mean / ray_scale (squeeze-and-excitation on packed samples), offsets (R+1) int64 (ray r
   //   owns rows offsets[r]:offsets[r+1]): segment_mean: values (N, C) -> per-ray mean (R, C), 0 for
-  //   an empty ray; ray_scale: features (N, C), scale (R, C) -> features[i] * scale[ray(i)] (N, C)
-  m.def("segment_mean_fwd(Tensor values, Tensor offsets) -> Tensor");
+  //   an empty ray; ray_scale: features (N, C), scale (R, C) -> features[i] * scale[ray(i)] (N, C);
+  //   each forward also returns invalid (1) int32, kBadOffsets (csrc/segment_ops.h) for bad offsets
+  m.def("segment_mean_fwd(Tensor values, Tensor offsets) -> (Tensor, Tensor)");
   m.def("segment_mean_bwd(Tensor grad, Tensor offsets, int num_rows) -> Tensor");
-  m.def("ray_scale_fwd(Tensor features, Tensor scale, Tensor offsets) -> Tensor");
+  m.def("ray_scale_fwd(Tensor features, Tensor scale, Tensor offsets) -> (Tensor, Tensor)");
   //   backward -> (grad_features (N, C), grad_scale (R, C))
   m.def("ray_scale_bwd(Tensor grad_out, Tensor features, Tensor scale, Tensor offsets) -> (Tensor, Tensor)");
   // bias_grad: grad (N, C) -> its column sums (C), a linear layer's bias gradient; relu_bias_bwd: grad and the

@@ -19,6 +19,7 @@
 #include <ATen/Parallel.h>
 
 #include <algorithm>
+#include <atomic>
 #include <tuple>
 #include <vector>
 
@@ -37,10 +38,20 @@ int64_t ray_grain(int64_t elements, int64_t rays) {
   return std::max<int64_t>(1, 16384 * std::max<int64_t>(1, rays) / std::max<int64_t>(1, elements));
 }
 
-at::Tensor segment_mean_fwd_cpu(const at::Tensor& values, const at::Tensor& offsets) {
+// The forwards' `invalid` output, the kBadOffsets bit OR-ed in by any ray whose offsets are bad.
+struct OffsetsFinding {
+  std::atomic<int32_t> bits{0};
+  void check(const PackedRays& rays, int64_t ray) {
+    if (!rays.well_formed(ray, rays.num_rays)) bits.fetch_or(segment_ops::kBadOffsets, std::memory_order_relaxed);
+  }
+  at::Tensor tensor(const at::Tensor& like) const { return at::full({1}, bits.load(), like.options().dtype(at::kInt)); }
+};
+
+std::tuple<at::Tensor, at::Tensor> segment_mean_fwd_cpu(const at::Tensor& values, const at::Tensor& offsets) {
   const int64_t R = segment_ops::check_rows("segment_mean_fwd", values, offsets, at::kCPU);
   const int64_t N = values.size(0), C = values.size(1);
   at::Tensor out = at::empty({R, C}, values.options());
+  OffsetsFinding finding;
   MIXER_NERF_DISPATCH_FLOATING(values.scalar_type(), "segment_mean_fwd_cpu", [&] {
     using acc = acc_t<scalar_t>;
     const PackedRays rays{offsets.const_data_ptr<int64_t>(), N, R};
@@ -50,6 +61,7 @@ at::Tensor segment_mean_fwd_cpu(const at::Tensor& values, const at::Tensor& offs
       std::vector<acc> sum(C);
       for (int64_t r = begin; r < end; ++r) {
         const RaySpan span = rays(r);
+        finding.check(rays, r);
         std::fill(sum.begin(), sum.end(), acc(0));
         for (int64_t i = span.offset; i < span.offset + span.count; ++i) {
           for (int64_t c = 0; c < C; ++c) sum[c] += acc(v[i * C + c]);
@@ -60,7 +72,7 @@ at::Tensor segment_mean_fwd_cpu(const at::Tensor& values, const at::Tensor& offs
       }
     });
   });
-  return out;
+  return {out, finding.tensor(values)};
 }
 
 at::Tensor segment_mean_bwd_cpu(const at::Tensor& grad, const at::Tensor& offsets, int64_t num_rows) {
@@ -86,11 +98,13 @@ at::Tensor segment_mean_bwd_cpu(const at::Tensor& grad, const at::Tensor& offset
   return grad_values;
 }
 
-at::Tensor ray_scale_fwd_cpu(const at::Tensor& features, const at::Tensor& scale, const at::Tensor& offsets) {
+std::tuple<at::Tensor, at::Tensor> ray_scale_fwd_cpu(const at::Tensor& features, const at::Tensor& scale,
+                                                     const at::Tensor& offsets) {
   const int64_t R = segment_ops::check_rows("ray_scale_fwd", features, offsets, at::kCPU);
   segment_ops::check_per_ray("ray_scale_fwd", scale, features, R, at::kCPU);
   const int64_t N = features.size(0), C = features.size(1);
   at::Tensor out = at::empty_like(features);
+  OffsetsFinding finding;
   MIXER_NERF_DISPATCH_FLOATING(features.scalar_type(), "ray_scale_fwd_cpu", [&] {
     using acc = acc_t<scalar_t>;
     const PackedRays rays{offsets.const_data_ptr<int64_t>(), N, R};
@@ -100,6 +114,7 @@ at::Tensor ray_scale_fwd_cpu(const at::Tensor& features, const at::Tensor& scale
     at::parallel_for(0, R, ray_grain(N * C, R), [&](int64_t begin, int64_t end) {
       for (int64_t r = begin; r < end; ++r) {
         const RaySpan span = rays(r);
+        finding.check(rays, r);
         const scalar_t* s_r = s + r * C;
         for (int64_t i = span.offset; i < span.offset + span.count; ++i) {
           for (int64_t c = 0; c < C; ++c) o[i * C + c] = static_cast<scalar_t>(acc(f[i * C + c]) * acc(s_r[c]));
@@ -107,7 +122,7 @@ at::Tensor ray_scale_fwd_cpu(const at::Tensor& features, const at::Tensor& scale
       }
     });
   });
-  return out;
+  return {out, finding.tensor(features)};
 }
 
 std::tuple<at::Tensor, at::Tensor> ray_scale_bwd_cpu(const at::Tensor& grad_out, const at::Tensor& features,

@@ -1,7 +1,8 @@
-// What the CPU and CUDA kernels of segment_mean and ray_scale share: their host-side checks.
-// Python (mixer_nerf/ops/segment_ops.py) validates first, with clear messages; these only keep a
-// direct call of an op from reading out of bounds. Rows are spanned per ray by
-// composite_layout::PackedRays (ray_layout.h), which clamps unchecked offsets into [0, N].
+// What the CPU and CUDA kernels of segment_mean and ray_scale share: their host-side checks and
+// the bit their forwards report bad offsets by. Python (mixer_nerf/ops/segment_ops.py) validates
+// shapes first, with clear messages; these only keep a direct call of an op from reading out of
+// bounds. Rows are spanned per ray by composite_layout::PackedRays (ray_layout.h), which clamps
+// unchecked offsets into [0, N].
 #pragma once
 
 #include <ATen/ATen.h>
@@ -12,6 +13,10 @@
 
 namespace mixer_nerf {
 namespace segment_ops {
+
+// The forwards' `invalid` output (1) int32: offsets a validation would reject (not from 0 to N, or
+// decreasing), found while the kernel reads them anyway, so a GPU checks them without a host sync.
+enum InvalidInput : int32_t { kBadOffsets = 4 };
 
 // rows (N, C) and offsets (R+1) int64, both on `device` (one device); returns R.
 inline int64_t check_rows(const char* op, const at::Tensor& rows, const at::Tensor& offsets, at::DeviceType device) {

@@ -15,8 +15,10 @@ from mixer_nerf.ops import (
     composite_packed,
     deferred_checks,
     hierarchical_samples,
+    ray_scale,
     sample_pdf,
     sample_pdf_packed,
+    segment_mean,
 )
 from mixer_nerf.ops.composite import INVALID_INPUT
 
@@ -174,6 +176,46 @@ def test_sample_pdf_flags_each_kind_of_bad_value(device):
         assert packed(bins, packed_weights, broken) & 16
 
 
+def _segment_rows(device, rays=31, most=7, channels=5):
+    """Packed rows (N, C), a per-ray scale (R, C) and offsets (R+1) with 0 .. most rows a ray."""
+    gen = torch.Generator().manual_seed(torch.seed() % 2**31)
+    counts = torch.randint(0, most + 1, (rays,), generator=gen)
+    offsets = torch.cat([torch.zeros(1, dtype=torch.long), counts.cumsum(0)])
+    rows = torch.randn(int(offsets[-1]), channels, generator=gen)
+    return [x.to(device) for x in (rows, torch.rand(rays, channels, generator=gen), offsets)]
+
+
+@pytest.mark.parametrize("device", devices)
+def test_segment_ops_flag_bad_offsets(device):
+    rows, scale, offsets = _segment_rows(device)
+    ops = torch.ops.mixer_nerf
+
+    def invalid(offsets):
+        mean, mean_invalid = ops.segment_mean_fwd(rows, offsets)
+        scaled, scale_invalid = ops.ray_scale_fwd(rows, scale, offsets)
+        assert mean.isfinite().all() and scaled.isfinite().all()  # whatever the offsets: clamped, in bounds
+        assert int(mean_invalid) == int(scale_invalid)
+        return int(mean_invalid)
+
+    assert invalid(offsets) == 0
+    n = rows.shape[0]
+    middle = offsets.clone()
+    middle[15] = middle[16] + 1  # decreasing inside, first and last right
+    for broken in (offsets + 1, offsets.clamp(max=n - 1), offsets.flip(0), middle, offsets - 1):
+        assert invalid(broken) == BAD_OFFSETS
+
+
+def test_the_cpu_checks_segment_ops_before_the_kernel():
+    rows, scale, offsets = _segment_rows("cpu")
+    with pytest.raises(ValueError, match="offsets must start at 0"):
+        segment_mean(rows, offsets + 1, backend="kernel")
+    decreasing = offsets.clone()
+    decreasing[15] = decreasing[16] + 1
+    with pytest.raises(ValueError, match="offsets must be non-decreasing"):
+        ray_scale(rows, scale, decreasing, backend="kernel")
+    assert not deferred_checks.pending_count()
+
+
 def test_the_cpu_checks_sample_pdf_before_the_kernel():
     (edges, weights), (bins, packed_weights, offsets) = _pdf("cpu")
     with pytest.raises(ValueError, match="weights must be non-negative"):
@@ -252,6 +294,30 @@ def test_on_a_gpu_the_checks_never_synchronise_and_a_bad_value_is_reported():
         torch.cuda.set_sync_debug_mode("default")
     with pytest.raises(ValueError, match="hierarchical_samples: z_coarse must be sorted"):
         check_pending()
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU")
+def test_segment_ops_on_a_gpu_check_offsets_without_a_sync_and_report_later():
+    rows, scale, offsets = _segment_rows("cuda", rays=4096, most=31, channels=64)
+    segment_mean(rows, offsets), ray_scale(rows, scale, offsets)  # warm-up: the ops, pinned buffers
+    check_pending()
+    torch.cuda.synchronize()
+    shifted = offsets + 1
+    torch.cuda.set_sync_debug_mode("error")
+    try:
+        segment_mean(rows, offsets)
+        ray_scale(rows, scale, offsets)
+        segment_mean(rows, shifted)  # returns: the GPU has not looked yet
+    finally:
+        torch.cuda.set_sync_debug_mode("default")
+    with pytest.raises(ValueError, match="segment_mean: offsets must start at 0"):
+        check_pending()
+    ray_scale(rows, scale, shifted)
+    with pytest.raises(ValueError, match="ray_scale: offsets must start at 0"):
+        check_pending()
+    segment_mean(rows, shifted, check_values=False)  # unchecked: nothing watched, nothing raised
+    check_pending()
 
 
 def test_host_slots_are_taken_and_given_back():

@@ -39,14 +39,23 @@ using columns::kThreads;
 using columns::sum_over_rows;
 using columns::with_column_width;
 
+// One thread of a ray's block ORs kBadOffsets into `invalid` if the ray's offsets are bad (no
+// contention: only bad input writes).
+__device__ __forceinline__ void report_bad_offsets(const PackedRays& rays, int64_t ray, int32_t* invalid) {
+  if (threadIdx.x == 0 && threadIdx.y == 0 && !rays.well_formed(ray, rays.num_rays)) {
+    atomicOr(invalid, segment_ops::kBadOffsets);
+  }
+}
+
 template <typename scalar_t, int V>
 __global__ void __launch_bounds__(kThreads)
-    segment_mean_fwd_kernel(const scalar_t* values, PackedRays rays, int64_t cols, scalar_t* mean) {
+    segment_mean_fwd_kernel(const scalar_t* values, PackedRays rays, int64_t cols, scalar_t* mean, int32_t* invalid) {
   using acc = acc_t<scalar_t>;
   using column = Column<scalar_t, V>;
   __shared__ acc scratch[V * kThreads];
   const int64_t ray = blockIdx.x;
   const RaySpan span = rays(ray);
+  report_bad_offsets(rays, ray, invalid);
   const column* rows = reinterpret_cast<const column*>(values) + span.offset * cols;
   // Columns in passes of blockDim.x; every thread runs every pass (sum_over_rows synchronises).
   for (int64_t first = 0; first < cols; first += blockDim.x) {
@@ -89,12 +98,14 @@ __global__ void __launch_bounds__(kThreads)
 }
 
 template <typename scalar_t, int V>
-__global__ void __launch_bounds__(kThreads) ray_scale_fwd_kernel(const scalar_t* features, const scalar_t* scale,
-                                                                 PackedRays rays, int64_t cols, scalar_t* out) {
+__global__ void __launch_bounds__(kThreads)
+    ray_scale_fwd_kernel(const scalar_t* features, const scalar_t* scale, PackedRays rays, int64_t cols, scalar_t* out,
+                         int32_t* invalid) {
   using acc = acc_t<scalar_t>;
   using column = Column<scalar_t, V>;
   const int64_t ray = blockIdx.x;
   const RaySpan span = rays(ray);
+  report_bad_offsets(rays, ray, invalid);  // before the return: a bad ray may clamp to no rows
   if (span.count == 0) return;
   const column* rows = reinterpret_cast<const column*>(features) + span.offset * cols;
   column* out_rows = reinterpret_cast<column*>(out) + span.offset * cols;
@@ -156,23 +167,24 @@ unsigned grid_for(int64_t rays) {
   return static_cast<unsigned>(rays);
 }
 
-at::Tensor segment_mean_fwd_cuda(const at::Tensor& values, const at::Tensor& offsets) {
+std::tuple<at::Tensor, at::Tensor> segment_mean_fwd_cuda(const at::Tensor& values, const at::Tensor& offsets) {
   const int64_t R = segment_ops::check_rows("segment_mean_fwd", values, offsets, at::kCUDA);
   const c10::cuda::CUDAGuard device_guard(values.device());
   const int64_t N = values.size(0), C = values.size(1);
   at::Tensor mean = at::empty({R, C}, values.options());
-  if (R == 0) return mean;
+  at::Tensor invalid = at::zeros({1}, values.options().dtype(at::kInt));
+  if (R == 0) return {mean, invalid};
   MIXER_NERF_DISPATCH_FLOATING(values.scalar_type(), "segment_mean_fwd_cuda", [&] {
     const scalar_t* v = values.const_data_ptr<scalar_t>();
     scalar_t* m = mean.data_ptr<scalar_t>();
     with_column_width<scalar_t>(C, {v, m}, [&](auto width) {
       constexpr int V = decltype(width)::value;
       segment_mean_fwd_kernel<scalar_t, V><<<grid_for(R), block_for(C / V), 0, c10::cuda::getCurrentCUDAStream()>>>(
-          v, PackedRays{offsets.const_data_ptr<int64_t>(), N, R}, C / V, m);
+          v, PackedRays{offsets.const_data_ptr<int64_t>(), N, R}, C / V, m, invalid.data_ptr<int32_t>());
       C10_CUDA_KERNEL_LAUNCH_CHECK();
     });
   });
-  return mean;
+  return {mean, invalid};
 }
 
 at::Tensor segment_mean_bwd_cuda(const at::Tensor& grad, const at::Tensor& offsets, int64_t num_rows) {
@@ -195,13 +207,15 @@ at::Tensor segment_mean_bwd_cuda(const at::Tensor& grad, const at::Tensor& offse
   return grad_values;
 }
 
-at::Tensor ray_scale_fwd_cuda(const at::Tensor& features, const at::Tensor& scale, const at::Tensor& offsets) {
+std::tuple<at::Tensor, at::Tensor> ray_scale_fwd_cuda(const at::Tensor& features, const at::Tensor& scale,
+                                                      const at::Tensor& offsets) {
   const int64_t R = segment_ops::check_rows("ray_scale_fwd", features, offsets, at::kCUDA);
   segment_ops::check_per_ray("ray_scale_fwd", scale, features, R, at::kCUDA);
   const c10::cuda::CUDAGuard device_guard(features.device());
   const int64_t N = features.size(0), C = features.size(1);
   at::Tensor out = at::empty_like(features);
-  if (R == 0) return out;
+  at::Tensor invalid = at::zeros({1}, features.options().dtype(at::kInt));
+  if (R == 0) return {out, invalid};
   MIXER_NERF_DISPATCH_FLOATING(features.scalar_type(), "ray_scale_fwd_cuda", [&] {
     const scalar_t* f = features.const_data_ptr<scalar_t>();
     const scalar_t* s = scale.const_data_ptr<scalar_t>();
@@ -209,11 +223,11 @@ at::Tensor ray_scale_fwd_cuda(const at::Tensor& features, const at::Tensor& scal
     with_column_width<scalar_t>(C, {f, s, o}, [&](auto width) {
       constexpr int V = decltype(width)::value;
       ray_scale_fwd_kernel<scalar_t, V><<<grid_for(R), block_for(C / V), 0, c10::cuda::getCurrentCUDAStream()>>>(
-          f, s, PackedRays{offsets.const_data_ptr<int64_t>(), N, R}, C / V, o);
+          f, s, PackedRays{offsets.const_data_ptr<int64_t>(), N, R}, C / V, o, invalid.data_ptr<int32_t>());
       C10_CUDA_KERNEL_LAUNCH_CHECK();
     });
   });
-  return out;
+  return {out, invalid};
 }
 
 std::tuple<at::Tensor, at::Tensor> ray_scale_bwd_cuda(const at::Tensor& grad_out, const at::Tensor& features,

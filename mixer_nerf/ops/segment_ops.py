@@ -24,6 +24,7 @@ from ._checks import (
     check_shape,
     check_tensor,
 )
+from . import deferred_checks
 from ._dispatch import use_kernel
 from ._kernel_op import KernelOp
 from .segment_ops_reference import ray_scale_reference, segment_mean_reference
@@ -38,19 +39,25 @@ def segment_mean(
         values: (N, C) floating rows (half/bfloat16 are summed in float32).
         offsets: (R+1,) int64, non-decreasing from 0 to N.
         backend: ``"auto"``, ``"kernel"`` or ``"torch"`` (see :mod:`mixer_nerf.ops`).
-        check_values: also check the values of ``offsets`` (a host sync on a GPU; pass False where
-            they hold by construction). The kernels clamp unchecked offsets into [0, N] and run
-            the first ray from 0 and the last to N, so they never reach outside the arrays and
+        check_values: also check the values of ``offsets``: on the CPU (and on the reference
+            path) before the op runs; on a GPU the kernel checks the offsets it reads without a host
+            synchronisation, and bad ones raise ValueError at a later call or at
+            :func:`~mixer_nerf.ops.check_pending` (``deferred_checks``). False skips the checks
+            (where they hold by construction). The kernels clamp unchecked offsets into [0, N] and
+            run the first ray from 0 and the last to N, so they never reach outside the arrays and
             write every row.
 
     Returns:
         (R, C) in values' dtype, 0 for a ray with no row; differentiable with respect to values.
     """
     _check_rows("values", values)
-    _check_offsets(offsets, "values", values, check_values)
-    if not use_kernel(backend, values.device):
+    _, kernel, deferred = _check_offsets(offsets, "values", values, backend, check_values)
+    if not kernel:
         return segment_mean_reference(values, offsets)
-    return _SEGMENT_MEAN(values, offsets)
+    mean, invalid = _SEGMENT_MEAN(values, offsets)
+    if deferred:
+        deferred_checks.watch(invalid, "segment_mean", INVALID_INPUT)
+    return mean
 
 
 def ray_scale(
@@ -73,14 +80,17 @@ def ray_scale(
         (N, C) in features' dtype, differentiable with respect to features and scale.
     """
     _check_rows("features", features)
-    num_rays = _check_offsets(offsets, "features", features, check_values)
+    num_rays, kernel, deferred = _check_offsets(offsets, "features", features, backend, check_values)
     check_floating("scale", scale)
     check_same_device(features=features, scale=scale)
     check_same_dtype(features=features, scale=scale)
     check_shape("scale", scale, (num_rays, features.shape[1]), " (R, C)")
-    if not use_kernel(backend, features.device):
+    if not kernel:
         return ray_scale_reference(features, scale, offsets)
-    return _RAY_SCALE(features, scale, offsets)
+    out, invalid = _RAY_SCALE(features, scale, offsets)
+    if deferred:
+        deferred_checks.watch(invalid, "ray_scale", INVALID_INPUT)
+    return out
 
 
 def _check_rows(name: str, rows: torch.Tensor) -> None:
@@ -90,14 +100,27 @@ def _check_rows(name: str, rows: torch.Tensor) -> None:
         raise ValueError(f"{name} must have at least one channel, got shape {tuple(rows.shape)}")
 
 
-def _check_offsets(offsets: torch.Tensor, name: str, rows: torch.Tensor, check_values: bool) -> int:
-    """Returns R."""
+def _check_offsets(
+    offsets: torch.Tensor, name: str, rows: torch.Tensor, backend: str, check_values: bool
+) -> tuple[int, bool, bool]:
+    """Returns R, whether the kernel runs, and whether it checks the offsets' values (on a GPU,
+    without a sync) in place of this check."""
     check_same_device(**{name: rows, "offsets": check_tensor("offsets", offsets)})
-    return check_offsets("offsets", offsets, rows.shape[0], check_values)
+    kernel = use_kernel(backend, rows.device)
+    deferred = check_values and deferred_checks.in_kernel(kernel, rows)
+    return check_offsets("offsets", offsets, rows.shape[0], check_values and not deferred), kernel, deferred
+
+
+INVALID_INPUT = {4: "offsets must start at 0, end at N (the number of rows) and be non-decreasing"}
+"""The forward kernels' ``invalid`` bit (``InvalidInput`` in csrc/segment_ops.h) and what it says."""
+
+
+def _invalid_fake(like):
+    return like.new_empty(1, dtype=torch.int32)
 
 
 def _segment_mean_fwd_fake(values, offsets):
-    return values.new_empty(offsets.shape[0] - 1, values.shape[1])
+    return values.new_empty(offsets.shape[0] - 1, values.shape[1]), _invalid_fake(values)
 
 
 def _segment_mean_bwd_fake(grad, offsets, num_rows):
@@ -105,7 +128,7 @@ def _segment_mean_bwd_fake(grad, offsets, num_rows):
 
 
 def _ray_scale_fwd_fake(features, scale, offsets):
-    return torch.empty_like(features)
+    return torch.empty_like(features), _invalid_fake(features)
 
 
 def _ray_scale_bwd_fake(grad_out, features, scale, offsets):
