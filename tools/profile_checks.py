@@ -3,13 +3,13 @@
     python tools/profile_checks.py [--steps 20]
 
 Runs the ``bench_ops`` composite forward+backward case (R=65536, S=192) with the checks off
-(``check_values=False``) and on (the default: in-kernel checks, ``deferred_checks.watch``), one
-after another: median GPU ms per step from CUDA events, then a torch.profiler pass of each that
-lists the CUDA runtime calls per step (a cudaHostAlloc or a synchronising call is a host wait
-the events show as GPU idle), the host time to enqueue a step and, of it, the time spent in
-``deferred_checks.watch``, in the composite call and in ``torch.autograd.grad``, and the GPU
-kernels per step (busy time against the event-timed step: the rest is the GPU waiting for the
-host), and a cProfile of the host's Python per variant (the autograd engine's own thread, where
+(``check_values=False``) and on (the default: in-kernel checks, ``deferred_checks.watch``), taking
+turns step by step: median GPU ms per step from CUDA events and the host time to enqueue a step
+and, of it, the time spent in ``deferred_checks.watch``, in the composite call (and of that in the
+registered op) and in ``torch.autograd.grad``; then a torch.profiler pass of each that lists the
+CUDA runtime calls per step (a cudaHostAlloc or a synchronising call is a host wait the events
+show as GPU idle) and the GPU kernels per step (busy time against the event-timed step: the rest
+is the GPU waiting for the host), and a cProfile of the host's Python per variant (the autograd engine's own thread, where
 backward nodes run, shows only as ``torch.autograd.grad``).
 """
 
