@@ -9,8 +9,8 @@ and, of it, the time spent in ``deferred_checks.watch``, in the composite call (
 registered op) and in ``torch.autograd.grad``; then a torch.profiler pass of each that lists the
 CUDA runtime calls per step (a cudaHostAlloc or a synchronising call is a host wait the events
 show as GPU idle) and the GPU kernels per step (busy time against the event-timed step: the rest
-is the GPU waiting for the host), and a cProfile of the host's Python per variant (the autograd engine's own thread, where
-backward nodes run, shows only as ``torch.autograd.grad``).
+is the GPU waiting for the host), and a cProfile of the host's Python per variant (the autograd
+engine's own thread, where backward nodes run, shows only as ``torch.autograd.grad``).
 """
 
 from __future__ import annotations
