@@ -4,7 +4,7 @@ hand-off (what a training step pays per op where it is not replayed as a CUDA gr
 
     python -m benchmarks.host_overhead [--device cpu|cuda] [--calls 3000] [--out DIR]
 
-Per op: the forward with a backward recorded, and forward + ``torch.autograd.grad`` (microseconds
+A row of ``torch.sin`` gives the floor PyTorch itself sets on the same host. Per op: the forward with a backward recorded, and forward + ``torch.autograd.grad`` (microseconds
 a call, the median of 5 rounds of ``--calls`` calls each, one CPU thread; on CUDA the rounds end
 with a synchronisation, and the kernels of such inputs run faster than the host enqueues them).
 Writes ``<out>/<device>.json`` and a table ``<out>/<device>.md``.
@@ -47,6 +47,8 @@ def cases(device: torch.device) -> dict[str, tuple[list[torch.Tensor], Callable]
     starts = rand(4, 8).cumsum(-1)
     packed_starts = rand(7).cumsum(0)
     return {
+        # PyTorch's own op for scale: what the autograd engine costs a step without any of ours.
+        "torch.sin (PyTorch's own, for scale)": ([rand(16, 3)], torch.sin),
         "positional_encoding": ([rand(16, 3)], lambda x: positional_encoding(x, 10)),
         "mlca": ([rand(16, 12), rand(5, 3), rand(4, 4), rand(4), rand(5, 5), rand(5)], mlca),
         "segment_mean": ([rand(7, 8)], lambda v: segment_mean(v, offsets)),
