@@ -4,10 +4,10 @@ hand-off (what a training step pays per op where it is not replayed as a CUDA gr
 
     python -m benchmarks.host_overhead [--device cpu|cuda] [--calls 3000] [--out DIR]
 
-A row of ``torch.sin`` gives the floor PyTorch itself sets on the same host. Per op: the forward with a backward recorded, and forward + ``torch.autograd.grad`` (microseconds
+Per op: the forward with a backward recorded, and forward + ``torch.autograd.grad`` (microseconds
 a call, the median of 5 rounds of ``--calls`` calls each, one CPU thread; on CUDA the rounds end
 with a synchronisation, and the kernels of such inputs run faster than the host enqueues them).
-Writes ``<out>/<device>.json`` and a table ``<out>/<device>.md``.
+A ``torch.sin`` row gives the floor PyTorch itself sets on the same host. Writes ``<out>/<device>.json`` and a table ``<out>/<device>.md``.
 """
 
 from __future__ import annotations
