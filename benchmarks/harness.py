@@ -107,26 +107,38 @@ def errors(result: Any, truth: Any) -> tuple[float, float]:
     return max_abs, max_rel
 
 
+def _call_ms(fn: Callable[[], Any], device: torch.device) -> float:
+    """Milliseconds of one call of ``fn``, the GPU idle before it."""
+    if device.type != "cuda":
+        t0 = time.perf_counter()
+        fn()
+        return (time.perf_counter() - t0) * 1e3
+    torch.cuda.synchronize(device)
+    start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
+    start.record()
+    fn()
+    end.record()
+    end.synchronize()
+    return start.elapsed_time(end)
+
+
+def _batch_ms(fn: Callable[[], Any], device: torch.device, calls: int) -> float:
+    """Milliseconds per call of ``calls`` calls of ``fn`` queued without synchronising (GPU)."""
+    torch.cuda.synchronize(device)
+    start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
+    start.record()
+    for _ in range(calls):
+        fn()
+    end.record()
+    end.synchronize()
+    return start.elapsed_time(end) / calls
+
+
 def time_ms(fn: Callable[[], Any], device: torch.device, repeats: int, warmup: int) -> float:
     """Median milliseconds of ``fn`` after ``warmup`` calls."""
     for _ in range(warmup):
         fn()
-    samples = []
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
-        for _ in range(repeats):
-            start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
-            start.record()
-            fn()
-            end.record()
-            end.synchronize()
-            samples.append(start.elapsed_time(end))
-    else:
-        for _ in range(repeats):
-            t0 = time.perf_counter()
-            fn()
-            samples.append((time.perf_counter() - t0) * 1e3)
-    return statistics.median(samples)
+    return statistics.median(_call_ms(fn, device) for _ in range(repeats))
 
 
 def queued_ms(fn: Callable[[], Any], device: torch.device, calls: int, batches: int = 5) -> float | None:
@@ -134,17 +146,7 @@ def queued_ms(fn: Callable[[], Any], device: torch.device, calls: int, batches: 
     ``batches`` such batches (a host hiccup spoils one batch, not the result; GPU only)."""
     if device.type != "cuda":
         return None
-    means = []
-    for _ in range(batches):
-        torch.cuda.synchronize(device)
-        start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
-        start.record()
-        for _ in range(calls):
-            fn()
-        end.record()
-        end.synchronize()
-        means.append(start.elapsed_time(end) / calls)
-    return statistics.median(means)
+    return statistics.median(_batch_ms(fn, device, calls) for _ in range(batches))
 
 
 def kernel_ms(fn: Callable[[], Any], device: torch.device, calls: int = 10) -> float | None:
@@ -197,24 +199,49 @@ def copy_bandwidth_gbps(device: torch.device, nbytes: int = 1 << 30) -> float:
     return 2 * nbytes / (ms * 1e-3) / 1e9
 
 
-def run_case(case: Case, device: torch.device, repeats: int, warmup: int) -> list[Result]:
+def run_case(case: Case, device: torch.device, repeats: int, warmup: int, batches: int = 5) -> list[Result]:
+    """Errors and times of each of ``case``'s variants. Times are taken in rounds, each round one
+    sample of every variant in turn (``repeats`` one-at-a-time rounds, then ``batches`` rounds of
+    ``repeats`` queued calls), so what drifts over a case (clocks, the allocator's cache) touches
+    every variant alike instead of favouring the one timed first or last."""
     truth = case.truth() if case.truth is not None else None
-    results = []
-    for variant in case.variants:
+    results = [Result(case.op, case.mode, case.size, v.name, None, None, None, None) for v in case.variants]
+    samples: dict[int, list[float]] = {}
+    queued: dict[int, list[float]] = {}
+
+    def guarded(i: int, measure: Callable[[int], Any]) -> None:
         try:
-            out = variant.fn()
-            abs_err, rel_err = errors(out, truth) if truth is not None else (None, None)
-            del out
-            ms = time_ms(variant.fn, device, repeats, warmup)
-            gbps = case.min_bytes / (ms * 1e-3) / 1e9
-            results.append(Result(case.op, case.mode, case.size, variant.name, ms, gbps, abs_err, rel_err,
-                                  queued_ms=queued_ms(variant.fn, device, repeats),
-                                  kernel_ms=kernel_ms(variant.fn, device)))
+            measure(i)
         except Exception as exc:  # a peer that fails to build or run is reported, not fatal
-            results.append(Result(case.op, case.mode, case.size, variant.name, None, None, None, None,
-                                  error=f"{type(exc).__name__}: {str(exc).splitlines()[0][:160]}"))
-        if device.type == "cuda":
-            torch.cuda.empty_cache()
+            results[i].error = f"{type(exc).__name__}: {str(exc).splitlines()[0][:160]}"
+            results[i].ms = results[i].gbps = results[i].queued_ms = None
+            samples.pop(i, None)
+
+    def first_calls(i: int) -> None:
+        out = case.variants[i].fn()
+        if truth is not None:
+            results[i].max_abs_err, results[i].max_rel_err = errors(out, truth)
+        del out
+        for _ in range(warmup):
+            case.variants[i].fn()
+        samples[i], queued[i] = [], []
+
+    for i in range(len(case.variants)):
+        guarded(i, first_calls)
+    for _ in range(repeats):
+        for i in list(samples):
+            guarded(i, lambda i: samples[i].append(_call_ms(case.variants[i].fn, device)))
+    for _ in range(batches if device.type == "cuda" else 0):
+        for i in list(samples):
+            guarded(i, lambda i: queued[i].append(_batch_ms(case.variants[i].fn, device, repeats)))
+    for i in list(samples):
+        result = results[i]
+        result.ms = statistics.median(samples[i])
+        result.gbps = case.min_bytes / (result.ms * 1e-3) / 1e9
+        result.queued_ms = statistics.median(queued[i]) if queued[i] else None
+        guarded(i, lambda i: setattr(results[i], "kernel_ms", kernel_ms(case.variants[i].fn, device)))
+    if device.type == "cuda":
+        torch.cuda.empty_cache()
     # speedups of our kernel against every other variant, and of our default call (what a user
     # runs) against the peers
     timed = [r for r in results if r.ms]

@@ -73,3 +73,24 @@ def test_host_overhead_times_every_differentiable_op(tmp_path, monkeypatch):
     assert [r["op"] for r in rows] == list(host_overhead.cases(torch.device("cpu")))
     assert all(r["forward_us"] > 0 and r["forward_backward_us"] > 0 for r in rows)
     assert "| composite |" in (tmp_path / "cpu.md").read_text()
+
+
+def test_variants_are_timed_in_rounds_not_one_after_another():
+    calls = []
+    variants = [Variant(name, lambda name=name: calls.append(name)) for name in ("kernel", "torch")]
+    run_case(Case("op", "fwd", "1", variants, None, 8), torch.device("cpu"), repeats=3, warmup=0)
+    assert calls == ["kernel", "torch"] + ["kernel", "torch"] * 3
+
+
+def test_a_variant_that_fails_while_timed_is_reported_and_the_others_still_timed():
+    count = {"n": 0}
+
+    def flaky():
+        count["n"] += 1
+        if count["n"] > 2:
+            raise RuntimeError("out of memory\nmore")
+
+    variants = [Variant("kernel", lambda: None), Variant("peer", flaky)]
+    kernel, peer = run_case(Case("op", "fwd", "1", variants, None, 8), torch.device("cpu"), repeats=4, warmup=0)
+    assert kernel.ms is not None and kernel.error is None and "peer" not in kernel.speedups
+    assert peer.ms is None and peer.error == "RuntimeError: out of memory"
