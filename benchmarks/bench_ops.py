@@ -104,7 +104,7 @@ def write_results(results: list[Result], device: torch.device, repeats: int, cop
     header = (f"# Op benchmarks on {device_name(device)}, {stamp}\n\ntorch {torch.__version__}; "
               f"median of {repeats} runs, each after a synchronisation (host work included); ms queued: "
               f"per call of {repeats} calls queued back to back and synchronised once, the median of 5 such "
-              "batches (GPU only); ms kernels: the kernels and copies of 10 calls summed, per call (GPU only, "
+              "batches (GPU only); each case's variants timed in turns, one sample of each in a round; ms kernels: the kernels and copies of 10 calls summed, per call (GPU only, "
               "no host time); errors against a float64 reference (rel: scaled by each output's max |truth|)"
               + (f"; device copy bandwidth {copy_gbps:.0f} GB/s (read + write)" if copy_gbps else "")
               + "\n\nCommand: `python -m benchmarks.bench_ops " + f"--device {device.type} --repeats {repeats}`\n\n")
