@@ -20,6 +20,7 @@
 #   field         python -m benchmarks.bench_field $FIELD_ARGS (the MLP's cost per preset and precision)
 #   crash         tools/diagnose_exception_crash.py (in the background, alongside later stages)
 #   checks        tools/profile_checks.py (what the default value checks cost a composite step, and where)
+#   neighbours    tools/profile_neighbours.py (a composite step's time alone and with a peer's step between)
 #   host          python -m benchmarks.host_overhead --device cuda (host time a call of each differentiable op)
 #   train_step    tools/profile_train_step.py for presets A and D on .data/lego_400 ($STEP_PRESETS), one
 #                 after the other: ms per step, GPU busy, kernels, host waits
@@ -102,6 +103,7 @@ for stage in "${stages[@]}"; do
       mkdir -p "$OUT/results/ops" && cp "$LOGS/$stage.log" "$OUT/results/ops/${tag}_$(ncu_case "$layout")_ncu.txt" ;;
     field) step field 400 python -m benchmarks.bench_field --out "$OUT/results/train_step" $FIELD_ARGS ;;
     checks) step checks 120 python tools/profile_checks.py ;;
+    neighbours) step neighbours 180 python tools/profile_neighbours.py ;;
     host) step host 120 python -m benchmarks.host_overhead --device cuda --out "$OUT/results/host_overhead" ;;
     train_step) for preset in ${STEP_PRESETS:-A D}; do
         step "train_step_$preset" 150 python tools/profile_train_step.py --preset "$preset" --warmup 1000 \
