@@ -11,6 +11,8 @@
 # wrote, moved up into $OUT; every job's log and folder in $OUT/job_logs.tgz; and the paths of $PACK
 # (e.g. PACK="runs/ablate_x runs/ttq_out") in $OUT/records.tgz, without checkpoints and images.
 # A GPU named twice in GPUS runs two jobs at a time (runs timed by steps, not by seconds).
+# $RESUME_PACK=1: also $PACK with its checkpoints, and $DONE, in $OUT/resume.tgz; unpacked here over
+# the tree (tar xzf) and `runs` carried, the next call resumes the queue on a fresh machine.
 source tools/gpu_env.sh >/dev/null
 OUT=${OUT:-/tmp/gpu_jobs}; mkdir -p "$OUT/jobs"
 DONE=${DONE:-runs/gpu_jobs.done}; mkdir -p "$(dirname "$DONE")"; touch "$DONE"
@@ -48,4 +50,7 @@ for f in "$OUT"/jobs/*/*.tgz; do [ -f "$f" ] && mv "$f" "$OUT/$(basename "$(dirn
 tar czf "$OUT/job_logs.tgz" -C "$OUT" jobs && rm -rf "$OUT/jobs"
 # shellcheck disable=SC2086
 [ -z "$PACK" ] || tar czf "$OUT/records.tgz" --exclude='*.pt' --exclude='images' --exclude='depth' \
+  --exclude='*.partial' $PACK "$DONE"
+# shellcheck disable=SC2086
+[ -z "$PACK" ] || [ -z "$RESUME_PACK" ] || tar czf "$OUT/resume.tgz" --exclude='images' --exclude='depth' \
   --exclude='*.partial' $PACK "$DONE"
