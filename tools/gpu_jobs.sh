@@ -48,9 +48,8 @@ while [ ${#gpu_of[@]} -gt 0 ]; do reap; done
 
 for f in "$OUT"/jobs/*/*.tgz; do [ -f "$f" ] && mv "$f" "$OUT/$(basename "$(dirname "$f")")_$(basename "$f")"; done
 tar czf "$OUT/job_logs.tgz" -C "$OUT" jobs && rm -rf "$OUT/jobs"
+renders=(--exclude='images' --exclude='depth' --exclude='*.partial')  # never returned
 # shellcheck disable=SC2086
-[ -z "$PACK" ] || tar czf "$OUT/records.tgz" --exclude='*.pt' --exclude='images' --exclude='depth' \
-  --exclude='*.partial' $PACK "$DONE"
+[ -z "$PACK" ] || tar czf "$OUT/records.tgz" --exclude='*.pt' "${renders[@]}" $PACK "$DONE"
 # shellcheck disable=SC2086
-[ -z "$PACK" ] || [ -z "$RESUME_PACK" ] || tar czf "$OUT/resume.tgz" --exclude='images' --exclude='depth' \
-  --exclude='*.partial' $PACK "$DONE"
+[ -z "$PACK" ] || [ -z "$RESUME_PACK" ] || tar czf "$OUT/resume.tgz" "${renders[@]}" $PACK "$DONE"
