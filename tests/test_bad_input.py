@@ -36,6 +36,7 @@ from mixer_nerf.ops import (
     sample_pdf_packed,
     segment_mean,
 )
+from mixer_nerf.ops._checks import check_alike, check_shape
 from mixer_nerf.render import render_image, render_rays
 from mixer_nerf.train import CheckpointError, OutputError, TrainConfig, Trainer, load_checkpoint, load_trained
 
@@ -427,6 +428,18 @@ def test_ops_reject_bad_input_naming_the_argument(case, backend):
     call, error, message = OP_CASES[case]
     with pytest.raises(error, match=message):
         call(backend)
+
+
+def test_shared_checks_keep_their_messages_on_the_quick_path():
+    a, b = torch.rand(2), torch.rand(2, 3)
+    assert check_alike(a=a, gone=None, b=b) == (a.device, a.dtype)
+    with pytest.raises(ValueError, match="a on cpu, b on meta"):  # the device is reported first
+        check_alike(a=a, b=torch.rand(2, device=META, dtype=torch.float64))
+    with pytest.raises(TypeError, match="a is torch.float32, gone is torch.float64"):
+        check_alike(a=a, gone=a.double(), b=b)
+    check_shape("b", b, (2, None))
+    with pytest.raises(ValueError, match=r"b must have shape \(3, \*\), got \(2, 3\)"):
+        check_shape("b", b, (3, None))
 
 
 @pytest.mark.skipif(not HAS_CUDA, reason="needs a CUDA GPU")

@@ -37,13 +37,33 @@ def check_ndim(name: str, t: torch.Tensor, ndim: int | Sequence[int]) -> None:
 
 def check_shape(name: str, t: torch.Tensor, shape: Sequence[int | None], hint: str = "") -> None:
     """``shape`` entries of None match any size."""
+    if t.shape == shape:  # the common case, decided without a loop
+        return
     ok = t.dim() == len(shape) and all(s is None or s == n for s, n in zip(shape, t.shape))
     if not ok:
         want = "(" + ", ".join("*" if s is None else str(s) for s in shape) + ")"
         raise ValueError(f"{name} must have shape {want}{hint}, got {tuple(t.shape)}")
 
 
+def _shared(tensors: dict[str, torch.Tensor | None], attribute: str):
+    """The ``device`` or ``dtype`` every tensor given has, or None where they differ (or none is
+    given): one pass without the sets and dicts a message needs, as every call that passes takes."""
+    shared = None
+    for t in tensors.values():
+        if t is None:
+            continue
+        value = getattr(t, attribute)
+        if shared is None:
+            shared = value
+        elif value != shared:
+            return None
+    return shared
+
+
 def check_same_device(**tensors: torch.Tensor | None) -> torch.device:
+    device = _shared(tensors, "device")
+    if device is not None:
+        return device
     present = {k: v for k, v in tensors.items() if v is not None}
     devices = {v.device for v in present.values()}
     if len(devices) > 1:
@@ -53,12 +73,29 @@ def check_same_device(**tensors: torch.Tensor | None) -> torch.device:
 
 
 def check_same_dtype(**tensors: torch.Tensor | None) -> torch.dtype:
+    dtype = _shared(tensors, "dtype")
+    if dtype is not None:
+        return dtype
     present = {k: v for k, v in tensors.items() if v is not None}
     dtypes = {v.dtype for v in present.values()}
     if len(dtypes) > 1:
         listing = ", ".join(f"{k} is {v.dtype}" for k, v in present.items())
         raise TypeError(f"all tensors must have one dtype, got {listing}")
     return next(iter(dtypes))
+
+
+def check_alike(**tensors: torch.Tensor | None) -> tuple[torch.device, torch.dtype]:
+    """check_same_device and check_same_dtype (in that order, with their messages) in one pass where
+    the tensors pass, as nearly every call's do."""
+    device = dtype = None
+    for t in tensors.values():
+        if t is None:
+            continue
+        if device is None:
+            device, dtype = t.device, t.dtype
+        elif t.device != device or t.dtype != dtype:
+            return check_same_device(**tensors), check_same_dtype(**tensors)
+    return device, dtype
 
 
 # The messages of the value checks, shared with the kernels' deferred reports (deferred_checks).

@@ -18,12 +18,12 @@ from typing import NamedTuple
 import torch
 
 from ._checks import (
+    check_alike,
     check_floating,
     check_ndim,
     check_nonnegative,
     check_offsets,
     check_same_device,
-    check_same_dtype,
     check_shape,
     check_tensor,
     has_descent,
@@ -173,8 +173,7 @@ def _check_samples(sigmas, rgbs, t_starts, t_ends, background, num_rays: int, ch
         check_shape(
             "background", background, (C,) if background.dim() == 1 else (num_rays, C), " (C) or (R, C)"
         )
-    check_same_device(sigmas=sigmas, rgbs=rgbs, t_starts=t_starts, t_ends=t_ends, background=background)
-    check_same_dtype(sigmas=sigmas, rgbs=rgbs, t_starts=t_starts, t_ends=t_ends, background=background)
+    check_alike(sigmas=sigmas, rgbs=rgbs, t_starts=t_starts, t_ends=t_ends, background=background)
     if check_values:
         check_nonnegative("sigmas", sigmas)
         if has_descent(t_starts, t_ends):

@@ -7,12 +7,11 @@ from __future__ import annotations
 import torch
 
 from ._checks import (
+    check_alike,
     check_floating,
     check_int,
     check_ndim,
     check_nonnegative,
-    check_same_device,
-    check_same_dtype,
     check_shape,
     check_sorted,
     check_tensor,
@@ -101,8 +100,7 @@ def _validate(z_coarse: torch.Tensor, weights_coarse: torch.Tensor, check_values
     if z_coarse.shape[1] < 3:
         raise ValueError(f"z_coarse must have at least 3 samples per ray, got shape {tuple(z_coarse.shape)}")
     check_shape("weights_coarse", weights_coarse, tuple(z_coarse.shape), " (like z_coarse)")
-    check_same_device(z_coarse=z_coarse, weights_coarse=weights_coarse)
-    check_same_dtype(z_coarse=z_coarse, weights_coarse=weights_coarse)
+    check_alike(z_coarse=z_coarse, weights_coarse=weights_coarse)
     if check_values:
         check_sorted("z_coarse", z_coarse)
         check_nonnegative("weights_coarse", weights_coarse)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from ._checks import check_floating, check_same_device, check_same_dtype, check_shape
+from ._checks import check_alike, check_floating, check_shape
 from ._dispatch import use_kernel
 from ._kernel_op import KernelOp
 from .mlca_reference import mlca_reference
@@ -79,8 +79,7 @@ def mlca(
             f"encoded must have shape (..., T*D) = (..., {num_tokens}*{token_dim}) (T from token_weight, "
             f"D from lift), got {tuple(encoded.shape)}"
         )
-    check_same_device(**tensors)
-    check_same_dtype(**tensors)
+    check_alike(**tensors)
 
     if not use_kernel(backend, encoded.device):
         return mlca_reference(encoded, lift, token_weight, token_bias, channel_weight, channel_bias)

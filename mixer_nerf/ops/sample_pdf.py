@@ -44,6 +44,7 @@ import math
 import torch
 
 from ._checks import (
+    check_alike,
     check_floating,
     check_in_range,
     check_int,
@@ -191,8 +192,7 @@ def _validate_pdf(bins: torch.Tensor, weights: torch.Tensor, check_values: bool)
     if num_edges < 2:
         raise ValueError(f"bins must have at least 2 edges per ray (one bin), got shape {tuple(bins.shape)}")
     check_shape("weights", weights, (num_rays, num_edges - 1), " (one weight per bin of bins)")
-    check_same_device(bins=bins, weights=weights)
-    check_same_dtype(bins=bins, weights=weights)
+    check_alike(bins=bins, weights=weights)
     if check_values:
         check_sorted("bins", bins)
         check_nonnegative("weights", weights)

@@ -16,11 +16,11 @@ from __future__ import annotations
 import torch
 
 from ._checks import (
+    check_alike,
     check_floating,
     check_ndim,
     check_offsets,
     check_same_device,
-    check_same_dtype,
     check_shape,
     check_tensor,
 )
@@ -82,8 +82,7 @@ def ray_scale(
     _check_rows("features", features)
     num_rays, kernel, deferred = _check_offsets(offsets, "features", features, backend, check_values)
     check_floating("scale", scale)
-    check_same_device(features=features, scale=scale)
-    check_same_dtype(features=features, scale=scale)
+    check_alike(features=features, scale=scale)
     check_shape("scale", scale, (num_rays, features.shape[1]), " (R, C)")
     if not kernel:
         return ray_scale_reference(features, scale, offsets)
