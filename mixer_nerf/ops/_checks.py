@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from operator import attrgetter
 
 import torch
 
@@ -45,14 +46,17 @@ def check_shape(name: str, t: torch.Tensor, shape: Sequence[int | None], hint: s
         raise ValueError(f"{name} must have shape {want}{hint}, got {tuple(t.shape)}")
 
 
-def _shared(tensors: dict[str, torch.Tensor | None], attribute: str):
-    """The ``device`` or ``dtype`` every tensor given has, or None where they differ (or none is
-    given): one pass without the sets and dicts a message needs, as every call that passes takes."""
+_DEVICE, _DTYPE, _DEVICE_AND_DTYPE = attrgetter("device"), attrgetter("dtype"), attrgetter("device", "dtype")
+
+
+def _shared(tensors: dict[str, torch.Tensor | None], read: attrgetter):
+    """What ``read`` gives for every tensor given (None skipped), or None where they differ (or none
+    is given): one pass without the sets and dicts a message needs, as every call that passes takes."""
     shared = None
     for t in tensors.values():
         if t is None:
             continue
-        value = getattr(t, attribute)
+        value = read(t)
         if shared is None:
             shared = value
         elif value != shared:
@@ -61,7 +65,7 @@ def _shared(tensors: dict[str, torch.Tensor | None], attribute: str):
 
 
 def check_same_device(**tensors: torch.Tensor | None) -> torch.device:
-    device = _shared(tensors, "device")
+    device = _shared(tensors, _DEVICE)
     if device is not None:
         return device
     present = {k: v for k, v in tensors.items() if v is not None}
@@ -73,7 +77,7 @@ def check_same_device(**tensors: torch.Tensor | None) -> torch.device:
 
 
 def check_same_dtype(**tensors: torch.Tensor | None) -> torch.dtype:
-    dtype = _shared(tensors, "dtype")
+    dtype = _shared(tensors, _DTYPE)
     if dtype is not None:
         return dtype
     present = {k: v for k, v in tensors.items() if v is not None}
@@ -87,15 +91,8 @@ def check_same_dtype(**tensors: torch.Tensor | None) -> torch.dtype:
 def check_alike(**tensors: torch.Tensor | None) -> tuple[torch.device, torch.dtype]:
     """check_same_device and check_same_dtype (in that order, with their messages) in one pass where
     the tensors pass, as nearly every call's do."""
-    device = dtype = None
-    for t in tensors.values():
-        if t is None:
-            continue
-        if device is None:
-            device, dtype = t.device, t.dtype
-        elif t.device != device or t.dtype != dtype:
-            return check_same_device(**tensors), check_same_dtype(**tensors)
-    return device, dtype
+    shared = _shared(tensors, _DEVICE_AND_DTYPE)
+    return shared if shared is not None else (check_same_device(**tensors), check_same_dtype(**tensors))
 
 
 # The messages of the value checks, shared with the kernels' deferred reports (deferred_checks).
