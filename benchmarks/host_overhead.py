@@ -7,7 +7,7 @@ hand-off (what a training step pays per op where it is not replayed as a CUDA gr
 Per op: the forward with a backward recorded, and forward + ``torch.autograd.grad`` (microseconds
 a call, the median of 5 rounds of ``--calls`` calls each, one CPU thread; on CUDA the rounds end
 with a synchronisation, and the kernels of such inputs run faster than the host enqueues them).
-A ``torch.sin`` row gives the floor PyTorch itself sets on the same host. Writes ``<out>/<device>.json`` and a table ``<out>/<device>.md``.
+A ``torch.sin`` row gives the floor PyTorch itself sets on the same host. Writes ``<out>/host_overhead_<device>.json`` and a table ``<out>/host_overhead_<device>.md``.
 """
 
 from __future__ import annotations
@@ -80,7 +80,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--calls", type=int, default=3000)
-    parser.add_argument("--out", default=str(RESULTS / "host_overhead"))
+    parser.add_argument("--out", default=str(RESULTS / "ops"))
     parser.add_argument("--label", default="", help="a name for this build in the table (e.g. a commit)")
     args = parser.parse_args()
     device = torch.device(args.device)
@@ -97,11 +97,11 @@ def main() -> None:
     out.mkdir(parents=True, exist_ok=True)
     tag = device_tag(device)
     record = {"device": tag, "label": args.label, "torch": torch.__version__, "calls": args.calls, "rows": rows}
-    (out / f"{tag}.json").write_text(json.dumps(record, indent=1) + "\n")
+    (out / f"host_overhead_{tag}.json").write_text(json.dumps(record, indent=1) + "\n")
     lines = [f"# Host time a call ({tag}{', ' + args.label if args.label else ''}; us, median of 5 rounds "
              f"of {args.calls} calls)", "", "| op | forward | forward + backward |", "|---|---:|---:|"]
     lines += [f"| {r['op']} | {r['forward_us']} | {r['forward_backward_us']} |" for r in rows]
-    (out / f"{tag}.md").write_text("\n".join(lines) + "\n")
+    (out / f"host_overhead_{tag}.md").write_text("\n".join(lines) + "\n")
 
 
 if __name__ == "__main__":

@@ -69,10 +69,10 @@ def test_kernel_time_counts_the_gpus_work_not_the_hosts():
 def test_host_overhead_times_every_differentiable_op(tmp_path, monkeypatch):
     monkeypatch.setattr("sys.argv", ["host_overhead", "--calls", "2", "--out", str(tmp_path)])
     host_overhead.main()
-    rows = json.loads((tmp_path / "cpu.json").read_text())["rows"]
+    rows = json.loads((tmp_path / "host_overhead_cpu.json").read_text())["rows"]
     assert [r["op"] for r in rows] == list(host_overhead.cases(torch.device("cpu")))
     assert all(r["forward_us"] > 0 and r["forward_backward_us"] > 0 for r in rows)
-    assert "| composite |" in (tmp_path / "cpu.md").read_text()
+    assert "| composite |" in (tmp_path / "host_overhead_cpu.md").read_text()
 
 
 def test_variants_are_timed_in_rounds_not_one_after_another():

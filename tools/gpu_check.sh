@@ -104,7 +104,7 @@ for stage in "${stages[@]}"; do
     field) step field 400 python -m benchmarks.bench_field --out "$OUT/results/train_step" $FIELD_ARGS ;;
     checks) step checks 120 python tools/profile_checks.py ;;
     neighbours) step neighbours 180 python tools/profile_neighbours.py ;;
-    host) step host 120 python -m benchmarks.host_overhead --device cuda --out "$OUT/results/host_overhead" ;;
+    host) step host 120 python -m benchmarks.host_overhead --device cuda --out "$OUT/results/ops" ;;
     train_step) for preset in ${STEP_PRESETS:-A D}; do
         step "train_step_$preset" 150 python tools/profile_train_step.py --preset "$preset" --warmup 1000 \
           --out "$OUT/results/train_step"
