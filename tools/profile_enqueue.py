@@ -2,18 +2,16 @@
 on tiny inputs, beside PyTorch's own floor (``torch.sin`` and ``autograd.grad``) at the same sizes:
 whether a call's host time grows with its inputs. Each row times 10 steps queued without a
 synchronisation (the host's enqueue time) and until the GPU is done, per step, over 20 rounds
-(least / median, us). Then the host's own time by op (torch.profiler, CPU) of the default step at
-the benchmark's size, into ``$OUT/enqueue_profile.txt`` when ``$OUT`` is set.
+(least / median, us). (No per-op split: torch.profiler's own overhead inflates a step's short ops
+several times over; ``benchmarks/results/ops/host_overhead.md``.)
 
     python tools/profile_enqueue.py
 """
 
-import os
 import statistics
 import time
 
 import torch
-from torch.profiler import ProfilerActivity, profile
 
 from benchmarks import cases_composite
 from mixer_nerf.ops.composite_reference import composite_reference
@@ -62,17 +60,3 @@ for size, (R, S) in SIZES.items():
         enqueue, done = timed(step)
         print(f"| {size} | {name} | {min(enqueue):.1f} / {statistics.median(enqueue):.1f} "
               f"| {min(done):.1f} / {statistics.median(done):.1f} |")
-
-step = composite_steps(*SIZES["bench 65536x192"])["ours, defaults"]
-for _ in range(20):
-    step()
-torch.cuda.synchronize()
-with profile(activities=[ProfilerActivity.CPU]) as prof:
-    for _ in range(50):
-        step()
-    torch.cuda.synchronize()
-table = prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=30)
-if os.environ.get("OUT"):
-    with open(os.path.join(os.environ["OUT"], "enqueue_profile.txt"), "w") as f:
-        f.write(table)
-print(table[:6000])
