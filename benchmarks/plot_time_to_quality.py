@@ -26,21 +26,27 @@ from benchmarks.time_to_quality import save_runs  # noqa: E402
 
 def plot(path: str | Path, targets_db: tuple[float, ...] = (25.0, 28.0, 31.0)) -> None:
     """Plot and tabulate one runs file; the table gives each run's PSNR on its training views at its
-    last checkpoint (where it has one) and its first checkpoint at or above each of ``targets_db``."""
+    last checkpoint (where it has one) and its first checkpoint at or above each of ``targets_db``.
+    A run that finished (its last point ``"finished"``: the trainer's ``--steps`` reached) stands at its
+    final PSNR after that: marked † in the table, a dashed line in the plot to the last checkpoint."""
     path = Path(path)
     records = json.loads(path.read_text())
     fig, ax = plt.subplots(figsize=(6, 4))
     seconds = sorted({pt["seconds"] // 1 for r in records for pt in r["curve"]})
+    end = max((pt["seconds"] for r in records for pt in r["curve"]), default=0.0)
     rows = ["| method | " + " | ".join(f"~{int(s)} s" for s in seconds) + " | samples/ray | steps | "
             + "train views at the end | " + " | ".join(f"first checkpoint >= {t} dB" for t in targets_db) + " |",
             "|---|" + "---:|" * (len(seconds) + 3 + len(targets_db))]
     for r in records:
         xs = [pt["seconds"] for pt in r["curve"]]
         ys = [pt["val_psnr"] for pt in r["curve"]]
-        ax.plot(xs, ys, marker="o", label=r["label"])
-        by_time = {pt["seconds"] // 1: pt["val_psnr"] for pt in r["curve"]}
+        (line,) = ax.plot(xs, ys, marker="o", label=r["label"])
+        by_time = {pt["seconds"] // 1: f"{pt['val_psnr']:.2f}" for pt in r["curve"]}
         last = r["curve"][-1] if r["curve"] else {}
-        cells = [f"{by_time[s]:.2f}" if s in by_time else "" for s in seconds]
+        if last.get("finished"):  # its final model stands for the checkpoints after it
+            by_time.update({s: f"{last['val_psnr']:.2f}†" for s in seconds if s > last["seconds"] // 1})
+            ax.plot([last["seconds"], end], [last["val_psnr"]] * 2, linestyle="--", color=line.get_color())
+        cells = [by_time.get(s, "") for s in seconds]
         reached = [next((f"{pt['seconds']:.0f} s" for pt in r["curve"] if pt["val_psnr"] >= t),
                         f"not by {last.get('seconds', 0):.0f} s") for t in targets_db]
         fit = f"{last['train_psnr']:.2f}" if "train_psnr" in last else ""  # runs before --train-views: none
@@ -53,9 +59,11 @@ def plot(path: str | Path, targets_db: tuple[float, ...] = (25.0, 28.0, 31.0)) -
     fig.tight_layout()
     fig.savefig(path.with_suffix(".png"), dpi=120)
     plt.close(fig)
+    if any(r["curve"] and r["curve"][-1].get("finished") for r in records):
+        rows += ["", "† finished (the trainer's --steps) before this checkpoint: its final model."]
     device = records[0]["device"] if records else ""
     path.with_suffix(".md").write_text(
-        f"# Validation PSNR against training time ({device})\n\n" + "\n".join(rows) + "\n")
+        f"# Validation PSNR against training time ({device})\n\n" + "\n".join(rows) + "\n", encoding="utf-8")
     print(path)
     print("\n".join(rows))
 

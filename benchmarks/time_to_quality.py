@@ -25,6 +25,8 @@ DIR, saved every ``--save-every`` training seconds and at each checkpoint; the s
 resumes it there (same batches, the training clock going on). ``--stop-after S`` ends a call after S
 seconds of training, saved, before a device call's limit would kill it; ``--stop-after +S`` after S
 more than the run had when this call resumed it.
+Ours and nerfacc-proposal end at the trainer's ``--steps`` (as ``mixer-nerf train``) if that comes first: the
+last point is marked ``finished``, its final model standing for the checkpoints after it.
 """
 
 from __future__ import annotations
@@ -68,36 +70,48 @@ def run_curve(step_fn: Callable[[int], dict | Callable[[], dict]], render: Calla
               checkpoints: list[float], log: Callable, clock: TrainingClock,
               start: tuple[int, int] | None = None, save: Callable[[int], None] | None = None,
               save_every: float = math.inf, stop_after: float = math.inf,
-              train: tuple[object, list[int]] | None = None) -> int:
+              train: tuple[object, list[int]] | None = None,
+              finished: Callable[[], bool] | None = None) -> int:
     """Train with ``step_fn(step)`` until the last checkpoint, validating at each one (``clock``
     pauses meanwhile; ``train``: a training split and the views of it scored as well) and logging
     the stats of the step before it (``step_fn``'s dict, or what the callable it returned reads
     then). Step 0 runs before the clock starts: it builds any JIT kernels (nerfacc's, ours) and
     warms up caches. ``start``: (step, checkpoints done) of a resumed run, which skips the warm-up.
     ``save(step)`` runs, clock paused, every ``save_every`` training seconds, at each checkpoint and
-    before a stop after ``stop_after`` seconds. Returns the checkpoints reached."""
+    before a stop after ``stop_after`` seconds. ``finished()``, asked after every step (so no device
+    sync in it), ends the run once True: one last point, ``"finished": True``, stands for every
+    checkpoint left. Returns the checkpoints reached (all of them once finished)."""
     if start is None:
         step_fn(0)
         step, done = 1, 0
     else:
         step, done = start
     pending = sorted(checkpoints)[done:]
+    if not pending:  # a complete (or finished) run resumed: nothing to train
+        return done
     next_save = clock.elapsed + save_every
     clock.start()
     while pending:
         stats = step_fn(step)
         step += 1
-        if step % 16:
+        # asked every step, not every 16th: the run stops at the trainer's step count exactly, as it does
+        end = finished is not None and finished()
+        if step % 16 and not end:
             continue
         now = clock.now()
-        if now >= pending[0]:
+        if end or now >= pending[0]:
             elapsed = clock.pause()
             point = {"seconds": round(elapsed, 2), "step": step, "val_psnr": validate(render, val)}
             if train is not None:
                 point["train_psnr"] = validate(render, train[0], views=train[1])
             point.update(stats() if callable(stats) else stats)
-            pending.pop(0)
-            done += 1
+            if end:
+                point["finished"] = True
+                done += len(pending)
+                pending.clear()
+            else:
+                pending.pop(0)
+                done += 1
             log(point)
         elif now >= min(next_save, stop_after):
             clock.pause()
@@ -277,8 +291,8 @@ def ours_method(args, train, val, device) -> Method:
     cfg = TrainConfig(
         data=args.data, preset=args.preset, sampler=args.sampler,
         device=str(device), seed=args.seed, val_every=10**9, ckpt_every=10**9, log_every=10**9,
-        # as `mixer-nerf train --time-budget`: the schedule ends at the last checkpoint or at the
-        # trainer's --steps (or --nominal-steps), whichever comes first
+        # as `mixer-nerf train --time-budget`: the run and its schedule end at the last checkpoint or
+        # at the trainer's --steps (or --nominal-steps), whichever comes first
         **({"steps": args.nominal_steps} if args.nominal_steps else {}),
         time_budget=max(float(c) for c in args.checkpoints.split(",")),
         progress=False, out=args.run_dir or tempfile.mkdtemp(prefix="ttq_"), backend=args.backend,
@@ -345,7 +359,8 @@ def main() -> None:
     parser.add_argument("--nominal-steps", type=int, default=None,
                         help=f"schedule length in steps (default: nerfacc's occupancy recipe "
                              f"{NERFACC_RECIPE_STEPS}; ours and nerfacc-proposal: the trainer's --steps, the "
-                             "schedule ending there or at the last checkpoint, whichever comes first)")
+                             "run and its schedule ending there or at the last checkpoint, whichever comes "
+                             "first)")
     parser.add_argument("--out", default=str(RESULTS / "time_to_quality"))
     parser.add_argument("--record-from", default=None, metavar="DIR",
                         help="where --out has no file for this scene and device yet, start it from DIR's "
@@ -468,7 +483,9 @@ def main() -> None:
                 raise SystemExit(f"{run_dir}: its checkpoint (step {trainer.step}) and {state_path.name} "
                                  f"(step {state['trainer_step']}) disagree: the run was killed while saving")
             record["curve"] = state["curve"]
-            start = (state["step"], len(state["curve"]))
+            # a finished run's last point stands for every checkpoint: it trains no further
+            finished_run = bool(state["curve"]) and state["curve"][-1].get("finished", False)
+            start = (state["step"], len(checkpoints) if finished_run else len(state["curve"]))
             if method.load_extra is not None:
                 method.load_extra(run_dir, trainer.step)
             print(label, f"resumed at {trainer.clock.elapsed:.1f} s of training", flush=True)
@@ -485,9 +502,12 @@ def main() -> None:
     if relative:
         stop_after += clock.elapsed
     views = torch.linspace(0, len(train) - 1, min(args.train_views, len(train))).round().long().tolist()
+    # as `mixer-nerf train`: our trainer's schedule stops at its --steps (nerfacc's occupancy recipe has none)
+    ours_schedule = args.method in ("ours", "nerfacc-proposal")
+    finished = (lambda: trainer.step >= trainer.cfg.steps) if ours_schedule else None
     done = run_curve(method.step_fn, method.render, val, checkpoints, log=log, clock=clock, start=start, save=save,
                      save_every=args.save_every if save else math.inf, stop_after=stop_after,
-                     train=(train, views) if views else None)
+                     train=(train, views) if views else None, finished=finished)
     if done < len(checkpoints):
         print(label, f"stopped at {clock.elapsed:.1f} s of training; the same command resumes it", flush=True)
     elif args.skip_report:

@@ -1,6 +1,7 @@
 """benchmarks.time_to_quality: a curve longer than one call, stopped and resumed from --run-dir (at
-an absolute or a relative stop); a run's file started from the record's;
-benchmarks.plot_time_to_quality merging curves run side by side."""
+an absolute or a relative stop); a run ending at its trainer's --steps, as `mixer-nerf train`; a run's
+file started from the record's; benchmarks.plot_time_to_quality merging curves run side by side and
+marking a finished run's final model."""
 
 from __future__ import annotations
 
@@ -16,6 +17,7 @@ from benchmarks import time_to_quality
 from benchmarks.harness import scene_tag
 from mixer_nerf.data import ensure_procedural_scene
 from mixer_nerf.train import TrainConfig
+from mixer_nerf.train.trainer import TrainingClock
 
 
 def run(monkeypatch, *argv: str) -> None:
@@ -63,6 +65,58 @@ def test_a_stop_after_plus_s_counts_from_where_the_call_resumed(tmp_path, monkey
         with pytest.raises(SystemExit):
             run(monkeypatch, *argv, "--stop-after", bad)
     assert "expected" in capsys.readouterr().err
+
+
+def test_run_curve_ends_at_finished_with_one_point_for_every_checkpoint_left(monkeypatch):
+    """``finished()`` True after step 37 (not a 16th): no step past it, one last point, all done."""
+    import torch
+
+    monkeypatch.setattr(time_to_quality, "validate", lambda render, split, views=None: 20.0)
+    steps, points, saved = [], [], []
+
+    def step_fn(step: int) -> dict:
+        steps.append(step)
+        return {"lr": 1.0}
+
+    done = time_to_quality.run_curve(step_fn, None, None, [1e3, 2e3, 4e3], log=points.append,
+                                     clock=TrainingClock(torch.device("cpu")), save=saved.append,
+                                     train=(None, [0]), finished=lambda: len(steps) >= 37)
+    assert steps == list(range(37)) and done == 3 and saved == [37]
+    (point,) = points
+    assert point["finished"] and point["step"] == 37 and point["seconds"] < 1e3
+    assert (point["val_psnr"], point["train_psnr"], point["lr"]) == (20.0, 20.0, 1.0)
+
+
+def test_run_curve_resumed_with_every_checkpoint_done_trains_no_step():
+    import torch
+
+    def step_fn(step: int) -> dict:
+        raise AssertionError(f"step {step} trained")
+
+    done = time_to_quality.run_curve(step_fn, None, None, [1e3, 2e3], log=print, start=(37, 2),
+                                     clock=TrainingClock(torch.device("cpu")), finished=lambda: True)
+    assert done == 2
+
+
+def test_a_run_ends_at_its_trainers_steps_and_stays_finished_when_resumed(tmp_path, monkeypatch, capsys):
+    """As `mixer-nerf train`: ours stops at --steps (here --nominal-steps) well before its checkpoints;
+    the same command again resumes a finished run, which trains no further."""
+    scene = ensure_procedural_scene(resolution=16, n_train=4, n_val=2, n_test=2)
+    overrides = [f"--model-override={k}={json.dumps(v)}" for k, v in TINY_DEMO["model_overrides"].items()]
+    argv = ["--method", "ours", "--device", "cpu", "--backend", "torch", "--data", str(scene), "--label", "tiny",
+            "--sampler", "hierarchical", "--batch-rays", "16", "--checkpoints", "60,120", "--nominal-steps", "40",
+            "--train-views", "0", "--out", str(tmp_path), "--run-dir", str(tmp_path / "run"), *overrides]
+    run(monkeypatch, *argv)
+    assert "stopped at" not in capsys.readouterr().out
+    (record,) = json.loads(next(tmp_path.glob("*_cpu.json")).read_text())
+    (point,) = record["curve"]
+    state = json.loads((tmp_path / "run" / "ttq_state.json").read_text())
+    assert point["finished"] and point["step"] == state["trainer_step"] == 40 and point["seconds"] < 60
+
+    run(monkeypatch, *argv)
+    assert "resumed at" in capsys.readouterr().out
+    assert json.loads((tmp_path / "run" / "ttq_state.json").read_text()) == state
+    assert json.loads(next(tmp_path.glob("*_cpu.json")).read_text()) == [record]
 
 
 def test_a_run_starts_its_file_from_the_record_and_copies_no_other(tmp_path, monkeypatch):
@@ -174,6 +228,15 @@ def test_the_nerfacc_proposal_method_trains_our_networks_on_its_schedule(tmp_pat
     assert calls["sampled"] > point["step"] and 0 < calls["updates"] < point["step"] + 1
 
 
+def test_the_nerfacc_proposal_method_ends_at_the_trainers_steps(tmp_path, monkeypatch):
+    """Its step function counts the trainer's steps, so it stops where our trainer would."""
+    fake_nerfacc(monkeypatch)
+    scene = ensure_procedural_scene(resolution=16, n_train=4, n_val=2, n_test=2)
+    record = tiny_nerfacc_curve(monkeypatch, tmp_path, scene, "--nominal-steps", "24", "--checkpoints", "60")
+    (point,) = record["curve"]
+    assert point["finished"] and point["step"] == 24
+
+
 def test_a_val_holdout_on_a_blender_scene_scores_training_views_the_curve_left_out(tmp_path, monkeypatch):
     """As the trainer does: every K-th training view is the val split (here 3 of 6), trained without."""
     fake_nerfacc(monkeypatch)
@@ -202,3 +265,32 @@ def test_plot_adds_runs_from_side_by_side_files_in_place_of_their_labels(tmp_pat
     table = (record / "fern_cpu.md").read_text()
     assert (record / "fern_cpu.png").is_file() and "| c | 23.00 | 8.0 | 10 | 26.50 |" in table
     assert "| a | 20.00 | 8.0 | 10 |  |" in table  # a run without training views: an empty cell
+
+
+def test_plot_marks_the_checkpoints_after_a_run_finished_with_its_final_model(tmp_path):
+    """A finished run's final PSNR fills the later time columns, marked †, with a footnote; a file
+    without a finished run has neither."""
+    from benchmarks import plot_time_to_quality
+
+    def point(seconds, psnr, **more):
+        return {"seconds": seconds, "step": int(seconds * 10), "val_psnr": psnr, "samples_per_ray": 8.0,
+                **more}
+
+    def record_of(label, *curve):
+        return {"label": label, "method": "ours", "data": "d", "device": "cpu", "val_views": 1,
+                "curve": list(curve)}
+
+    unfinished = record_of("b", point(30.0, 21.0), point(60.0, 23.0), point(120.0, 25.0))
+    (tmp_path / "fern_cpu.json").write_text(json.dumps(
+        [record_of("a", point(30.0, 20.0), point(60.0, 22.0), point(95.4, 24.5, finished=True)), unfinished]))
+    plot_time_to_quality.plot(tmp_path / "fern_cpu.json", targets_db=(24.0, 25.0))
+    table = (tmp_path / "fern_cpu.md").read_text(encoding="utf-8")
+    assert "| a | 20.00 | 22.00 | 24.50 | 24.50† | 8.0 | 954 |  | 95 s | not by 95 s |" in table
+    assert "| b | 21.00 | 23.00 |  | 25.00 | 8.0 | 1200 |  | 120 s | 120 s |" in table
+    footnote = "† finished (the trainer's --steps) before this checkpoint: its final model."
+    assert table.endswith(f"\n\n{footnote}\n")
+
+    (tmp_path / "fern_cpu.json").write_text(json.dumps([unfinished]))
+    plot_time_to_quality.plot(tmp_path / "fern_cpu.json", targets_db=(24.0, 25.0))
+    table = (tmp_path / "fern_cpu.md").read_text(encoding="utf-8")
+    assert "| b | 21.00 | 23.00 | 25.00 | 8.0 | 1200 |  | 120 s | 120 s |" in table and "†" not in table
