@@ -86,6 +86,15 @@ def test_table_files_agree(finished):
     assert (finished / "A_seed1" / "eval" / "metrics.json").is_file()
 
 
+def test_a_time_budget_alone_is_tabulated_with_the_trainers_default_steps(finished):
+    from mixer_nerf.ablation.table import markdown
+
+    table = json.loads((finished / "table.json").read_text())
+    md = markdown({**table, "budget": {"steps": None, "time_budget_s": 240.0}})
+    assert "the trainer's default steps (20000 with the proposal sampler on forward-facing scenes, else 50000) " \
+           "or 240 s of training" in md
+
+
 def test_table_gives_each_held_out_views_psnr_where_there_are_few(finished):
     from mixer_nerf.ablation.table import MAX_VIEW_COLUMNS, markdown
 

@@ -104,7 +104,7 @@ def test_spike_rollbacks_reach_the_config_of_train_and_ablate():
 
 def test_data_uses_the_full_defaults():
     cfg = parse_train("--data", "scenes/lego", "--preset", "A", "--time-budget", "30", "--ckpt-every", "7")
-    assert cfg.data == "scenes/lego" and cfg.steps == 50_000 and cfg.batch_rays == 4096
+    assert cfg.data == "scenes/lego" and cfg.steps is None and cfg.batch_rays == 4096
     assert (cfg.preset, cfg.time_budget, cfg.ckpt_every, cfg.out) == ("A", 30.0, 7, "runs/lego")
     assert cfg.val_holdout == 0
     assert parse_train("--data", "scenes/fern", "--val-holdout", "8").val_holdout == 8

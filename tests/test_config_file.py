@@ -91,7 +91,7 @@ def test_a_toml_table_of_some_settings_starts_from_the_defaults(tmp_path):
     path = tmp_path / "lego.toml"
     path.write_text('data = "scenes/lego"\npreset = "A"\nlr_hold = 0\nproposal_rounds = [32, 16]\n')
     cfg = parse_train("--config", str(path))
-    assert (cfg.preset, cfg.lr_hold, cfg.proposal_rounds, cfg.steps) == ("A", 0.0, (32, 16), 50_000)
+    assert (cfg.preset, cfg.lr_hold, cfg.proposal_rounds, cfg.steps) == ("A", 0.0, (32, 16), None)
     assert isinstance(cfg.lr_hold, float) and cfg.out == "runs/lego"
     no_data = tmp_path / "demo.toml"
     no_data.write_text("seed = 4\n")

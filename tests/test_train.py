@@ -32,7 +32,12 @@ from mixer_nerf.render.skipping import march_samples, march_samples_fixed, rende
 from mixer_nerf.ops.ray_marching import padding_rays
 from mixer_nerf.render.skipping.marching import with_padding_rays
 from mixer_nerf.train.checkpoint import capture_rng_state, restore_rng_state
-from mixer_nerf.train.config import FORWARD_FACING_MLCA_DECAY, FORWARD_FACING_OCCLUSION
+from mixer_nerf.train.config import (
+    DEFAULT_STEPS,
+    FORWARD_FACING_MLCA_DECAY,
+    FORWARD_FACING_OCCLUSION,
+    FORWARD_FACING_PROPOSAL_STEPS,
+)
 from mixer_nerf.train.fields import model_config
 from mixer_nerf.train.sampling import recipe_notes, resolve_sampler
 from mixer_nerf.train import trainer as trainer_module
@@ -481,6 +486,20 @@ def test_forward_facing_proposal_runs_get_the_occlusion_loss_unless_told_otherwi
     assert resolve_sampler(TrainConfig(sampler="auto"), None, ndc=False).occlusion_weight == 0.0  # unbounded
     for typed in (0.0, 0.05):
         assert resolve_sampler(TrainConfig(occlusion_weight=typed), box, ndc=True).occlusion_weight == typed
+
+
+def test_forward_facing_proposal_runs_train_fewer_steps_unless_told_otherwise():
+    box = torch.tensor([[-1.0] * 3, [1.0] * 3])
+    steps = {(sampler, ndc): resolve_sampler(TrainConfig(sampler=sampler), box, ndc).steps
+             for sampler in ("auto", "proposal", "hierarchical") for ndc in (False, True)}
+    assert steps == {("auto", False): DEFAULT_STEPS, ("auto", True): FORWARD_FACING_PROPOSAL_STEPS,
+                     ("proposal", False): DEFAULT_STEPS, ("proposal", True): FORWARD_FACING_PROPOSAL_STEPS,
+                     ("hierarchical", False): DEFAULT_STEPS, ("hierarchical", True): DEFAULT_STEPS}
+    assert resolve_sampler(TrainConfig(sampler="auto"), None, ndc=False).steps == DEFAULT_STEPS  # unbounded
+    for typed in (7, 60_000):
+        assert resolve_sampler(TrainConfig(steps=typed), box, ndc=True).steps == typed
+    with pytest.raises(ValueError, match="steps must be positive, got 0"):
+        TrainConfig(steps=0)
 
 
 def test_forward_facing_runs_decay_the_mlca_mixing_unless_told_otherwise():

@@ -159,7 +159,7 @@ def _train(cfg: TrainConfig, files: RunFiles, log: Callable[[str], None]) -> dic
             (files.root / name).unlink(missing_ok=True)
     trainer = Trainer(cfg, resume=resume, log=lambda line: log(f"  {line}"))
     log(f"  {'resuming at step ' + str(trainer.step) if resume else 'training'}: sampler {trainer.cfg.sampler}, "
-        f"{cfg.steps} steps" + (f" or {cfg.time_budget:g} s" if cfg.time_budget else ""))
+        f"{trainer.cfg.steps} steps" + (f" or {cfg.time_budget:g} s" if cfg.time_budget else ""))
     try:
         return trainer.fit()
     except NonFiniteError as e:  # the table shows the run as failed; the other runs go on

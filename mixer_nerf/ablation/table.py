@@ -10,6 +10,7 @@ import statistics
 from pathlib import Path
 from typing import Any
 
+from ..train.config import DEFAULT_STEPS, FORWARD_FACING_PROPOSAL_STEPS
 from ..train.logbook import CsvLog
 from ..train.loss_spikes import spike_steps
 from ..train.output import atomic_path, write_text_atomic
@@ -76,8 +77,11 @@ def write_table(table: dict[str, Any], out: Path) -> list[Path]:
 
 def markdown(table: dict[str, Any]) -> str:
     budget = table["budget"]
-    limit = f"{budget['steps']} steps" + (f" or {budget['time_budget_s']:g} s of training, whichever comes first"
-                                          if budget["time_budget_s"] else "")
+    steps = budget["steps"]
+    steps = f"{steps} steps" if steps else (f"the trainer's default steps ({FORWARD_FACING_PROPOSAL_STEPS} with the "
+                                             f"proposal sampler on forward-facing scenes, else {DEFAULT_STEPS})")
+    limit = steps + (f" or {budget['time_budget_s']:g} s of training, whichever comes first"
+                     if budget["time_budget_s"] else "")
     overrides = ", ".join(f"{k}={json.dumps(v)}" for k, v in table["model_overrides"].items()) or "none"
     target = "-" if table["target_psnr"] is None else f"{table['target_psnr']:.1f} dB"
     lines = [

@@ -20,6 +20,11 @@ VAL_IMAGES = {"cuda": 3, "cpu": 1}  # views per validation, by device type
 
 FORWARD_FACING_OCCLUSION = 0.01
 """``occlusion_weight`` where the config leaves it open and the scene is forward-facing (NDC)."""
+FORWARD_FACING_PROPOSAL_STEPS = 20_000
+"""``steps`` where the config leaves it open, for the proposal sampler in a forward-facing (NDC) scene:
+a capture of a few views is best on unseen ones after a shorter schedule (docs/training.md)."""
+DEFAULT_STEPS = 50_000
+"""``steps`` where the config leaves it open, elsewhere."""
 FORWARD_FACING_MLCA_DECAY = 10.0
 """``mlca_weight_decay`` where the config leaves it open, the scene is forward-facing (NDC) and the
 preset has MLCA."""
@@ -61,7 +66,9 @@ class TrainConfig:
     preset: str = option("D", "A NeRF, B +SE, C +MLCA, D Mixer-NeRF (default D)", choices=PRESETS)
     model_overrides: dict[str, Any] = field(default_factory=dict)  # passed to preset_config
     fine_network: bool = True  # a separate fine MLP, as in NeRF (False: the coarse one is reused)
-    steps: int = option(50_000, "training steps, also the length of the lr schedule")
+    steps: int | None = option(
+        None, f"training steps, also the length of the lr schedule (default {FORWARD_FACING_PROPOSAL_STEPS:,} for "
+        f"the proposal sampler on forward-facing (NDC) scenes, {DEFAULT_STEPS:,} elsewhere)")
     batch_rays: int = option(4096, "rays per step")
     num_coarse: int = option(64, "coarse samples per ray")
     num_fine: int = option(128, "fine samples per ray (0: no fine pass)")
@@ -214,8 +221,9 @@ class TrainConfig:
             _one_of("precision", self.precision, PRECISIONS)
         if self.device is not None and self.device.split(":")[0] not in ("cpu", "cuda"):
             raise ValueError(f"device must be 'cpu' or 'cuda', got {self.device!r}")
+        if self.steps is not None and self.steps < 1:
+            raise ValueError(f"steps must be positive, got {self.steps}")
         for name in (
-            "steps",
             "batch_rays",
             "num_coarse",
             "val_every",

@@ -25,7 +25,14 @@ from ..render.skipping import (
     render_rays_marched,
     render_rays_proposal,
 )
-from .config import FORWARD_FACING_MLCA_DECAY, FORWARD_FACING_OCCLUSION, PROPOSAL_REGULARISERS, TrainConfig
+from .config import (
+    DEFAULT_STEPS,
+    FORWARD_FACING_MLCA_DECAY,
+    FORWARD_FACING_OCCLUSION,
+    FORWARD_FACING_PROPOSAL_STEPS,
+    PROPOSAL_REGULARISERS,
+    TrainConfig,
+)
 from .fields import RadianceFields
 
 
@@ -40,7 +47,8 @@ def resolve_sampler(cfg: TrainConfig, bbox: torch.Tensor | None, ndc: bool) -> T
     direction (the paper's Eq. 7), which a grid cannot store. An ``occlusion_weight`` left open is
     :data:`FORWARD_FACING_OCCLUSION` for the proposal sampler in a forward-facing scene, 0 elsewhere;
     a ``mlca_weight_decay`` left open :data:`FORWARD_FACING_MLCA_DECAY` for a preset with MLCA in a
-    forward-facing scene, 0 elsewhere."""
+    forward-facing scene, 0 elsewhere; ``steps`` left open :data:`FORWARD_FACING_PROPOSAL_STEPS` for the
+    proposal sampler in a forward-facing scene, :data:`DEFAULT_STEPS` elsewhere."""
     view_dependent = bool(cfg.model_overrides.get("mlca_concat_direction", False))
     if cfg.sampler != "auto":
         sampler = cfg.sampler
@@ -71,8 +79,9 @@ def resolve_sampler(cfg: TrainConfig, bbox: torch.Tensor | None, ndc: bool) -> T
                              "(0 turns the decay off)")
         raise ValueError(f"mlca_weight_decay {decay} times lr {cfg.lr} must be below 1 "
                          "(each step scales the mixing by 1 - lr * W)")
+    steps = cfg.steps or (FORWARD_FACING_PROPOSAL_STEPS if sampler == "proposal" and ndc else DEFAULT_STEPS)
     return dataclasses.replace(cfg, fine_network=cfg.fine_network and sampler == "hierarchical",
-                               occlusion_weight=occlusion, mlca_weight_decay=decay)
+                               occlusion_weight=occlusion, mlca_weight_decay=decay, steps=steps)
 
 
 def recipe_notes(cfg: TrainConfig) -> list[str]:
