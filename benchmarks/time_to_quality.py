@@ -502,9 +502,8 @@ def main() -> None:
     if relative:
         stop_after += clock.elapsed
     views = torch.linspace(0, len(train) - 1, min(args.train_views, len(train))).round().long().tolist()
-    # as `mixer-nerf train`: our trainer's schedule stops at its --steps (nerfacc's occupancy recipe has none)
-    ours_schedule = args.method in ("ours", "nerfacc-proposal")
-    finished = (lambda: trainer.step >= trainer.cfg.steps) if ours_schedule else None
+    # as `mixer-nerf train`: a run on our trainer's schedule stops at its --steps (nerfacc's recipe has no trainer)
+    finished = None if trainer is None else (lambda: trainer.step >= trainer.cfg.steps)
     done = run_curve(method.step_fn, method.render, val, checkpoints, log=log, clock=clock, start=start, save=save,
                      save_every=args.save_every if save else math.inf, stop_after=stop_after,
                      train=(train, views) if views else None, finished=finished)
