@@ -77,11 +77,11 @@ def write_table(table: dict[str, Any], out: Path) -> list[Path]:
 
 def markdown(table: dict[str, Any]) -> str:
     budget = table["budget"]
-    steps = budget["steps"]
-    steps = f"{steps} steps" if steps else (f"the trainer's default steps ({FORWARD_FACING_PROPOSAL_STEPS} with the "
-                                             f"proposal sampler on forward-facing scenes, else {DEFAULT_STEPS})")
-    limit = steps + (f" or {budget['time_budget_s']:g} s of training, whichever comes first"
-                     if budget["time_budget_s"] else "")
+    limit = (f"{budget['steps']} steps" if budget["steps"] else
+             f"the trainer's default steps ({FORWARD_FACING_PROPOSAL_STEPS} with the proposal sampler on "
+             f"forward-facing scenes, else {DEFAULT_STEPS})")
+    limit += (f" or {budget['time_budget_s']:g} s of training, whichever comes first"
+              if budget["time_budget_s"] else "")
     overrides = ", ".join(f"{k}={json.dumps(v)}" for k, v in table["model_overrides"].items()) or "none"
     target = "-" if table["target_psnr"] is None else f"{table['target_psnr']:.1f} dB"
     lines = [
