@@ -34,6 +34,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -76,19 +77,23 @@ def run_curve(step_fn: Callable[[int], dict | Callable[[], dict]], render: Calla
     pauses meanwhile; ``train``: a training split and the views of it scored as well) and logging
     the stats of the step before it (``step_fn``'s dict, or what the callable it returned reads
     then). Step 0 runs before the clock starts: it builds any JIT kernels (nerfacc's, ours) and
-    warms up caches. ``start``: (step, checkpoints done) of a resumed run, which skips the warm-up.
+    warms up caches. ``start``: (step, checkpoints done) of a resumed run, which warms up by
+    rendering one val view instead (no training state moves; nerfacc's kernels load there).
     ``save(step)`` runs, clock paused, every ``save_every`` training seconds, at each checkpoint and
     before a stop after ``stop_after`` seconds. ``finished()``, asked after every step (so no device
     sync in it), ends the run once True: one last point, ``"finished": True``, stands for every
     checkpoint left. Returns the checkpoints reached (all of them once finished)."""
+    pending = sorted(checkpoints)[0 if start is None else start[1]:]
+    if not pending:  # a complete (or finished) run resumed: nothing to train
+        return start[1]
+    warm_up = time.perf_counter()
     if start is None:
         step_fn(0)
         step, done = 1, 0
     else:
+        validate(render, val, views=[0])
         step, done = start
-    pending = sorted(checkpoints)[done:]
-    if not pending:  # a complete (or finished) run resumed: nothing to train
-        return done
+    print(f"warm-up {time.perf_counter() - warm_up:.1f} s, outside the clock", flush=True)
     next_save = clock.elapsed + save_every
     clock.start()
     while pending:

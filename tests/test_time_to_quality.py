@@ -98,6 +98,28 @@ def test_run_curve_resumed_with_every_checkpoint_done_trains_no_step():
     assert done == 2
 
 
+def test_run_curve_resumed_warms_up_on_a_val_view_before_its_clock_starts(monkeypatch):
+    """A resumed run trains no warm-up step (it would move the state): one val view rendered, clock
+    stopped, then steps from where it stopped."""
+    import torch
+
+    clock, events = TrainingClock(torch.device("cpu")), []
+
+    def validate(render, split, views=None):
+        events.append(("render", views, clock.now()))
+        return 20.0
+
+    monkeypatch.setattr(time_to_quality, "validate", validate)
+
+    def step_fn(step: int) -> dict:
+        events.append(("step", step))
+        return {}
+
+    time_to_quality.run_curve(step_fn, None, None, [1e3, 2e3], log=print, start=(37, 1), clock=clock,
+                              finished=lambda: len(events) >= 3)
+    assert events[0] == ("render", [0], 0.0) and events[1:3] == [("step", 37), ("step", 38)]
+
+
 def test_a_run_ends_at_its_trainers_steps_and_stays_finished_when_resumed(tmp_path, monkeypatch, capsys):
     """As `mixer-nerf train`: ours stops at --steps (here --nominal-steps) well before its checkpoints;
     the same command again resumes a finished run, which trains no further."""
