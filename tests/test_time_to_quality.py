@@ -316,3 +316,26 @@ def test_plot_marks_the_checkpoints_after_a_run_finished_with_its_final_model(tm
     plot_time_to_quality.plot(tmp_path / "fern_cpu.json", targets_db=(24.0, 25.0))
     table = (tmp_path / "fern_cpu.md").read_text(encoding="utf-8")
     assert "| b | 21.00 | 23.00 | 25.00 | 8.0 | 1200 |  | 120 s | 120 s |" in table and "†" not in table
+
+
+def test_plot_highlights_the_runs_its_pattern_matches_and_keeps_every_run_in_the_table(tmp_path):
+    """``highlight``: matching runs in colour with a legend entry, the others grey and unlabelled;
+    the table still lists all of them."""
+    from benchmarks import plot_time_to_quality
+
+    def record_of(label, psnr):
+        return {"label": label, "method": "ours", "data": ".data/fern_8", "device": "cpu", "val_views": 1,
+                "curve": [{"seconds": 30.0, "step": 10, "val_psnr": psnr, "samples_per_ray": 8.0},
+                          {"seconds": 60.0, "step": 20, "val_psnr": psnr + 1, "samples_per_ray": 8.0}]}
+
+    records = [record_of(f"run-{k}", 20.0 + k) for k in range(25)] + [record_of("new-seed1", 30.0)]
+    fig = plot_time_to_quality.curve_figure(records, highlight="^new|run-2[34]$")
+    ax = fig.axes[0]
+    assert [t.get_text() for t in ax.get_legend().get_texts()] == ["run-23", "run-24", "new-seed1"]
+    assert ax.get_title() == "fern_8" and len(ax.lines) == 26
+    colours = {line.get_label(): line.get_color() for line in ax.lines}
+    assert len({colours[k] for k in ("run-23", "run-24", "new-seed1")}) == 3
+    assert sum(line.get_color() == "0.8" for line in ax.lines) == 23
+    (tmp_path / "fern_cpu.json").write_text(json.dumps(records))
+    plot_time_to_quality.plot(tmp_path / "fern_cpu.json", targets_db=(24.0,), highlight="^new")
+    assert (tmp_path / "fern_cpu.md").read_text().count("\n| run-") == 25
