@@ -33,14 +33,14 @@ def curve_figure(records: list[dict], highlight: str | None = None) -> plt.Figur
     """Val PSNR against training time, one line per run; a finished run's final PSNR dashed on to
     the last checkpoint. Runs whose label does not match ``highlight`` (a regular expression; None:
     every run matches) are drawn thin and grey, without a legend entry."""
-    shown = [r for r in records if highlight is None or re.search(highlight, r["label"])]
+    shown = [highlight is None or re.search(highlight, r["label"]) is not None for r in records]
     fig, ax = plt.subplots(figsize=(9, 4.5))
     end = max((pt["seconds"] for r in records for pt in r["curve"]), default=0.0)
     # 20 colours, then markers: a record of 20+ runs keeps every highlighted line distinct
     styles = itertools.cycle([(c, m) for m in "os^D" for c in plt.get_cmap("tab20").colors])
-    for r in records:
+    for r, bright in zip(records, shown, strict=True):
         xs, ys = [pt["seconds"] for pt in r["curve"]], [pt["val_psnr"] for pt in r["curve"]]
-        if r in shown:
+        if bright:
             color, marker = next(styles)
             ax.plot(xs, ys, marker=marker, color=color, label=r["label"], zorder=2)
         else:
@@ -49,11 +49,11 @@ def curve_figure(records: list[dict], highlight: str | None = None) -> plt.Figur
         last = r["curve"][-1] if r["curve"] else {}
         if last.get("finished"):  # its final model stands for the checkpoints after it
             ax.plot([last["seconds"], end], [last["val_psnr"]] * 2, linestyle="--", color=color,
-                    zorder=2 if r in shown else 1)
+                    zorder=2 if bright else 1)
     data = records[0]["data"] if records else ""
     ax.set(xlabel="training time (s)", ylabel="val PSNR (dB)", title=Path(data).name or data)
     ax.grid(alpha=0.3)
-    if shown:
+    if any(shown):
         ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize="small", frameon=False)
     fig.tight_layout()
     return fig

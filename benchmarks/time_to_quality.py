@@ -83,16 +83,15 @@ def run_curve(step_fn: Callable[[int], dict | Callable[[], dict]], render: Calla
     before a stop after ``stop_after`` seconds. ``finished()``, asked after every step (so no device
     sync in it), ends the run once True: one last point, ``"finished": True``, stands for every
     checkpoint left. Returns the checkpoints reached (all of them once finished)."""
-    pending = sorted(checkpoints)[0 if start is None else start[1]:]
+    step, done = (1, 0) if start is None else start
+    pending = sorted(checkpoints)[done:]
     if not pending:  # a complete (or finished) run resumed: nothing to train
-        return start[1]
+        return done
     warm_up = time.perf_counter()
     if start is None:
         step_fn(0)
-        step, done = 1, 0
     else:
         validate(render, val, views=[0])
-        step, done = start
     print(f"warm-up {time.perf_counter() - warm_up:.1f} s, outside the clock", flush=True)
     next_save = clock.elapsed + save_every
     clock.start()
