@@ -336,6 +336,7 @@ def test_plot_highlights_the_runs_its_pattern_matches_and_keeps_every_run_in_the
     colours = {line.get_label(): line.get_color() for line in ax.lines}
     assert len({colours[k] for k in ("run-23", "run-24", "new-seed1")}) == 3
     assert sum(line.get_color() == "0.8" for line in ax.lines) == 23
+    plot_time_to_quality.plt.close(fig)
     (tmp_path / "fern_cpu.json").write_text(json.dumps(records))
     plot_time_to_quality.plot(tmp_path / "fern_cpu.json", targets_db=(24.0,), highlight="^new")
     assert (tmp_path / "fern_cpu.md").read_text().count("\n| run-") == 25
