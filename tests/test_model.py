@@ -289,6 +289,23 @@ def test_relu_density_option():
     torch.testing.assert_close(model(x, d)[0], torch.relu(raw))
 
 
+@pytest.mark.parametrize("preset", ["A", "D"])
+def test_density_noise_perturbs_the_pre_activation_of_training_passes_only(preset):
+    """sigma = softplus(raw + std * N(0, 1) - 1) in training mode, drawn from the model's generator;
+    an eval pass, and a model without noise, see raw alone; colour never depends on the noise."""
+    model = randomize_(small_model(preset))
+    x, d = random_rays(8, 8)
+    clean_sigma, clean_rgb = model(x, d)
+    model.density_noise, model.noise_generator = 0.5, torch.Generator().manual_seed(3)
+    sigma, rgb = model(x, d)
+    noise = torch.randn(sigma.shape, generator=torch.Generator().manual_seed(3))
+    raw = torch.log(torch.expm1(clean_sigma.double())) + 1.0  # softplus's inverse, then the shift undone
+    torch.testing.assert_close(sigma.double(), F.softplus(raw + 0.5 * noise.double() - 1.0), rtol=1e-4, atol=1e-5)
+    torch.testing.assert_close(rgb, clean_rgb)
+    model.eval()
+    torch.testing.assert_close(model(x, d)[0], clean_sigma)
+
+
 def test_under_autocast_the_encoding_is_cast_once_for_the_trunk_and_its_skip():
     """The mixed encoding feeds the first layer and the skip: one cast to autocast's dtype, so one
     cast back in the backward (two casts were two passes each way and a float32 sum of the two)."""

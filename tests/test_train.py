@@ -145,6 +145,8 @@ def params_of(trainer: Trainer) -> dict[str, torch.Tensor]:
         ("occlusion_weight", math.nan),
         ("occlusion_fraction", 0.0),
         ("occlusion_fraction", 1.0),
+        ("density_noise", -0.5),
+        ("density_noise", math.nan),
         ("frequency_anneal", -0.1),
         ("frequency_anneal", 1.5),
         ("frequency_anneal", math.nan),
@@ -1030,13 +1032,13 @@ def test_a_cpu_run_records_that_it_replayed_no_graphs(tmp_path):
 
 @pytest.mark.cuda
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU")
-@pytest.mark.parametrize("options", [{}, {"frequency_anneal": 1.0, "mlca_weight_decay": 50.0}],
-                         ids=["defaults", "window and decay"])
+@pytest.mark.parametrize("options", [{}, {"frequency_anneal": 1.0, "mlca_weight_decay": 50.0, "density_noise": 1.0}],
+                         ids=["defaults", "window, decay and density noise"])
 def test_cuda_graphed_proposal_steps_train_as_the_eager_ones(tmp_path, options):
     """Replays draw the same rays and samples as eager steps (the generator's offsets advance alike),
     so the two runs agree step by step, through a checkpoint and a resume; a frequency window that
-    moves every step reaches the replays through its device buffer, and the mixing's decay reads
-    the replayed step's learning rate."""
+    moves every step reaches the replays through its device buffer, the mixing's decay reads
+    the replayed step's learning rate, and the density noise comes from the registered generator."""
     settings = dict(sampler="proposal", proposal_rounds=(12, 8), proposal_samples=6, device="cuda",
                     backend="auto", steps=12, ckpt_every=6, val_every=100, log_every=3, **options)
     losses = {}
@@ -1325,6 +1327,16 @@ def test_proposal_residual_and_intervals_reach_the_sampler_and_train(tmp_path):
     assert (trainer.fields.proposal.options.residual, trainer.fields.proposal.options.intervals) == ("last", "between")
     trainer.fit()
     assert all(math.isfinite(float(r["loss"])) for r in trainer.train_log.rows())
+
+
+@pytest.mark.parametrize("sampler", ["hierarchical", "proposal"])
+def test_density_noise_reaches_every_field_from_the_ray_sampler_and_spares_validation(tmp_path, sampler):
+    trainer = Trainer(tiny_config(tmp_path, sampler=sampler, steps=4, density_noise=1.0), log=quiet)
+    fields = [f for f in (trainer.fields.coarse, trainer.fields.fine) if f is not None]
+    assert all(f.density_noise == 1.0 and f.noise_generator is trainer.sampler.generator for f in fields)
+    trainer.fit()
+    assert all(math.isfinite(float(r["loss"])) for r in trainer.train_log.rows())
+    assert trainer.validate() == trainer.validate()  # eval passes draw no noise
 
 
 def test_frequency_anneal_opens_the_octaves_over_its_fraction_of_the_run(tmp_path):

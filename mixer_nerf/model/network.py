@@ -88,6 +88,10 @@ class MixerNeRF(nn.Module):
         self.register_buffer("octave_of_column", torch.cat([torch.full((3,), -1.0), octave]), persistent=False)
         self.register_buffer("octave_weights", torch.ones_like(self.octave_of_column), persistent=False)
         self.frequency_window: float | None = None
+        # NeRF's and mip-NeRF's LLFF regulariser, set by the trainer: N(0, density_noise^2) added to
+        # the density pre-activation in training passes (``self.training``), drawn from noise_generator.
+        self.density_noise = 0.0
+        self.noise_generator: torch.Generator | None = None
 
     def forward(
         self,
@@ -128,7 +132,7 @@ class MixerNeRF(nn.Module):
         feature, raw = self._head(gated)
         if not self.cfg.se_gates_density and gated is not trunk:
             raw = self._density_logit(trunk)
-        sigma = self._activate_density(raw, x.dtype)
+        sigma = self._activate_density(self._perturbed(raw), x.dtype)
         view_term = spread(self.view_direction(self.direction_mixer(direction)))  # per ray when d is
         hidden = torch.relu(self._linear(self.view_feature, feature) + view_term)
         rgb = torch.sigmoid(self._linear(self.rgb, hidden).to(x.dtype))
@@ -247,6 +251,14 @@ class MixerNeRF(nn.Module):
     def _linear(self, layer: nn.Linear, x: torch.Tensor) -> torch.Tensor:
         """``layer(x)`` with its bias gradient as a GEMV (ops.linear), not a column reduction."""
         return linear(x, layer.weight, layer.bias, backend=self.cfg.backend)
+
+    def _perturbed(self, raw: torch.Tensor) -> torch.Tensor:
+        """``raw`` with the training passes' density noise (float32 from there), else ``raw`` itself."""
+        if not (self.training and self.density_noise > 0):
+            return raw
+        raw = raw.float()
+        noise = torch.randn(raw.shape, device=raw.device, generator=self.noise_generator)
+        return raw + self.density_noise * noise
 
     def _activate_density(self, raw: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
         raw = raw.to(dtype)

@@ -192,6 +192,10 @@ class TrainConfig:
         0.0, "open the positions' encoding octave by octave over this fraction of the run, coarse to "
         "fine (Nerfies' window; FreeNeRF's frequency regularisation against overfitting on few views; "
         "default 0: every octave from the start)", metavar="FRACTION")
+    density_noise: float = option(
+        0.0, "standard deviation of the Gaussian noise added to the field's density pre-activation in "
+        "training steps, NeRF's and mip-NeRF's regulariser against floaters on real captures (they use 1 "
+        "on LLFF scenes; default 0: off)", metavar="STD")
     # None: the scene decides (sampling.resolve_sampler); 10 on forward-facing scenes from Fern's val
     # split, against preset D's late decline on few views (docs/training.md)
     mlca_weight_decay: float | None = option(
@@ -245,6 +249,8 @@ class TrainConfig:
         if self.mlca_weight_decay is not None and not (
                 math.isfinite(self.mlca_weight_decay) and self.mlca_weight_decay >= 0):
             raise ValueError(f"mlca_weight_decay must be finite and >= 0, got {self.mlca_weight_decay}")
+        if not (math.isfinite(self.density_noise) and self.density_noise >= 0):
+            raise ValueError(f"density_noise must be finite and >= 0, got {self.density_noise}")
         if not 0 <= self.frequency_anneal <= 1:
             raise ValueError(f"frequency_anneal must be in [0, 1], got {self.frequency_anneal}")
         if self.lr_hold is not None and not 0 <= self.lr_hold < 1:

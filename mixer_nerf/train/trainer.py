@@ -258,6 +258,11 @@ class Trainer:
         near, far = self.train_scene.near, self.train_scene.far
         self.renderer = image_renderer(cfg, self.fields, near, far, self.background, step=lambda: self.step)
         self.sampler = RaySampler(self.train_scene, cfg.batch_rays, rank_seed(cfg.seed, self.rank))
+        # A replayed step's draws come from the generator its graph registers: the sampler's.
+        noise_generator = self.sampler.generator if self.sampler.generator.device.type == self.device.type else None
+        for field in (self.fields.coarse, self.fields.fine):
+            if field is not None:
+                field.density_noise, field.noise_generator = cfg.density_noise, noise_generator
         self.batches = self.occupancy = None
         if self.fields.grid is not None:
             self.occupancy = occupancy = occupancy_sampler(cfg, self.fields.grid, self.ranks and self.ranks.cell_share())
