@@ -283,7 +283,8 @@ TRAINER_OPTIONS = (
     "adam_eps", "early_stop_eps", "empty_space_weight", "grid_warmup", "grid_every", "grid_threshold", "step_size",
     "proposal_width", "proposal_samples", "proposal_loss_weight", "proposal_update_every", "proposal_jitter",
     "proposal_weight_padding", "val_holdout", "grad_clip", "distortion_weight", "proposal_residual",
-    "proposal_intervals", "cuda_graphs", "frequency_anneal", "mlca_weight_decay", "occlusion_weight", "occlusion_fraction")
+    "proposal_intervals", "cuda_graphs", "frequency_anneal", "density_noise", "mlca_weight_decay", "occlusion_weight",
+    "occlusion_fraction")
 """Options of ours passed to TrainConfig only when given: unset, they keep the trainer's defaults."""
 
 
@@ -408,7 +409,7 @@ def main() -> None:
     # as `mixer-nerf train` has them (help and types from TrainConfig); unset, the trainer's defaults
     add_options(parser, ("--distortion-weight", "--adam-eps", "--val-holdout", "--grad-clip", "--proposal-residual",
                          "--proposal-intervals", "--proposal-loss-weight", "--cuda-graphs", "--frequency-anneal",
-                         "--mlca-weight-decay", "--occlusion-weight", "--occlusion-fraction"))
+                         "--density-noise", "--mlca-weight-decay", "--occlusion-weight", "--occlusion-fraction"))
     parser.add_argument("--early-stop-eps", type=float,
                         help="ours, occupancy sampler: early ray termination (0: off; default: the trainer's)")
     parser.add_argument("--empty-space-weight", type=float,

@@ -171,12 +171,14 @@ def test_trainer_flags_reach_our_trainers_config_and_clip_only_ours(tmp_path, mo
     monkeypatch.setattr(mixer_nerf.train, "Trainer", trainer)
     argv = ["--device", "cpu", "--data", str(scene), "--out", str(tmp_path), "--grad-clip", "0.5",
             "--adam-eps", "1e-8", "--proposal-residual", "last", "--proposal-intervals", "between",
-            "--frequency-anneal", "0.25", "--mlca-weight-decay", "2", "--proposal-loss-weight", "0.02"]
+            "--frequency-anneal", "0.25", "--mlca-weight-decay", "2", "--proposal-loss-weight", "0.02",
+            "--density-noise", "0.5"]
     with pytest.raises(Built) as built:
         run(monkeypatch, "--method", "ours", *argv)
     (cfg,) = built.value.args
     assert (cfg.grad_clip, cfg.adam_eps, cfg.proposal_residual, cfg.proposal_intervals, cfg.frequency_anneal,
-            cfg.mlca_weight_decay, cfg.proposal_loss_weight) == (0.5, 1e-8, "last", "between", 0.25, 2.0, 0.02)
+            cfg.mlca_weight_decay, cfg.proposal_loss_weight, cfg.density_noise) == (
+                0.5, 1e-8, "last", "between", 0.25, 2.0, 0.02, 0.5)
     # as `mixer-nerf train --time-budget` with its default --steps: whichever ends the schedule first
     assert cfg.time_budget == 240 and cfg.steps == TrainConfig().steps
     with pytest.raises(Built) as built:
