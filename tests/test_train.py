@@ -1332,7 +1332,8 @@ def test_proposal_residual_and_intervals_reach_the_sampler_and_train(tmp_path):
 @pytest.mark.parametrize("sampler", ["hierarchical", "proposal"])
 def test_density_noise_reaches_every_field_from_the_ray_sampler_and_spares_validation(tmp_path, sampler):
     trainer = Trainer(tiny_config(tmp_path, sampler=sampler, steps=4, density_noise=1.0), log=quiet)
-    fields = [f for f in (trainer.fields.coarse, trainer.fields.fine) if f is not None]
+    fields = trainer.fields.mlps()
+    assert len(fields) == (2 if sampler == "hierarchical" else 1)
     assert all(f.density_noise == 1.0 and f.noise_generator is trainer.sampler.generator for f in fields)
     trainer.fit()
     assert all(math.isfinite(float(r["loss"])) for r in trainer.train_log.rows())

@@ -246,11 +246,9 @@ class TrainConfig:
             raise ValueError(f"downscale must be >= 1, got {self.downscale}")
         if not (isinstance(self.val_holdout, int) and self.val_holdout >= 0):
             raise ValueError(f"val_holdout must be an integer >= 0, got {self.val_holdout!r}")
-        if self.mlca_weight_decay is not None and not (
-                math.isfinite(self.mlca_weight_decay) and self.mlca_weight_decay >= 0):
-            raise ValueError(f"mlca_weight_decay must be finite and >= 0, got {self.mlca_weight_decay}")
-        if not (math.isfinite(self.density_noise) and self.density_noise >= 0):
-            raise ValueError(f"density_noise must be finite and >= 0, got {self.density_noise}")
+        if self.mlca_weight_decay is not None:
+            _finite_non_negative("mlca_weight_decay", self.mlca_weight_decay)
+        _finite_non_negative("density_noise", self.density_noise)
         if not 0 <= self.frequency_anneal <= 1:
             raise ValueError(f"frequency_anneal must be in [0, 1], got {self.frequency_anneal}")
         if self.lr_hold is not None and not 0 <= self.lr_hold < 1:
@@ -279,8 +277,7 @@ class TrainConfig:
             weight = getattr(self, name)
             if weight is None:  # decided with the sampler
                 continue
-            if not (math.isfinite(weight) and weight >= 0):
-                raise ValueError(f"{name} must be finite and >= 0, got {weight}")
+            _finite_non_negative(name, weight)
             if weight > 0 and self.sampler not in ("auto", "proposal"):
                 raise ValueError(f"{name} applies to the proposal sampler only, not to sampler {self.sampler!r}")
         if not 0 < self.occlusion_fraction < 1:
@@ -389,6 +386,11 @@ DEMO_SETTINGS: dict[str, Any] = {
     "log_every": 50,
 }
 """Defaults for the built-in scene so that a run finishes in a few minutes on a 2-core CPU."""
+
+
+def _finite_non_negative(name: str, value: float) -> None:
+    if not (math.isfinite(value) and value >= 0):
+        raise ValueError(f"{name} must be finite and >= 0, got {value}")
 
 
 def _one_of(name: str, value: Any, allowed: tuple) -> None:

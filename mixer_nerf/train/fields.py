@@ -37,6 +37,10 @@ class RadianceFields(nn.Module):
         self.grid = grid
         self.proposal = proposal
 
+    def mlps(self) -> list[MixerNeRF]:
+        """The run's MLPs: the coarse one, and the fine one where there is one."""
+        return [self.coarse] if self.fine is None else [self.coarse, self.fine]
+
     def runners(self, precision: str, device: torch.device) -> tuple[nn.Module, nn.Module | None]:
         """(coarse, fine) callables for the renderers at ``precision``."""
         dtype = torch.bfloat16 if precision == "bf16" else None

@@ -258,11 +258,8 @@ class Trainer:
         near, far = self.train_scene.near, self.train_scene.far
         self.renderer = image_renderer(cfg, self.fields, near, far, self.background, step=lambda: self.step)
         self.sampler = RaySampler(self.train_scene, cfg.batch_rays, rank_seed(cfg.seed, self.rank))
-        # A replayed step's draws come from the generator its graph registers: the sampler's.
-        noise_generator = self.sampler.generator if self.sampler.generator.device.type == self.device.type else None
-        for field in (self.fields.coarse, self.fields.fine):
-            if field is not None:
-                field.density_noise, field.noise_generator = cfg.density_noise, noise_generator
+        for field in self.fields.mlps():  # a replayed step draws from the generator its graph registers
+            field.density_noise, field.noise_generator = cfg.density_noise, self.sampler.generator
         self.batches = self.occupancy = None
         if self.fields.grid is not None:
             self.occupancy = occupancy = occupancy_sampler(cfg, self.fields.grid, self.ranks and self.ranks.cell_share())
@@ -517,9 +514,8 @@ class Trainer:
         if not fraction:
             return
         alpha = self.model_cfg.pos_freqs * progress / fraction
-        for field in (self.fields.coarse, self.fields.fine):
-            if field is not None:
-                field.set_frequency_window(alpha)
+        for field in self.fields.mlps():
+            field.set_frequency_window(alpha)
 
     def render_rgb(self, rays_o: torch.Tensor, rays_d: torch.Tensor) -> torch.Tensor:
         """Final colours (R, 3) of arbitrary rays with the current fields (deterministic samples)."""
