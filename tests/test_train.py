@@ -34,8 +34,6 @@ from mixer_nerf.render.skipping.marching import with_padding_rays
 from mixer_nerf.train.checkpoint import capture_rng_state, restore_rng_state
 from mixer_nerf.train.config import (
     DEFAULT_STEPS,
-    FORWARD_FACING_MLCA_DECAY,
-    FORWARD_FACING_OCCLUSION,
     FORWARD_FACING_PROPOSAL_STEPS,
 )
 from mixer_nerf.train.fields import model_config
@@ -478,16 +476,16 @@ def test_auto_sampler_marches_bounded_scenes_and_proposes_for_forward_facing_and
         resolve_sampler(TrainConfig(sampler="occupancy"), None, ndc=False)
 
 
-def test_forward_facing_proposal_runs_get_the_occlusion_loss_unless_told_otherwise():
+def test_no_scene_gets_the_few_view_regularisers_unless_told():
     box = torch.tensor([[-1.0] * 3, [1.0] * 3])
-    weight = {(sampler, ndc): resolve_sampler(TrainConfig(sampler=sampler), box, ndc).occlusion_weight
-              for sampler in ("auto", "proposal", "hierarchical") for ndc in (False, True)}
-    assert weight == {("auto", False): 0.0, ("auto", True): FORWARD_FACING_OCCLUSION,
-                      ("proposal", False): 0.0, ("proposal", True): FORWARD_FACING_OCCLUSION,
-                      ("hierarchical", False): 0.0, ("hierarchical", True): 0.0}
-    assert resolve_sampler(TrainConfig(sampler="auto"), None, ndc=False).occlusion_weight == 0.0  # unbounded
-    for typed in (0.0, 0.05):
-        assert resolve_sampler(TrainConfig(occlusion_weight=typed), box, ndc=True).occlusion_weight == typed
+    for preset in "ABCD":
+        for bbox, ndc in ((box, False), (box, True), (None, False)):
+            cfg = resolve_sampler(TrainConfig(preset=preset), bbox, ndc)
+            assert (cfg.occlusion_weight, cfg.mlca_weight_decay) == (0.0, 0.0)
+    typed = resolve_sampler(TrainConfig(occlusion_weight=0.05, mlca_weight_decay=3.0), box, ndc=True)
+    assert (typed.occlusion_weight, typed.mlca_weight_decay) == (0.05, 3.0)
+    with pytest.raises(ValueError, match="mlca_weight_decay 10 times lr 0.1 must be below 1"):
+        resolve_sampler(TrainConfig(lr=0.1, mlca_weight_decay=10.0), box, ndc=True)
 
 
 def test_forward_facing_proposal_runs_train_fewer_steps_unless_told_otherwise():
@@ -502,23 +500,6 @@ def test_forward_facing_proposal_runs_train_fewer_steps_unless_told_otherwise():
         assert resolve_sampler(TrainConfig(steps=typed), box, ndc=True).steps == typed
     with pytest.raises(ValueError, match="steps must be positive, got 0"):
         TrainConfig(steps=0)
-
-
-def test_forward_facing_runs_decay_the_mlca_mixing_unless_told_otherwise():
-    box = torch.tensor([[-1.0] * 3, [1.0] * 3])
-    decay = {(preset, ndc): resolve_sampler(TrainConfig(preset=preset), box, ndc).mlca_weight_decay
-             for preset in "ABCD" for ndc in (False, True)}
-    assert decay == {("A", False): 0.0, ("A", True): 0.0, ("B", False): 0.0, ("B", True): 0.0,
-                     ("C", False): 0.0, ("C", True): FORWARD_FACING_MLCA_DECAY,
-                     ("D", False): 0.0, ("D", True): FORWARD_FACING_MLCA_DECAY}
-    no_mlca = TrainConfig(preset="D", model_overrides={"use_mlca": False})
-    assert resolve_sampler(no_mlca, box, ndc=True).mlca_weight_decay == 0.0
-    for typed in (0.0, 3.0):
-        assert resolve_sampler(TrainConfig(mlca_weight_decay=typed), box, ndc=True).mlca_weight_decay == typed
-        assert resolve_sampler(TrainConfig(mlca_weight_decay=typed), box, ndc=False).mlca_weight_decay == typed
-    with pytest.raises(ValueError, match="lr 0.1 times the MLCA decay forward-facing scenes get by default"):
-        resolve_sampler(TrainConfig(lr=0.1), box, ndc=True)
-    assert resolve_sampler(TrainConfig(lr=0.1), box, ndc=False).mlca_weight_decay == 0.0
 
 
 def test_forward_facing_scenes_get_no_direction_mlca_unless_asked():
@@ -1398,12 +1379,11 @@ def test_a_forward_facing_scene_trains_d_without_the_direction_mlca_and_says_so(
     assert trainer.train_scene.ndc and not trainer.model_cfg.mlca_directions
     assert isinstance(trainer.fields.coarse.direction_mixer, torch.nn.Identity)
     assert any("MLCA mixes PE(x) only" in line for line in lines)
-    assert trainer.cfg.mlca_weight_decay == FORWARD_FACING_MLCA_DECAY
-    assert any(f"W = {FORWARD_FACING_MLCA_DECAY:g} (--mlca-weight-decay" in line for line in lines)
+    assert trainer.cfg.mlca_weight_decay == 0.0 and not any("--mlca-weight-decay" in line for line in lines)
 
 
 def test_recipe_notes_name_the_regularisers_that_are_on():
-    assert recipe_notes(TrainConfig(occlusion_weight=0.0, mlca_weight_decay=0.0)) == []
+    assert recipe_notes(TrainConfig()) == []
     notes = recipe_notes(TrainConfig(sampler="proposal", occlusion_weight=0.01, mlca_weight_decay=10.0))
     assert notes == ["occlusion loss 0.01 on the first 0.1 of each ray (--occlusion-weight)",
                      "MLCA's mixing decayed toward the identity, W = 10 (--mlca-weight-decay; presets C and D)"]

@@ -18,16 +18,11 @@ SAMPLERS = ("auto", "occupancy", "proposal", "hierarchical")
 VAL_IMAGES = {"cuda": 3, "cpu": 1}  # views per validation, by device type
 
 
-FORWARD_FACING_OCCLUSION = 0.01
-"""``occlusion_weight`` where the config leaves it open and the scene is forward-facing (NDC)."""
 FORWARD_FACING_PROPOSAL_STEPS = 20_000
 """``steps`` where the config leaves it open, for the proposal sampler in a forward-facing (NDC) scene:
 a capture of a few views is best on unseen ones after a shorter schedule (docs/training.md)."""
 DEFAULT_STEPS = 50_000
 """``steps`` where the config leaves it open, elsewhere."""
-FORWARD_FACING_MLCA_DECAY = 10.0
-"""``mlca_weight_decay`` where the config leaves it open, the scene is forward-facing (NDC) and the
-preset has MLCA."""
 
 
 def option(default: Any, help: str, **argparse_options: Any) -> Any:
@@ -178,12 +173,10 @@ class TrainConfig:
         0.0, "proposal sampler: weight of mip-NeRF 360's distortion loss on the main field's weights, "
         "which gathers each ray's weight into few short intervals (default 0: off; nerfacto uses 0.002)",
         metavar="W")
-    # None: the scene decides (sampling.resolve_sampler); 0.01 on forward-facing scenes from Fern's
-    # val split (docs/training.md)
-    occlusion_weight: float | None = option(
-        None, "proposal sampler: weight of FreeNeRF's occlusion regularisation, the main field's weight "
-        f"in the first --occlusion-fraction of each ray (default {FORWARD_FACING_OCCLUSION} on "
-        "forward-facing (NDC) scenes, 0 (off) elsewhere)", metavar="W")
+    # Off: at 20,000 steps on Fern's val split D ended higher without it (docs/training.md).
+    occlusion_weight: float = option(
+        0.0, "proposal sampler: weight of FreeNeRF's occlusion regularisation, the main field's weight "
+        "in the first --occlusion-fraction of each ray (default 0: off; e.g. 0.01)", metavar="W")
     occlusion_fraction: float = option(
         0.1, "proposal sampler: the stretch of each ray, in the sampler's spacing coordinate s in [0, 1], "
         "that --occlusion-weight penalises", metavar="FRACTION")
@@ -196,13 +189,11 @@ class TrainConfig:
         0.0, "standard deviation of the Gaussian noise added to the field's density pre-activation in "
         "training steps, NeRF's and mip-NeRF's regulariser against floaters on real captures (they use 1 "
         "on LLFF scenes; default 0: off)", metavar="STD")
-    # None: the scene decides (sampling.resolve_sampler); 10 on forward-facing scenes from Fern's val
-    # split, against preset D's late decline on few views (docs/training.md)
-    mlca_weight_decay: float | None = option(
-        None, "decoupled weight decay of MLCA's token- and channel-mixing matrices (presets C and D): "
+    # Off: at 20,000 steps on Fern's val split D ended higher without it (docs/training.md).
+    mlca_weight_decay: float = option(
+        0.0, "decoupled weight decay of MLCA's token- and channel-mixing matrices (presets C and D): "
         "after each step they are scaled by 1 - lr * W, which pulls the mixing toward the identity, "
-        f"the NeRF it extends (default {FORWARD_FACING_MLCA_DECAY:g} on forward-facing (NDC) scenes, "
-        "0 (off) elsewhere)", metavar="W")
+        "the NeRF it extends (default 0: off; e.g. 10)", metavar="W")
     cuda_graphs: bool | None = option(
         None, "proposal or occupancy sampler on a GPU: replay each training step as a CUDA graph, without "
         "the host work between its kernels; occupancy batches are padded to a fixed capacity (default: on "
@@ -246,8 +237,7 @@ class TrainConfig:
             raise ValueError(f"downscale must be >= 1, got {self.downscale}")
         if not (isinstance(self.val_holdout, int) and self.val_holdout >= 0):
             raise ValueError(f"val_holdout must be an integer >= 0, got {self.val_holdout!r}")
-        if self.mlca_weight_decay is not None:
-            _finite_non_negative("mlca_weight_decay", self.mlca_weight_decay)
+        _finite_non_negative("mlca_weight_decay", self.mlca_weight_decay)
         _finite_non_negative("density_noise", self.density_noise)
         if not 0 <= self.frequency_anneal <= 1:
             raise ValueError(f"frequency_anneal must be in [0, 1], got {self.frequency_anneal}")
@@ -275,8 +265,6 @@ class TrainConfig:
             raise ValueError(f"proposal_weight_padding must be >= 0, got {self.proposal_weight_padding}")
         for name in PROPOSAL_REGULARISERS:
             weight = getattr(self, name)
-            if weight is None:  # decided with the sampler
-                continue
             _finite_non_negative(name, weight)
             if weight > 0 and self.sampler not in ("auto", "proposal"):
                 raise ValueError(f"{name} applies to the proposal sampler only, not to sampler {self.sampler!r}")

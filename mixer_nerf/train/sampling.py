@@ -9,7 +9,7 @@ from collections.abc import Callable
 
 import torch
 
-from ..model import ModelConfig, preset_config
+from ..model import ModelConfig
 from ..model.proposal_network import ProposalNetwork
 from ..render import ImageRenderer, chunk_result, render_rays
 from ..render.image_renderer import RENDER_SAMPLES, ChunkResult, rays_per_chunk
@@ -27,8 +27,6 @@ from ..render.skipping import (
 )
 from .config import (
     DEFAULT_STEPS,
-    FORWARD_FACING_MLCA_DECAY,
-    FORWARD_FACING_OCCLUSION,
     FORWARD_FACING_PROPOSAL_STEPS,
     PROPOSAL_REGULARISERS,
     TrainConfig,
@@ -44,11 +42,9 @@ def resolve_sampler(cfg: TrainConfig, bbox: torch.Tensor | None, ndc: bool) -> T
     "auto" marches an occupancy grid in bounded scenes (a box, world space); forward-facing NDC
     scenes fill their box, so a grid skips little there, and unbounded scenes have no box: both get
     the proposal sampler (docs/skipping.md), as does a model whose density depends on the view
-    direction (the paper's Eq. 7), which a grid cannot store. An ``occlusion_weight`` left open is
-    :data:`FORWARD_FACING_OCCLUSION` for the proposal sampler in a forward-facing scene, 0 elsewhere;
-    a ``mlca_weight_decay`` left open :data:`FORWARD_FACING_MLCA_DECAY` for a preset with MLCA in a
-    forward-facing scene, 0 elsewhere; ``steps`` left open :data:`FORWARD_FACING_PROPOSAL_STEPS` for the
-    proposal sampler in a forward-facing scene, :data:`DEFAULT_STEPS` elsewhere."""
+    direction (the paper's Eq. 7), which a grid cannot store. ``steps`` left open is
+    :data:`FORWARD_FACING_PROPOSAL_STEPS` for the proposal sampler in a forward-facing scene,
+    :data:`DEFAULT_STEPS` elsewhere."""
     view_dependent = bool(cfg.model_overrides.get("mlca_concat_direction", False))
     if cfg.sampler != "auto":
         sampler = cfg.sampler
@@ -61,32 +57,20 @@ def resolve_sampler(cfg: TrainConfig, bbox: torch.Tensor | None, ndc: bool) -> T
                          "mlca_concat_direction (Eq. 7) makes it view-dependent: use 'proposal' or 'hierarchical'")
     # only "auto" gets here: TrainConfig refuses the other samplers when named
     for name in PROPOSAL_REGULARISERS:
-        if (getattr(cfg, name) or 0) > 0 and sampler != "proposal":
+        if getattr(cfg, name) > 0 and sampler != "proposal":
             raise ValueError(f"{name} applies to the proposal sampler only, and sampler 'auto' chose "
                              f"{sampler!r} for this scene: pass sampler 'proposal' or {name} 0")
     cfg = cfg.with_recipe(sampler)
-    occlusion = cfg.occlusion_weight
-    if occlusion is None:
-        occlusion = FORWARD_FACING_OCCLUSION if sampler == "proposal" and ndc else 0.0
-    decay = cfg.mlca_weight_decay
-    if decay is None:
-        has_mlca = preset_config(cfg.preset, **cfg.model_overrides).use_mlca
-        decay = FORWARD_FACING_MLCA_DECAY if ndc and has_mlca else 0.0
-    if cfg.lr * decay >= 1:  # each step scales the mixing by 1 - lr * W
-        if cfg.mlca_weight_decay is None:
-            raise ValueError(f"lr {cfg.lr:g} times the MLCA decay forward-facing scenes get by default "
-                             f"({decay:g}) must be below 1: pass a smaller lr, or mlca_weight_decay "
-                             "(0 turns the decay off)")
-        raise ValueError(f"mlca_weight_decay {decay} times lr {cfg.lr} must be below 1 "
+    if cfg.lr * cfg.mlca_weight_decay >= 1:  # each step scales the mixing by 1 - lr * W
+        raise ValueError(f"mlca_weight_decay {cfg.mlca_weight_decay:g} times lr {cfg.lr:g} must be below 1 "
                          "(each step scales the mixing by 1 - lr * W)")
     steps = cfg.steps or (FORWARD_FACING_PROPOSAL_STEPS if sampler == "proposal" and ndc else DEFAULT_STEPS)
-    return dataclasses.replace(cfg, fine_network=cfg.fine_network and sampler == "hierarchical",
-                               occlusion_weight=occlusion, mlca_weight_decay=decay, steps=steps)
+    return dataclasses.replace(cfg, fine_network=cfg.fine_network and sampler == "hierarchical", steps=steps)
 
 
 def recipe_notes(cfg: TrainConfig) -> list[str]:
     """What a reader of a run's results needs to know about the regularisers a resolved ``cfg``
-    trained with (some are on by default on forward-facing scenes only) and about its val split."""
+    trained with and about its val split."""
     notes = []
     if cfg.val_holdout:
         notes.append(f"val views: 1 in {cfg.val_holdout} of the training views, left out of training "
