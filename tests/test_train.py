@@ -484,6 +484,8 @@ def test_no_scene_gets_the_few_view_regularisers_unless_told():
             assert (cfg.occlusion_weight, cfg.mlca_weight_decay) == (0.0, 0.0)
     typed = resolve_sampler(TrainConfig(occlusion_weight=0.05, mlca_weight_decay=3.0), box, ndc=True)
     assert (typed.occlusion_weight, typed.mlca_weight_decay) == (0.05, 3.0)
+    assert resolve_sampler(TrainConfig(mlca_weight_decay=3.0), box, ndc=False).mlca_weight_decay == 3.0
+    assert resolve_sampler(TrainConfig(lr=0.1), box, ndc=True).mlca_weight_decay == 0.0  # no decay: any lr
     with pytest.raises(ValueError, match="mlca_weight_decay 10 times lr 0.1 must be below 1"):
         resolve_sampler(TrainConfig(lr=0.1, mlca_weight_decay=10.0), box, ndc=True)
 
